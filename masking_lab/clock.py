@@ -1,0 +1,66 @@
+"""Clocks: real time at the rig, virtual time in simulation.
+
+The runner never calls ``time`` directly; it asks a :class:`Clock`. A :class:`VirtualClock` makes a
+simulated ten-participant study run in seconds while logging the same onsets a rig would.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Protocol
+
+
+class Clock(Protocol):
+    """Monotonic seconds since an arbitrary origin, and a way to wait until a time."""
+
+    virtual: bool
+
+    def now(self) -> float:
+        """Current time in s."""
+        ...
+
+    def sleep_until(self, t: float) -> None:
+        """Block (real) or jump (virtual) until time ``t`` in s; never goes backwards."""
+        ...
+
+
+class RealClock:
+    """Wall-clock monotonic time (``time.perf_counter``)."""
+
+    virtual = False
+
+    def __init__(self) -> None:
+        self._origin = time.perf_counter()
+
+    def now(self) -> float:
+        return time.perf_counter() - self._origin
+
+    def sleep_until(self, t: float) -> None:
+        # Sleep coarsely, then spin the last millisecond for onset precision.
+        while True:
+            remaining = t - self.now()
+            if remaining <= 0:
+                return
+            if remaining > 0.002:
+                time.sleep(remaining - 0.001)
+
+
+class VirtualClock:
+    """Simulated time that advances only when asked to; starts at ``start`` s."""
+
+    virtual = True
+
+    def __init__(self, start: float = 0.0) -> None:
+        self._t = float(start)
+
+    def now(self) -> float:
+        return self._t
+
+    def sleep_until(self, t: float) -> None:
+        self._t = max(self._t, float(t))
+
+    def advance(self, dt: float) -> None:
+        """Move time forward by ``dt`` s (≥ 0)."""
+        if dt < 0:
+            raise ValueError(f"virtual time cannot go backwards (dt={dt} s)")
+        self._t += dt

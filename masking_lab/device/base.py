@@ -1,0 +1,149 @@
+"""The device interface every back-end implements, and the values it exchanges.
+
+Levels cross this boundary as peak drive amplitudes in volts; the host converts dB re 1 V with
+:mod:`masking_lab.levels`. Every back-end enforces the limits of its :class:`DeviceLimits` before
+anything is played and zeroes both outputs on any fault, on :meth:`Device.stop` and on close.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Protocol
+
+from masking_lab.stimulus import Channel, Stimulus
+
+
+@dataclass(frozen=True)
+class DeviceLimits:
+    """Per-channel safety limits, from the device config.
+
+    Attributes
+    ----------
+    max_drive_v : dict[str, float]
+        Largest peak drive amplitude accepted per channel (``"EV"``, ``"MV"``), V.
+    """
+
+    max_drive_v: dict[str, float]
+
+
+@dataclass(frozen=True)
+class DeviceIdentity:
+    """What the session log records about the device.
+
+    Attributes
+    ----------
+    backend : str
+        ``"serial"``, ``"emulator"``, ``"sim"`` or ``"nidaq"``.
+    model : str
+        Device model string reported by the handshake.
+    serial_number : str
+        Unit identifier reported by the handshake (or ``"n/a"``).
+    firmware_version : str
+        Firmware (or emulator) version reported by the handshake.
+    port : str or None
+        Serial port path, if any.
+    limits : DeviceLimits
+        Limits in force (host config ∩ firmware-reported).
+    """
+
+    backend: str
+    model: str
+    serial_number: str
+    firmware_version: str
+    port: str | None
+    limits: DeviceLimits
+
+
+@dataclass(frozen=True)
+class TrialPlan:
+    """One 3IFC trial to play.
+
+    Attributes
+    ----------
+    target : Stimulus
+        The stimulus whose AL is measured.
+    target_amplitude_v : float
+        Peak drive of the target in its interval, V.
+    target_interval : int
+        1, 2 or 3: the interval that carries the target.
+    masker : Stimulus or None
+        Masker stimulus, played in all three intervals (None for an unmasked trial).
+    masker_amplitude_v : float
+        Peak drive of the masker, V (0 when ``masker`` is None).
+    stimulus_s : float
+        Duration of each interval, s (1.8 s in the paper).
+    gap_s : float
+        Silence between intervals, s.
+    lead_in_s : float
+        Silence before the first interval, s.
+    """
+
+    target: Stimulus
+    target_amplitude_v: float
+    target_interval: int
+    masker: Stimulus | None = None
+    masker_amplitude_v: float = 0.0
+    stimulus_s: float = 1.8
+    gap_s: float = 0.6
+    lead_in_s: float = 0.6
+    n_intervals: int = 3
+
+    def planned_onsets_s(self, start_s: float) -> list[float]:
+        """Planned interval onsets in s for a trial starting at ``start_s``."""
+        return [
+            start_s + self.lead_in_s + k * (self.stimulus_s + self.gap_s)
+            for k in range(self.n_intervals)
+        ]
+
+    @property
+    def duration_s(self) -> float:
+        """Total trial duration in s (lead-in, intervals and the gaps between them)."""
+        return self.lead_in_s + self.n_intervals * self.stimulus_s + (self.n_intervals - 1) * self.gap_s
+
+
+@dataclass(frozen=True)
+class PlayResult:
+    """What the device reports after playing a trial.
+
+    Attributes
+    ----------
+    planned_onsets_s : list[float]
+        Host-clock planned onset of each interval, s.
+    actual_onsets_s : list[float]
+        Onsets as reported by the device, converted to host-clock s.
+    played_target_v : float
+        Target peak amplitude the device actually played, V.
+    played_masker_v : float
+        Masker peak amplitude the device actually played, V.
+    extra : dict
+        Back-end specific diagnostics (kept in the log).
+    """
+
+    planned_onsets_s: list[float]
+    actual_onsets_s: list[float]
+    played_target_v: float
+    played_masker_v: float
+    extra: dict = field(default_factory=dict)
+
+
+class Device(Protocol):
+    """A two-channel (EV, MV) tactile output device."""
+
+    identity: DeviceIdentity
+
+    def play_trial(self, plan: TrialPlan, start_s: float) -> PlayResult:
+        """Play the three intervals of ``plan`` starting at host time ``start_s`` and return when
+        the last interval has ended. Raises SafetyLimitError (nothing played) or DeviceError."""
+        ...
+
+    def set_amplitude(self, channel: Channel, stimulus: Stimulus, amplitude_v: float) -> None:
+        """Streamed update for rendering: set ``channel`` to ``stimulus`` at ``amplitude_v`` V now."""
+        ...
+
+    def stop(self) -> None:
+        """Zero both outputs immediately."""
+        ...
+
+    def close(self) -> None:
+        """Zero both outputs and release the device. Idempotent."""
+        ...

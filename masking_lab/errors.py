@@ -1,0 +1,59 @@
+"""Error types. Every message says what went wrong, where, and what to do next."""
+
+from __future__ import annotations
+
+
+class MaskingLabError(Exception):
+    """Base class for every error masking_lab raises on purpose."""
+
+
+class LevelError(MaskingLabError, ValueError):
+    """A level or amplitude cannot be converted (0 V, NaN, ±inf, above the device's rating)."""
+
+
+class ProtocolError(MaskingLabError):
+    """A protocol, scene or config file is malformed.
+
+    Parameters
+    ----------
+    file : str
+        Path of the offending file.
+    where : str
+        Key path (``staircase.n_down``) or ``line N`` locating the problem.
+    message : str
+        What is wrong and how to fix it.
+    """
+
+    def __init__(self, file: str, where: str, message: str) -> None:
+        self.file = str(file)
+        self.where = where
+        self.message = message
+        super().__init__(f"{self.file}: {where}: {message}" if where else f"{self.file}: {message}")
+
+
+class StaircaseError(MaskingLabError, ValueError):
+    """Invalid staircase settings or a response given to a finished staircase."""
+
+
+class DeviceError(MaskingLabError):
+    """The device failed: unplugged, timed out, sent garbage, or refused a command."""
+
+
+class SafetyLimitError(DeviceError):
+    """A requested amplitude exceeds the device's configured limit; nothing was played."""
+
+
+class LogError(MaskingLabError):
+    """A session log is unreadable, truncated or inconsistent with its protocol."""
+
+
+class CalibrationError(MaskingLabError):
+    """A participant's calibration (unmasked ALs) is missing or incomplete."""
+
+
+class AnalysisError(MaskingLabError):
+    """The data cannot support the requested analysis (missing cells, one participant, ...)."""
+
+
+class SolverError(MaskingLabError, ValueError):
+    """The inverse-rendering problem is ill-posed for the given parameters or targets."""

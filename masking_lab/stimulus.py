@@ -1,0 +1,86 @@
+"""Stimuli and their names.
+
+A stimulus is one tactile channel (``EV`` electrovibration or ``MV`` mechanical vibration) at a
+carrier frequency, optionally amplitude-modulated by an envelope. Its name is what protocols,
+calibrations, logs and exported parameters use:
+
+``EV270``       EV, 270 Hz carrier
+``MV120``       MV, 120 Hz carrier
+``MV120am40``   MV, 120 Hz carrier, 40 Hz amplitude envelope (the paper's "coarse" texture)
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from typing import Literal
+
+Channel = Literal["EV", "MV"]
+CHANNELS: tuple[Channel, ...] = ("EV", "MV")
+
+_NAME = re.compile(r"^(EV|MV)(\d+(?:\.\d+)?)(?:am(\d+(?:\.\d+)?))?$")
+
+
+@dataclass(frozen=True, order=True)
+class Stimulus:
+    """One tactile stimulus.
+
+    Attributes
+    ----------
+    channel : {"EV", "MV"}
+        Electrovibration (friction modulation on the panel) or mechanical vibration (piezo).
+    carrier_hz : float
+        Carrier frequency in Hz.
+    envelope_hz : float or None
+        Amplitude-modulation frequency in Hz, or None for an unmodulated carrier.
+    """
+
+    channel: Channel
+    carrier_hz: float
+    envelope_hz: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.channel not in CHANNELS:
+            raise ValueError(f"channel must be one of {CHANNELS}, got {self.channel!r}")
+        if not self.carrier_hz > 0:
+            raise ValueError(f"carrier_hz must be > 0 Hz, got {self.carrier_hz!r}")
+        if self.envelope_hz is not None and not self.envelope_hz > 0:
+            raise ValueError(f"envelope_hz must be > 0 Hz or None, got {self.envelope_hz!r}")
+
+    @property
+    def name(self) -> str:
+        """Canonical name, e.g. ``"MV120am40"``."""
+        name = f"{self.channel}{_num(self.carrier_hz)}"
+        if self.envelope_hz is not None:
+            name += f"am{_num(self.envelope_hz)}"
+        return name
+
+    def __str__(self) -> str:
+        return self.name
+
+
+def parse_stimulus(name: str) -> Stimulus:
+    """Parse a stimulus name such as ``"EV270"`` or ``"MV120am40"``.
+
+    Raises
+    ------
+    ValueError
+        If ``name`` does not follow ``<EV|MV><carrier Hz>[am<envelope Hz>]``.
+    """
+    match = _NAME.match(str(name).strip())
+    if not match:
+        raise ValueError(
+            f"{name!r} is not a stimulus name: write <EV|MV><carrier Hz>[am<envelope Hz>], "
+            "for example EV270, MV120 or MV120am40"
+        )
+    channel, carrier, envelope = match.groups()
+    return Stimulus(channel, float(carrier), float(envelope) if envelope else None)  # type: ignore[arg-type]
+
+
+def is_stimulus_name(name: str) -> bool:
+    """True if ``name`` parses as a stimulus name."""
+    return bool(_NAME.match(str(name).strip()))
+
+
+def _num(x: float) -> str:
+    return str(int(x)) if float(x).is_integer() else repr(float(x))

@@ -1,0 +1,1 @@
+"""The paper's protocols (installed as ``masking_lab.protocols``)."""
