@@ -112,7 +112,7 @@ def make_participant(truth: GroundTruth, participant: str, seed: int = 0) -> Sim
 
 
 def ground_truth_from_dict(data: Mapping[str, Any], source: str = "<ground truth>") -> GroundTruth:
-    """Build a :class:`GroundTruth` from a parsed ground-truth file (see ``default_ground_truth``)."""
+    """Build a :class:`GroundTruth` from a parsed ground-truth mapping (see ground_truth.yaml)."""
     try:
         masking = tuple(
             MaskingFunction(m["target"], m["masker"], float(m["intercept_db"]), float(m["slope"]))
@@ -135,10 +135,14 @@ def ground_truth_from_dict(data: Mapping[str, Any], source: str = "<ground truth
 def load_ground_truth(path: str | Path | None = None) -> GroundTruth:
     """Load a ground-truth YAML/JSON file, or the embedded default (paper Table 2 ramps)."""
     if path is None:
-        text = resources.files("masking_lab.protocols").joinpath("ground_truth.yaml").read_text(
-            encoding="utf-8"
+        text = (
+            resources.files("masking_lab.protocols")
+            .joinpath("simulation/ground_truth.yaml")
+            .read_text(encoding="utf-8")
         )
-        return ground_truth_from_dict(yaml.safe_load(text), "ground_truth.yaml (embedded)")
+        return ground_truth_from_dict(
+            yaml.safe_load(text), "protocols/simulation/ground_truth.yaml (embedded)"
+        )
     p = Path(path)
     text = p.read_text(encoding="utf-8")
     data = json.loads(text) if p.suffix == ".json" else yaml.safe_load(text)

@@ -67,7 +67,8 @@ class Psychometric:
         x = np.asarray(level_db, dtype=float)
         z = (x - self.location_db) / self.scale_db
         # expit without overflow warnings at ±1e6 dB
-        f = np.where(z >= 0, 1.0 / (1.0 + np.exp(-np.abs(z))), np.exp(-np.abs(z)) / (1.0 + np.exp(-np.abs(z))))
+        e = np.exp(-np.abs(z))
+        f = np.where(z >= 0, 1.0 / (1.0 + e), e / (1.0 + e))
         return self.guess + (1.0 - self.guess - self.lapse) * f
 
     def level_at(self, p: float) -> float:

@@ -98,7 +98,8 @@ class TrialPlan:
     @property
     def duration_s(self) -> float:
         """Total trial duration in s (lead-in, intervals and the gaps between them)."""
-        return self.lead_in_s + self.n_intervals * self.stimulus_s + (self.n_intervals - 1) * self.gap_s
+        n = self.n_intervals
+        return self.lead_in_s + n * self.stimulus_s + (n - 1) * self.gap_s
 
 
 @dataclass(frozen=True)
@@ -137,7 +138,7 @@ class Device(Protocol):
         ...
 
     def set_amplitude(self, channel: Channel, stimulus: Stimulus, amplitude_v: float) -> None:
-        """Streamed update for rendering: set ``channel`` to ``stimulus`` at ``amplitude_v`` V now."""
+        """Streamed update for rendering: play ``stimulus`` on ``channel`` at ``amplitude_v`` V."""
         ...
 
     def stop(self) -> None:

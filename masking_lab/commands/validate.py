@@ -1,0 +1,41 @@
+"""``masking-lab validate FILE...``: check protocol files before a participant sits down."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "validate",
+        help="check protocol YAML files against the schema and the rig's limits",
+        description="Check protocol files. Exit 0 if every file is valid; otherwise print one "
+        "message per bad file naming the key path, the line and what to do, and exit 1.",
+    )
+    p.add_argument("files", nargs="+", metavar="FILE", help="protocol YAML file(s)")
+    p.add_argument(
+        "--device-config",
+        metavar="FILE",
+        help="rig config whose per-channel max_level_db_sl limits masker levels "
+        "(default: the reference rig, protocols/devices/default.yaml)",
+    )
+    p.set_defaults(handler=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from masking_lab.errors import ProtocolError
+    from masking_lab.protocol import load_protocol
+    from masking_lab.rig_limits import max_level_db_sl
+
+    limits = max_level_db_sl(args.device_config)
+    bad = 0
+    for f in args.files:
+        try:
+            protocol = load_protocol(f, max_level_db_sl=limits)
+        except ProtocolError as exc:
+            bad += 1
+            print(f"INVALID {exc}", file=sys.stderr)
+            continue
+        print(f"ok      {f}: {protocol.experiment} ({protocol.kind}, {len(protocol.sets)} sets)")
+    return 1 if bad else 0
