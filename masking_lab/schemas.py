@@ -23,8 +23,10 @@ def load_schema(name: str) -> dict[str, Any]:
     name : str
         Schema stem, e.g. ``"protocol"`` or ``"masking_params"``.
     """
-    text = resources.files("masking_lab.data_schema").joinpath(f"{name}.schema.json").read_text(
-        encoding="utf-8"
+    text = (
+        resources.files("masking_lab.data_schema")
+        .joinpath(f"{name}.schema.json")
+        .read_text(encoding="utf-8")
     )
     return json.loads(text)
 
