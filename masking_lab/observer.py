@@ -12,7 +12,6 @@ import hashlib
 import json
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from importlib import resources
 from pathlib import Path
 from typing import Any
 
@@ -22,6 +21,7 @@ import yaml
 from masking_lab.errors import ProtocolError
 from masking_lab.masking import MaskingFunction
 from masking_lab.psychometric import GUESS_3IFC, Psychometric
+from masking_lab.resources import shipped
 
 
 @dataclass(frozen=True)
@@ -135,11 +135,7 @@ def ground_truth_from_dict(data: Mapping[str, Any], source: str = "<ground truth
 def load_ground_truth(path: str | Path | None = None) -> GroundTruth:
     """Load a ground-truth YAML/JSON file, or the embedded default (paper Table 2 ramps)."""
     if path is None:
-        text = (
-            resources.files("masking_lab.protocols")
-            .joinpath("simulation/ground_truth.yaml")
-            .read_text(encoding="utf-8")
-        )
+        text = shipped("protocols", "simulation/ground_truth.yaml").read_text(encoding="utf-8")
         return ground_truth_from_dict(
             yaml.safe_load(text), "protocols/simulation/ground_truth.yaml (embedded)"
         )

@@ -7,12 +7,12 @@ electrical ``max_drive_v`` that the device enforces per participant at run time.
 
 from __future__ import annotations
 
-from importlib import resources
 from pathlib import Path
 
 import yaml
 
 from masking_lab.errors import ProtocolError
+from masking_lab.resources import shipped
 
 
 def max_level_db_sl(config_path: str | Path | None = None) -> dict[str, float]:
@@ -21,7 +21,7 @@ def max_level_db_sl(config_path: str | Path | None = None) -> dict[str, float]:
     Channels without ``max_level_db_sl`` are unlimited here (the drive limit still applies).
     """
     if config_path is None:
-        ref = resources.files("masking_lab.protocols").joinpath("devices/default.yaml")
+        ref = shipped("protocols", "devices/default.yaml")
         if not ref.is_file():
             return {}
         text, source = ref.read_text(encoding="utf-8"), "protocols/devices/default.yaml"

@@ -8,10 +8,11 @@ from __future__ import annotations
 
 import json
 from functools import cache
-from importlib import resources
 from typing import Any
 
 import jsonschema
+
+from masking_lab.resources import shipped
 
 
 @cache
@@ -23,11 +24,7 @@ def load_schema(name: str) -> dict[str, Any]:
     name : str
         Schema stem, e.g. ``"protocol"`` or ``"masking_params"``.
     """
-    text = (
-        resources.files("masking_lab.data_schema")
-        .joinpath(f"{name}.schema.json")
-        .read_text(encoding="utf-8")
-    )
+    text = shipped("data_schema", f"{name}.schema.json").read_text(encoding="utf-8")
     return json.loads(text)
 
 
