@@ -43,6 +43,13 @@ class SafetyLimitError(DeviceError):
     """A requested amplitude exceeds the device's configured limit; nothing was played."""
 
 
+class ResponderError(DeviceError):
+    """The participant's terminal or window failed (not a terminal, closed, no display).
+
+    A kind of :class:`DeviceError`: the session stops like on a device fault and can be resumed.
+    """
+
+
 class LogError(MaskingLabError):
     """A session log is unreadable, truncated or inconsistent with its protocol."""
 
@@ -57,3 +64,27 @@ class AnalysisError(MaskingLabError):
 
 class SolverError(MaskingLabError, ValueError):
     """The inverse-rendering problem is ill-posed for the given parameters or targets."""
+
+
+# Device faults (added with the device layer). Each is a DeviceError, so callers that only care
+# that "the device failed" can catch that; the runner records the subclass name in its log.
+
+
+class DeviceTimeoutError(DeviceError):
+    """The device stopped answering: no reply (or no end-of-trial report) within its timeout."""
+
+
+class DeviceDisconnectedError(DeviceError):
+    """The serial link went away (cable unplugged, board reset, port closed by the other side)."""
+
+
+class DeviceProtocolError(DeviceError):
+    """The device sent garbage or corrupted frames, or speaks another protocol version."""
+
+
+class DeviceFaultError(DeviceError):
+    """The device reported a fault of its own (watchdog trip, corrupted command) and zeroed."""
+
+
+class DeviceConfigError(ProtocolError):
+    """A device (rig) config file is malformed; the message names the file and the key."""

@@ -1,0 +1,87 @@
+"""``masking-lab emulate``: run the firmware emulator on a pseudo-terminal until interrupted."""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+import threading
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "emulate",
+        help="run the device firmware emulator on a pseudo-terminal (prints its port)",
+        description="Start the firmware emulator on a fresh pseudo-terminal, print "
+        "'emulator listening on PORT', and serve it until Ctrl-C or SIGTERM; outputs are zeroed "
+        "on exit. Connect with --device serial:PORT.",
+    )
+    p.add_argument(
+        "--config", metavar="FILE", help="device config (default: protocols/devices/default.yaml)"
+    )
+    p.add_argument(
+        "--virtual-time",
+        action="store_true",
+        help="complete PLAY at once with planned onsets (for sessions on a virtual clock)",
+    )
+    p.add_argument(
+        "--watchdog-ms",
+        type=_non_negative_int,
+        metavar="N",
+        help="watchdog period in ms (0 disables; default: serial.watchdog_s of the config)",
+    )
+    p.add_argument(
+        "--boot-delay-s",
+        type=float,
+        default=0.0,
+        metavar="S",
+        help="imitate a board that resets on open: ignore input for S seconds after start",
+    )
+    p.add_argument("--seed", type=int, default=0, help="seed of simulated onset lateness")
+    p.add_argument("--log", metavar="FILE", help="also append the emulator's event log to FILE")
+    p.set_defaults(handler=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from masking_lab.device.config import load_device_config
+    from masking_lab.device.emulator import FirmwareEmulator
+
+    config = load_device_config(args.config)
+    stop = threading.Event()
+
+    def on_signal(signum: int, frame: object) -> None:
+        stop.set()
+
+    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        signal.signal(sig, on_signal)
+    emulator = FirmwareEmulator(
+        config,
+        virtual_time=args.virtual_time,
+        watchdog_s=None if args.watchdog_ms is None else args.watchdog_ms / 1000.0,
+        boot_delay_s=args.boot_delay_s,
+        seed=args.seed,
+        log_path=args.log,
+    ).start()
+    try:
+        mode = "virtual" if args.virtual_time else "real"
+        print(f"emulator listening on {emulator.port}", flush=True)
+        print(
+            f"  {mode} time, limits EV {emulator.limits['EV']:g} V / MV "
+            f"{emulator.limits['MV']:g} V, watchdog {emulator.watchdog_s * 1000:g} ms; "
+            f"connect with --device serial:{emulator.port}; Ctrl-C to stop",
+            file=sys.stderr,
+            flush=True,
+        )
+        while not stop.wait(0.5):
+            pass
+    finally:
+        emulator.close()
+        print("emulator stopped: outputs zeroed, port closed", file=sys.stderr, flush=True)
+    return 0
+
+
+def _non_negative_int(text: str) -> int:
+    value = int(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be ≥ 0, got {value}")
+    return value

@@ -1,0 +1,637 @@
+"""Firmware emulator: our device protocol served on a real pseudo-terminal.
+
+The emulator behaves like the rig's microcontroller: it answers every command with OK/ERR,
+enforces its own amplitude limits (independently of the host), plays three-interval trials on
+its own clock and reports the actual onsets, streams amplitude updates, zeroes both outputs on
+any fault (corrupted frame, over-limit request, any ERR, watchdog, STOP, unplug, close) and
+reports faults as framed events. It runs in a background thread (tests, ``--device emulator``)
+or as a process (``masking-lab emulate``), and can imitate a board that resets when the port is
+opened (``boot_delay_s``) and a set of injected faults (:meth:`FirmwareEmulator.inject`).
+
+Two time modes:
+
+- real time: PLAY is hardware-timed: the emulator waits until each onset and reports when it
+  switched the output on (real onset jitter), and renders each trial's buffers with
+  :mod:`masking_lab.waveforms` like a DAC would;
+- virtual time: PLAY completes at once and reports the planned onsets plus a small seeded
+  lateness, so a simulated study runs thousands of trials through the pty in seconds.
+
+The host side of the same protocol is :mod:`masking_lab.device.serial_device`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import select
+import threading
+import time
+import tty
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import MappingProxyType
+from typing import Any
+
+import numpy as np
+
+from masking_lab import waveforms
+from masking_lab.device import protocol as proto
+from masking_lab.device.base import TrialPlan
+from masking_lab.device.config import DeviceConfig, default_device_config
+from masking_lab.stimulus import CHANNELS, Stimulus
+
+FIRMWARE_VERSION = "emu-1.0.0"
+HARD_MAX_DRIVE_V = 10.0  # the DAC's range: no config can raise a limit above it
+BOOT_BANNER = b"\r\nML bootloader v0.3 ... starting application\r\n"
+FAULT_KINDS = ("garbage", "bad_crc", "mute", "unplug_on_play")
+_OUT_CAP = 1 << 16  # bytes queued for a host that is not reading before output is dropped
+
+
+@dataclass(frozen=True)
+class OutputSnapshot:
+    """What the emulated outputs are doing right now (thread-safe copy).
+
+    Attributes
+    ----------
+    amplitude_v : Mapping[str, float]
+        Peak drive currently output per channel, V (0 = silent).
+    playing : bool
+        True while a PLAY is scheduled or in progress.
+    last_sample_v : Mapping[str, float]
+        Final sample of the last rendered trial buffer per channel, V (real-time mode).
+    connected : bool
+        False after the port was closed (unplugged or emulator closed).
+    """
+
+    amplitude_v: MappingProxyType[str, float]
+    playing: bool
+    last_sample_v: MappingProxyType[str, float]
+    connected: bool
+
+    @property
+    def zero(self) -> bool:
+        """True when both outputs are at 0 V and nothing is scheduled."""
+        return not self.playing and all(v == 0.0 for v in self.amplitude_v.values())
+
+
+@dataclass
+class _Play:
+    seq: int
+    start: float  # device time of the trial start, s
+    plan: TrialPlan
+    planned: list[float]  # device-time onsets, s
+    steps: list[tuple[float, str, int]] = field(default_factory=list)  # (device t, on|off, k)
+    actual: list[float] = field(default_factory=list)
+
+
+class FirmwareEmulator:
+    """Emulated two-channel (EV, MV) firmware on a pseudo-terminal.
+
+    Parameters
+    ----------
+    config : DeviceConfig, optional
+        Firmware limits (``channels.*.max_drive_v``), watchdog period, sample rate, model and
+        serial number; the reference rig if None.
+    virtual_time : bool
+        Complete PLAY at once with planned onsets plus seeded lateness (see module doc).
+    watchdog_s : float, optional
+        Overrides ``config.serial.watchdog_s`` (s; 0 disables).
+    boot_delay_s : float
+        Imitate a board that resets when opened: for this long after start (and after
+        :meth:`reset`) input is discarded, then a bootloader banner is sent.
+    seed : int
+        Seed of the simulated onset lateness (virtual time).
+    render_buffers : bool, optional
+        Build each trial's sample buffers (default: in real-time mode only).
+    log_path : str or Path, optional
+        Also append the emulator's event log to this file (fsynced per line).
+    """
+
+    def __init__(
+        self,
+        config: DeviceConfig | None = None,
+        *,
+        virtual_time: bool = False,
+        watchdog_s: float | None = None,
+        boot_delay_s: float = 0.0,
+        seed: int = 0,
+        render_buffers: bool | None = None,
+        log_path: str | Path | None = None,
+    ) -> None:
+        self.config = config or default_device_config()
+        self.virtual_time = bool(virtual_time)
+        self.watchdog_s = float(self.config.serial.watchdog_s if watchdog_s is None else watchdog_s)
+        self.boot_delay_s = float(boot_delay_s)
+        self.render_buffers = (not virtual_time) if render_buffers is None else render_buffers
+        self.limits = {
+            ch: min(HARD_MAX_DRIVE_V, self.config.limits.max_drive_v[ch]) for ch in CHANNELS
+        }
+        self._rng = np.random.default_rng(seed)
+        self._lock = threading.Lock()
+        self._log: list[str] = []
+        self._log_file = open(log_path, "a", encoding="utf-8") if log_path else None  # noqa: SIM115
+        self._t0 = time.perf_counter()
+        self._vt = 0.0
+        self._amp = dict.fromkeys(CHANNELS, 0.0)
+        self._stream: dict[str, tuple[float, float | None]] = {}
+        self._last_sample = dict.fromkeys(CHANNELS, 0.0)
+        self._play: _Play | None = None
+        self._faults: dict[str, int] = {}
+        self._event_no = 0
+        self.commands_received = 0  # valid commands handled (tests: "nothing was sent")
+        self._rx = bytearray()
+        self._out = bytearray()
+        self._last_rx = time.perf_counter()
+        self._booting_until: float | None = None
+        self._requests: list[str] = []
+        self._done_requests = threading.Condition(self._lock)
+        self._connected = False
+        self._running = False
+        self._thread: threading.Thread | None = None
+        self._master = self._slave = -1
+        self._wake_r = self._wake_w = -1
+        self.port = ""
+
+    # ---------------------------------------------------------------- public (any thread)
+
+    def start(self) -> FirmwareEmulator:
+        """Open the pseudo-terminal (raw mode) and start serving it in a background thread."""
+        master, slave = os.openpty()
+        tty.setraw(slave)  # a fresh pty echoes and turns \n into \r\n until set raw
+        tty.setraw(master)
+        os.set_blocking(master, False)
+        self._master, self._slave = master, slave
+        self._wake_r, self._wake_w = os.pipe()
+        self.port = os.ttyname(slave)
+        self._connected = self._running = True
+        if self.boot_delay_s > 0:
+            self._booting_until = time.perf_counter() + self.boot_delay_s
+        mode = "virtual" if self.virtual_time else "real"
+        self._note(
+            f"START port={self.port} fw={FIRMWARE_VERSION} time={mode} "
+            f"max_ev={self.limits['EV']:g} max_mv={self.limits['MV']:g} wd_s={self.watchdog_s:g}"
+        )
+        self._thread = threading.Thread(target=self._serve, name="firmware-emulator", daemon=True)
+        self._thread.start()
+        return self
+
+    def outputs(self) -> OutputSnapshot:
+        """A consistent snapshot of the outputs (thread-safe)."""
+        with self._lock:
+            return OutputSnapshot(
+                MappingProxyType(dict(self._amp)),
+                self._play is not None,
+                MappingProxyType(dict(self._last_sample)),
+                self._connected,
+            )
+
+    def log_lines(self) -> list[str]:
+        """The emulator's event log so far: ``"<device s> <EVENT> details"`` lines."""
+        with self._lock:
+            return list(self._log)
+
+    def inject(self, fault: str, count: int = 1) -> None:
+        """Arm a fault for the next ``count`` opportunities.
+
+        ``garbage``: send ``count`` unframed lines before the next reply; ``bad_crc``: corrupt
+        the checksum of the next ``count`` frames sent; ``mute``: ignore the next ``count``
+        commands, like a hung firmware (the watchdog still runs); ``unplug_on_play``: close the
+        port at the first onset of the next PLAY.
+        """
+        if fault not in FAULT_KINDS:
+            raise ValueError(f"unknown fault {fault!r}; choose from {FAULT_KINDS}")
+        with self._lock:
+            self._faults[fault] = self._faults.get(fault, 0) + int(count)
+
+    def unplug(self) -> None:
+        """Close the port as if the cable were pulled (outputs zeroed); waits until done."""
+        self._request("unplug")
+
+    def reset(self) -> None:
+        """Reset like a board whose port was reopened: outputs zeroed, boot delay, banner."""
+        self._request("reset")
+
+    def close(self) -> None:
+        """Zero the outputs, close the port and stop the thread. Idempotent."""
+        if self._thread is not None and self._thread.is_alive():
+            self._request("close")
+            self._thread.join(timeout=5)
+        with self._lock:
+            self._zero("close")
+            if self.port and self._master >= 0:
+                self._note("CLOSE port closed, outputs at 0 V")
+            self._close_fds(wake=True)
+            self._running = False
+        if self._log_file is not None:
+            self._log_file.close()
+            self._log_file = None
+
+    def __enter__(self) -> FirmwareEmulator:
+        return self if self._running else self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # ---------------------------------------------------------------- serving thread
+
+    def _request(self, what: str) -> None:
+        with self._lock:
+            if not self._running or self._thread is None or not self._thread.is_alive():
+                if what == "unplug":
+                    self._zero("unplug")
+                    self._close_fds()
+                return
+            self._requests.append(what)
+            with contextlib.suppress(OSError):
+                os.write(self._wake_w, b"x")
+            self._done_requests.wait_for(lambda: what not in self._requests, timeout=5)
+
+    def _serve(self) -> None:
+        try:
+            while self._running:
+                timeout = self._next_timeout()
+                rlist = [self._wake_r] + ([self._master] if self._connected else [])
+                wlist = [self._master] if self._connected and self._out else []
+                try:
+                    readable, writable, _ = select.select(rlist, wlist, [], timeout)
+                except (OSError, ValueError):
+                    break  # fds closed under us by close(): stop serving
+                if self._wake_r in readable:
+                    os.read(self._wake_r, 4096)
+                    self._handle_requests()
+                    if not self._running:
+                        break
+                if self._connected and self._master in readable:
+                    self._receive()
+                if self._connected and (writable or self._out):
+                    self._flush()
+                self._tick()
+        finally:
+            with self._lock:
+                self._zero("serving thread ended")
+                self._done_requests.notify_all()
+
+    def _next_timeout(self) -> float | None:
+        now = time.perf_counter()
+        due: list[float] = []
+        with self._lock:
+            if self._play is not None and self._play.steps:
+                due.append(self._play.steps[0][0] + self._t0)
+            if self._armed() and self.watchdog_s > 0:
+                due.append(self._last_rx + self.watchdog_s)
+            if self._booting_until is not None:
+                due.append(self._booting_until)
+        if not due:
+            return None
+        return max(0.0, min(due) - now)
+
+    def _handle_requests(self) -> None:
+        with self._lock:
+            requests, self._requests = self._requests, []
+            for what in requests:
+                if what == "close":
+                    self._running = False
+                elif what == "unplug":
+                    self._unplug_locked("unplug requested")
+                elif what == "reset":
+                    self._zero("reset")
+                    self._rx.clear()
+                    self._booting_until = time.perf_counter() + self.boot_delay_s
+                    self._note("RESET board reset: outputs zeroed, booting")
+            self._done_requests.notify_all()
+
+    def _receive(self) -> None:
+        try:
+            data = os.read(self._master, 4096)
+        except BlockingIOError:
+            return
+        except OSError as exc:  # EIO: the slave side has gone away entirely
+            with self._lock:
+                self._unplug_locked(f"read failed ({exc.strerror})")
+            return
+        with self._lock:
+            if self._booting_until is not None:
+                return  # a resetting board hears nothing
+            self._rx += data
+            while True:
+                i = self._rx.find(b"\n")
+                if i < 0:
+                    if len(self._rx) > proto.MAX_FRAME_BYTES:
+                        self._rx.clear()
+                        self._fault("FRAME", "line too long without a newline")
+                    break
+                line = bytes(self._rx[: i + 1])
+                del self._rx[: i + 1]
+                self._handle_line(line)
+                if not self._connected:
+                    break
+
+    def _tick(self) -> None:
+        now = time.perf_counter()
+        with self._lock:
+            if self._booting_until is not None and now >= self._booting_until:
+                self._booting_until = None
+                self._rx.clear()
+                self._out += BOOT_BANNER
+                self._send_event("BOOT", {"fw": FIRMWARE_VERSION})
+                self._note("BOOT done")
+            self._advance_play(now)
+            if self._armed() and self.watchdog_s > 0 and now - self._last_rx > self.watchdog_s:
+                quiet_ms = round((now - self._last_rx) * 1000)
+                self._note(f"WATCHDOG host quiet for {quiet_ms} ms: outputs zeroed")
+                self._zero("watchdog", aborted_why="WATCHDOG")
+                self._send_event("WATCHDOG", {"quiet_ms": quiet_ms})
+
+    # ---------------------------------------------------------------- protocol (lock held)
+
+    def _handle_line(self, line: bytes) -> None:
+        try:
+            frame = proto.decode(line)
+        except proto.FrameError as exc:
+            self._fault("FRAME", str(exc))
+            return
+        if frame.kind != "command":
+            self._fault("FRAME", f"expected a command, got a {frame.kind}")
+            return
+        if self._take_fault("mute"):
+            return  # a hung firmware neither answers nor feeds its watchdog
+        self._last_rx = time.perf_counter()
+        self.commands_received += 1
+        handler = getattr(self, f"_cmd_{frame.name.lower()}", None)
+        if handler is None:
+            self._err(frame.seq, "UNKNOWN", f"unknown command {frame.name}")
+            return
+        try:
+            handler(frame)
+        except (proto.FrameError, ValueError) as exc:
+            self._err(frame.seq, "ARGS", f"{frame.name}: {exc}")
+
+    def _cmd_hello(self, frame: proto.Frame) -> None:
+        self._zero("HELLO (new host session)")
+        emu = self.config.emulator
+        self._note(f"HELLO from host #{frame.seq}")
+        self._ok(
+            frame.seq,
+            {
+                "proto": proto.PROTOCOL_VERSION,
+                "fw": FIRMWARE_VERSION,
+                "model": emu.model.replace(" ", "_"),
+                "sn": emu.serial_number.replace(" ", "_"),
+                "max_ev": self.limits["EV"],
+                "max_mv": self.limits["MV"],
+                "wd_ms": round(self.watchdog_s * 1000),
+                "fs": self.config.waveform.sample_rate_hz,
+                "vt": int(self.virtual_time),
+            },
+        )
+
+    def _cmd_time(self, frame: proto.Frame) -> None:
+        self._ok(frame.seq, {"t": self._device_now()})
+
+    def _cmd_ping(self, frame: proto.Frame) -> None:
+        self._ok(frame.seq, {"t": self._device_now()})
+
+    def _cmd_stop(self, frame: proto.Frame) -> None:
+        self._zero("STOP", aborted_why="STOP")
+        self._note(f"STOP #{frame.seq}: outputs zeroed")
+        self._ok(frame.seq)
+
+    def _cmd_setup(self, frame: proto.Frame) -> None:
+        ch = self._channel(frame, "ch")
+        carrier, env, amp = frame.number("car"), frame.number("env"), frame.number("amp")
+        self._check_frequency(carrier, env)
+        if self._play is not None:
+            self._err(frame.seq, "BUSY", "SETUP while a trial is playing")
+            return
+        if not self._within_limit(frame.seq, ch, amp):
+            return
+        self._stream[ch] = (carrier, env or None)
+        self._amp[ch] = amp
+        self._ok(frame.seq)
+
+    def _cmd_amp(self, frame: proto.Frame) -> None:
+        ch = self._channel(frame, "ch")
+        amp = frame.number("amp")
+        if self._play is not None:
+            self._err(frame.seq, "BUSY", "AMP while a trial is playing")
+            return
+        if ch not in self._stream:
+            self._err(frame.seq, "STATE", f"AMP on {ch} before SETUP of {ch}")
+            return
+        if not self._within_limit(frame.seq, ch, amp):
+            return
+        self._amp[ch] = amp
+        self._ok(frame.seq)
+
+    def _cmd_play(self, frame: proto.Frame) -> None:
+        if self._play is not None:
+            self._err(frame.seq, "BUSY", "PLAY while a trial is playing")
+            return
+        plan = self._plan_from(frame)
+        amps = {ch: 0.0 for ch in CHANNELS}
+        amps[plan.target.channel] += plan.target_amplitude_v
+        if plan.masker is not None:
+            amps[plan.masker.channel] += plan.masker_amplitude_v
+        for ch, amp in amps.items():
+            if not self._within_limit(frame.seq, ch, amp):
+                return
+        # PLAY owns the outputs: any streamed output stops first.
+        self._stream.clear()
+        self._amp = dict.fromkeys(CHANNELS, 0.0)
+        at = frame.number("at")
+        now = self._device_now()
+        start = max(at, now)
+        planned = plan.planned_onsets_s(start)
+        play = _Play(frame.seq, start, plan, planned)
+        if self.render_buffers:
+            bufs = waveforms.trial_buffers(
+                plan, self.config.waveform.sample_rate_hz, ramp_s=self.config.waveform.ramp_s
+            )
+            self._last_sample = {ch: float(bufs.channel(ch)[-1]) for ch in CHANNELS}
+        self._ok(frame.seq, {"start": start})
+        if self.virtual_time:
+            sd = self.config.emulator.onset_jitter_s
+            late = (
+                np.abs(self._rng.normal(0.0, sd, len(planned))) if sd > 0 else [0.0] * len(planned)
+            )
+            play.actual = [t + float(d) for t, d in zip(planned, late, strict=False)]
+            self._vt = max(self._vt, start + plan.duration_s)
+            if self._take_fault("unplug_on_play"):
+                self._unplug_locked("unplug injected during PLAY")
+                return
+            self._send_done(play, start + plan.duration_s)
+            return
+        for k, onset in enumerate(planned):
+            play.steps.append((onset, "on", k))
+            play.steps.append((onset + plan.stimulus_s, "off", k))
+        self._play = play
+
+    def _advance_play(self, now_real: float) -> None:
+        play = self._play
+        while play is not None and play.steps and play.steps[0][0] + self._t0 <= now_real:
+            _, action, k = play.steps.pop(0)
+            plan = play.plan
+            if action == "on":
+                if k + 1 == plan.target_interval:
+                    self._amp[plan.target.channel] += plan.target_amplitude_v
+                if plan.masker is not None:
+                    self._amp[plan.masker.channel] += plan.masker_amplitude_v
+                play.actual.append(self._device_now())
+                if k == 0 and self._take_fault("unplug_on_play"):
+                    self._unplug_locked("unplug injected during PLAY")
+                    return
+            else:
+                self._amp = dict.fromkeys(CHANNELS, 0.0)
+            if not play.steps:
+                self._play = None
+                self._send_done(play, self._device_now())
+
+    def _send_done(self, play: _Play, end: float) -> None:
+        plan = play.plan
+        self._send_event(
+            "DONE",
+            {
+                "seq": play.seq,
+                "on": play.actual,
+                "end": end,
+                "tamp": plan.target_amplitude_v,
+                "mamp": plan.masker_amplitude_v,
+            },
+        )
+
+    # ---------------------------------------------------------------- helpers (lock held)
+
+    def _plan_from(self, frame: proto.Frame) -> TrialPlan:
+        target = Stimulus(
+            self._channel(frame, "tch"), frame.number("tcar"), frame.number("tenv") or None
+        )
+        self._check_frequency(target.carrier_hz, target.envelope_hz)
+        masker = None
+        if frame.fields.get("mch", "-") != "-":
+            masker = Stimulus(
+                self._channel(frame, "mch"), frame.number("mcar"), frame.number("menv") or None
+            )
+            self._check_frequency(masker.carrier_hz, masker.envelope_hz)
+        n = int(frame.number("n"))
+        ti = int(frame.number("ti"))
+        if not 1 <= ti <= n or n > 9:
+            raise ValueError(f"ti={ti} n={n}: need 1 <= ti <= n <= 9")
+        plan = TrialPlan(
+            target=target,
+            target_amplitude_v=frame.number("tamp"),
+            target_interval=ti,
+            masker=masker,
+            masker_amplitude_v=frame.number("mamp") if masker is not None else 0.0,
+            stimulus_s=frame.number("stim"),
+            gap_s=frame.number("gap"),
+            lead_in_s=frame.number("lead"),
+            n_intervals=n,
+        )
+        if plan.stimulus_s <= 0 or plan.gap_s < 0 or plan.lead_in_s < 0 or plan.duration_s > 60:
+            raise ValueError("durations must be stim > 0, gap >= 0, lead >= 0, trial <= 60 s")
+        return plan
+
+    def _channel(self, frame: proto.Frame, key: str) -> str:
+        ch = frame.fields.get(key)
+        if ch not in CHANNELS:
+            raise ValueError(f"{key}={ch!r} is not EV or MV")
+        return ch
+
+    def _check_frequency(self, carrier: float, env: float | None) -> None:
+        nyquist = self.config.waveform.sample_rate_hz / 2
+        if not 0 < carrier < nyquist or (env is not None and not 0 <= env < nyquist):
+            raise ValueError(f"frequencies must be in (0, {nyquist:g}) Hz")
+
+    def _within_limit(self, seq: int, ch: str, amp: float) -> bool:
+        if 0 <= amp <= self.limits[ch]:
+            return True
+        self._note(f"LIMIT #{seq} {ch} {amp:g} V > {self.limits[ch]:g} V refused")
+        self._err(seq, "LIMIT", f"{ch} amplitude {amp:g} V exceeds the {self.limits[ch]:g} V limit")
+        return False
+
+    def _armed(self) -> bool:
+        return self._play is not None or any(v > 0 for v in self._amp.values())
+
+    def _device_now(self) -> float:
+        return self._vt if self.virtual_time else time.perf_counter() - self._t0
+
+    def _zero(self, why: str, aborted_why: str | None = None) -> None:
+        if self._play is not None and aborted_why is not None:
+            self._send_event("ABORTED", {"seq": self._play.seq, "why": aborted_why})
+        if self._play is not None or any(self._amp.values()):
+            self._note(f"ZERO outputs ({why})")
+        self._play = None
+        self._stream.clear()
+        self._amp = dict.fromkeys(CHANNELS, 0.0)
+
+    def _fault(self, code: str, why: str) -> None:
+        self._note(f"FAULT {code} {why}: outputs zeroed")
+        self._zero(f"fault {code}", aborted_why=code)
+        self._send_event("FAULT", {"code": code})
+
+    def _unplug_locked(self, why: str) -> None:
+        self._zero(why)
+        self._note(f"UNPLUG {why}: port closed, outputs zeroed")
+        self._close_fds()
+
+    def _close_fds(self, *, wake: bool = False) -> None:
+        self._connected = False
+        names = ("_master", "_slave") + (("_wake_r", "_wake_w") if wake else ())
+        for name in names:
+            fd = getattr(self, name)
+            if fd >= 0:
+                with contextlib.suppress(OSError):
+                    os.close(fd)
+                setattr(self, name, -1)
+
+    def _take_fault(self, kind: str) -> bool:
+        if self._faults.get(kind, 0) > 0:
+            self._faults[kind] -= 1
+            return True
+        return False
+
+    def _ok(self, seq: int, fields: dict[str, Any] | None = None) -> None:
+        self._send(proto.encode_ok(seq, fields))
+
+    def _err(self, seq: int, code: str, text: str) -> None:
+        self._note(f"ERR #{seq} {code} {text}: outputs zeroed")
+        self._zero(f"ERR {code}", aborted_why=code)
+        self._send(proto.encode_err(seq, code, text))
+
+    def _send_event(self, name: str, fields: dict[str, Any]) -> None:
+        self._event_no = proto.next_seq(self._event_no)
+        self._send(proto.encode_event(self._event_no, name, fields))
+
+    def _send(self, frame: bytes) -> None:
+        while self._take_fault("garbage"):
+            self._out += b"\x00\xffnoise " + os.urandom(4).hex().encode() + b"\n"
+        if self._take_fault("bad_crc"):
+            frame = frame[:-5] + (b"0000" if frame[-5:-1] != b"0000" else b"FFFF") + b"\n"
+        if len(self._out) + len(frame) > _OUT_CAP:
+            return  # nobody is reading: drop rather than block the firmware loop
+        self._out += frame
+        self._flush_locked()
+
+    def _flush(self) -> None:
+        with self._lock:
+            self._flush_locked()
+
+    def _flush_locked(self) -> None:
+        if not self._connected or not self._out:
+            return
+        try:
+            n = os.write(self._master, self._out)
+        except BlockingIOError:
+            return
+        except OSError:
+            self._out.clear()
+            return
+        del self._out[:n]
+
+    def _note(self, text: str) -> None:
+        line = f"{self._device_now():.6f} {text}"
+        self._log.append(line)
+        if self._log_file is not None:
+            self._log_file.write(line + "\n")
+            self._log_file.flush()
+            os.fsync(self._log_file.fileno())

@@ -1,0 +1,254 @@
+"""The masking_lab serial line protocol: framing, checksum, sequence numbers. Pure, no I/O.
+
+One frame is one line of printable ASCII::
+
+    BODY*CCCC\\n
+
+``CCCC`` is the CRC-16/CCITT-FALSE of the BODY bytes (poly 0x1021, init 0xFFFF, no reflection,
+no final xor) as four upper-case hex digits. BODY is space-separated tokens:
+
+- command (host → device):  ``<seq> <NAME> [key=value ...]``
+- reply (device → host):    ``<seq> OK [key=value ...]`` or ``<seq> ERR <CODE> <free text>``
+- event (device → host):    ``!<n> <NAME> [key=value ...]`` (``n`` counts the device's events)
+
+A reply echoes the sequence number of the command it answers; an event's leading ``!`` sets it
+apart from replies. The full specification is ``docs/device-protocol.md``.
+"""
+
+from __future__ import annotations
+
+import binascii
+import math
+import re
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Literal
+
+PROTOCOL_VERSION = 1
+SEQ_MODULO = 65536
+MAX_FRAME_BYTES = 256  # longest line either side accepts, terminator included
+
+COMMANDS = ("HELLO", "TIME", "SETUP", "AMP", "PLAY", "STOP", "PING")
+EVENTS = ("DONE", "ABORTED", "WATCHDOG", "FAULT", "BOOT")
+ERROR_CODES = ("UNKNOWN", "ARGS", "LIMIT", "STATE", "BUSY")
+
+FrameKind = Literal["command", "reply", "event"]
+
+_WORD = re.compile(r"^[A-Z][A-Z0-9_]*$")
+_KEY = re.compile(r"^[a-z][a-z0-9_]*$")
+_VALUE = re.compile(r"^[!-~]+$")  # printable, no space
+_SEQ = re.compile(r"^(0|[1-9][0-9]{0,4})$")
+_HEX4 = re.compile(r"^[0-9A-F]{4}$")
+
+
+class FrameError(ValueError):
+    """A line that is not a valid frame (no checksum, bad checksum, bad tokens, too long)."""
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One decoded frame.
+
+    Attributes
+    ----------
+    kind : {"command", "reply", "event"}
+        Direction and role of the frame.
+    seq : int
+        Command sequence number (commands and replies) or device event number (events), 0–65535.
+    name : str
+        Command name (``PLAY``), ``OK``/``ERR`` for replies, or event name (``DONE``).
+    fields : Mapping[str, str]
+        ``key=value`` arguments, as text.
+    code : str or None
+        Error code of an ``ERR`` reply (``LIMIT``, ``ARGS``, ...).
+    text : str
+        Free text of an ``ERR`` reply.
+    """
+
+    kind: FrameKind
+    seq: int
+    name: str
+    fields: Mapping[str, str] = field(default_factory=dict)
+    code: str | None = None
+    text: str = ""
+
+    @property
+    def ok(self) -> bool:
+        """True for an ``OK`` reply."""
+        return self.kind == "reply" and self.name == "OK"
+
+    def number(self, key: str) -> float:
+        """Field ``key`` as a finite float; FrameError if missing or not a number."""
+        raw = self.fields.get(key)
+        if raw is None:
+            raise FrameError(f"{self.name} frame #{self.seq} lacks field {key!r}")
+        try:
+            value = float(raw)
+        except ValueError:
+            raise FrameError(f"{self.name} #{self.seq}: {key}={raw!r} is not a number") from None
+        if not math.isfinite(value):
+            raise FrameError(f"{self.name} #{self.seq}: {key}={raw!r} is not finite")
+        return value
+
+    def numbers(self, key: str) -> list[float]:
+        """Comma-separated field ``key`` as finite floats."""
+        raw = self.fields.get(key)
+        if raw is None:
+            raise FrameError(f"{self.name} frame #{self.seq} lacks field {key!r}")
+        try:
+            values = [float(x) for x in raw.split(",")]
+        except ValueError:
+            raise FrameError(
+                f"{self.name} #{self.seq}: {key}={raw!r} is not a number list"
+            ) from None
+        if not all(math.isfinite(v) for v in values):
+            raise FrameError(f"{self.name} #{self.seq}: {key}={raw!r} has a non-finite value")
+        return values
+
+
+def crc16(data: bytes) -> int:
+    """CRC-16/CCITT-FALSE of ``data`` (poly 0x1021, init 0xFFFF); ``b"123456789"`` → 0x29B1."""
+    return binascii.crc_hqx(data, 0xFFFF)
+
+
+def next_seq(seq: int) -> int:
+    """The sequence number after ``seq`` (wraps from 65535 to 0)."""
+    return (seq + 1) % SEQ_MODULO
+
+
+def fmt_number(x: float) -> str:
+    """A number as frame text: up to 6 decimals (µs for times, µV for amplitudes), no exponent."""
+    if not math.isfinite(x):
+        raise FrameError(f"cannot send a non-finite number ({x!r})")
+    text = f"{x:.6f}".rstrip("0").rstrip(".")
+    return "0" if text in ("-0", "") else text
+
+
+def encode_command(seq: int, name: str, fields: Mapping[str, object] | None = None) -> bytes:
+    """Frame a host command, e.g. ``encode_command(7, "PING")`` → ``b"7 PING*XXXX\\n"``."""
+    _check_seq(seq)
+    if name not in COMMANDS and not _WORD.match(name):
+        raise FrameError(f"bad command name {name!r}")
+    if name in ("OK", "ERR"):
+        raise FrameError("OK and ERR are replies, not commands")
+    return _frame(f"{seq} {name}{_fields(fields)}")
+
+
+def encode_ok(seq: int, fields: Mapping[str, object] | None = None) -> bytes:
+    """Frame an ``OK`` reply to command ``seq``."""
+    _check_seq(seq)
+    return _frame(f"{seq} OK{_fields(fields)}")
+
+
+def encode_err(seq: int, code: str, text: str) -> bytes:
+    """Frame an ``ERR`` reply; ``text`` is made printable ASCII without ``*`` (kept readable)."""
+    _check_seq(seq)
+    if not _WORD.match(code):
+        raise FrameError(f"bad error code {code!r}")
+    clean = "".join(c if " " <= c <= "~" and c != "*" else "?" for c in text).strip()
+    body = f"{seq} ERR {code} {clean}" if clean else f"{seq} ERR {code}"
+    room = MAX_FRAME_BYTES - 6  # "*CCCC\n"
+    return _frame(body[:room].rstrip())
+
+
+def encode_event(number: int, name: str, fields: Mapping[str, object] | None = None) -> bytes:
+    """Frame a device event, e.g. ``!3 DONE seq=12 on=...``."""
+    _check_seq(number)
+    if not _WORD.match(name):
+        raise FrameError(f"bad event name {name!r}")
+    return _frame(f"!{number} {name}{_fields(fields)}")
+
+
+def decode(line: bytes) -> Frame:
+    """Decode one line (with or without its ``\\n``; ``\\r\\n`` is tolerated).
+
+    Raises
+    ------
+    FrameError
+        If the line is too long, not ASCII, lacks ``*CCCC``, has a wrong CRC or bad tokens.
+    """
+    if len(line) > MAX_FRAME_BYTES:
+        raise FrameError(f"line of {len(line)} bytes is longer than {MAX_FRAME_BYTES}")
+    raw = line
+    if raw.endswith(b"\n"):
+        raw = raw[:-1]
+        if raw.endswith(b"\r"):  # CRLF from a terminal-minded peer; a lone CR is not an ending
+            raw = raw[:-1]
+    star = raw.rfind(b"*")
+    if star < 0:
+        raise FrameError("no '*' checksum separator: not a frame")
+    body, crc_text = raw[:star], raw[star + 1 :]
+    try:
+        text = body.decode("ascii")
+        crc_str = crc_text.decode("ascii")
+    except UnicodeDecodeError:
+        raise FrameError("non-ASCII bytes in line") from None
+    if not _HEX4.match(crc_str):
+        raise FrameError(f"checksum {crc_str!r} is not four upper-case hex digits")
+    if int(crc_str, 16) != crc16(body):
+        raise FrameError(f"bad checksum {crc_str} (computed {crc16(body):04X})")
+    if not text or not text.isprintable():  # ASCII here, so: no control characters
+        raise FrameError("empty body or control characters in body")
+    tokens = text.split(" ")
+    if len(tokens) < 2 or "" in tokens[:2]:
+        raise FrameError(f"frame {text!r} needs a sequence number and a name")
+    head, name = tokens[0], tokens[1]
+    kind: FrameKind
+    if head.startswith("!"):
+        kind, head = "event", head[1:]
+    elif name in ("OK", "ERR"):
+        kind = "reply"
+    else:
+        kind = "command"
+    if not _SEQ.match(head) or int(head) >= SEQ_MODULO:
+        raise FrameError(f"bad sequence number {head!r}")
+    if not _WORD.match(name):
+        raise FrameError(f"bad frame name {name!r}")
+    seq = int(head)
+    if kind == "reply" and name == "ERR":
+        if len(tokens) < 3 or not _WORD.match(tokens[2]):
+            raise FrameError("ERR reply without an error code")
+        return Frame(kind, seq, name, {}, tokens[2], " ".join(tokens[3:]))
+    fields: dict[str, str] = {}
+    for tok in tokens[2:]:
+        key, eq, value = tok.partition("=")
+        if not eq or not _KEY.match(key) or not _VALUE.match(value) or key in fields:
+            raise FrameError(f"bad field {tok!r} in {name} frame")
+        fields[key] = value
+    return Frame(kind, seq, name, fields)
+
+
+def _frame(body: str) -> bytes:
+    data = body.encode("ascii")
+    out = data + b"*" + f"{crc16(data):04X}".encode("ascii") + b"\n"
+    if len(out) > MAX_FRAME_BYTES:
+        raise FrameError(f"frame of {len(out)} bytes exceeds {MAX_FRAME_BYTES}: {body[:40]}...")
+    return out
+
+
+def _fields(fields: Mapping[str, object] | None) -> str:
+    if not fields:
+        return ""
+    parts = []
+    for key, value in fields.items():
+        if not _KEY.match(key):
+            raise FrameError(f"bad field name {key!r}")
+        if isinstance(value, bool):
+            text = "1" if value else "0"
+        elif isinstance(value, int):
+            text = str(value)
+        elif isinstance(value, float):
+            text = fmt_number(value)
+        elif isinstance(value, (list, tuple)):
+            text = ",".join(fmt_number(float(v)) for v in value)
+        else:
+            text = str(value)
+        if not _VALUE.match(text) or "*" in text:
+            raise FrameError(f"field {key}={text!r} must be printable ASCII without spaces or '*'")
+        parts.append(f"{key}={text}")
+    return " " + " ".join(parts)
+
+
+def _check_seq(seq: int) -> None:
+    if not (isinstance(seq, int) and 0 <= seq < SEQ_MODULO):
+        raise FrameError(f"sequence number must be an int in 0..{SEQ_MODULO - 1}, got {seq!r}")

@@ -1,0 +1,147 @@
+"""Keeping volts off skin: amplitude checks before anything is sent, and zeroing on exit.
+
+:func:`check_plan` / :func:`check_amplitude` are pure: every back-end calls them before a command
+leaves the host, so an over-limit request raises :class:`~masking_lab.errors.SafetyLimitError`
+and nothing is played. :func:`zero_on_exit` registers an open device so that its outputs are
+zeroed when the program exits normally, on an uncaught exception, or on SIGTERM/SIGHUP. (SIGKILL
+cannot be caught: the firmware watchdog covers it.)
+"""
+
+from __future__ import annotations
+
+import atexit
+import contextlib
+import logging
+import math
+import signal
+import threading
+import weakref
+from collections.abc import Callable
+from typing import Any, Protocol
+
+from masking_lab.device.base import DeviceLimits, TrialPlan
+from masking_lab.errors import SafetyLimitError
+
+log = logging.getLogger("masking_lab.device")
+
+
+def check_amplitude(channel: str, amplitude_v: float, limits: DeviceLimits, *, what: str) -> None:
+    """Raise SafetyLimitError unless ``0 ≤ amplitude_v ≤`` the channel's limit (V).
+
+    Parameters
+    ----------
+    channel : {"EV", "MV"}
+        Output channel.
+    amplitude_v : float
+        Requested peak drive, V.
+    limits : DeviceLimits
+        Limits in force.
+    what : str
+        Names the request in the message (``"target EV270"``).
+    """
+    if channel not in limits.max_drive_v:
+        raise SafetyLimitError(f"{what}: no limit configured for channel {channel!r}; not played")
+    limit = limits.max_drive_v[channel]
+    if not (isinstance(amplitude_v, (int, float)) and math.isfinite(amplitude_v)):
+        raise SafetyLimitError(f"{what}: amplitude {amplitude_v!r} is not a finite number of V")
+    if amplitude_v < 0:
+        raise SafetyLimitError(f"{what}: amplitude {amplitude_v} V is negative (peak must be ≥ 0)")
+    if amplitude_v > limit:
+        raise SafetyLimitError(
+            f"{what}: {amplitude_v:.4g} V exceeds the {channel} limit of {limit:g} V; nothing was "
+            "played. Lower the level, or check the participant's calibration and the device "
+            "config's max_drive_v"
+        )
+
+
+def check_plan(plan: TrialPlan, limits: DeviceLimits) -> None:
+    """Check every drive of a trial against ``limits`` (V); same-channel drives add.
+
+    Also refuses a plan whose timing or target interval cannot be played.
+    """
+    if not 1 <= plan.target_interval <= plan.n_intervals:
+        raise SafetyLimitError(
+            f"trial plan: target_interval {plan.target_interval} is not in 1..{plan.n_intervals}"
+        )
+    for name in ("stimulus_s", "gap_s", "lead_in_s"):
+        value = getattr(plan, name)
+        if not (math.isfinite(value) and value >= 0) or (name == "stimulus_s" and value == 0):
+            raise SafetyLimitError(f"trial plan: {name}={value!r} s cannot be played")
+    check_amplitude(
+        plan.target.channel, plan.target_amplitude_v, limits, what=f"target {plan.target}"
+    )
+    if plan.masker is None:
+        if plan.masker_amplitude_v != 0:
+            raise SafetyLimitError("trial plan: masker amplitude given without a masker stimulus")
+        return
+    check_amplitude(
+        plan.masker.channel, plan.masker_amplitude_v, limits, what=f"masker {plan.masker}"
+    )
+    if plan.masker.channel == plan.target.channel:
+        check_amplitude(
+            plan.target.channel,
+            plan.target_amplitude_v + plan.masker_amplitude_v,
+            limits,
+            what=f"target {plan.target} + masker {plan.masker} on one channel",
+        )
+
+
+def stricter_limits(host: DeviceLimits, device: DeviceLimits) -> DeviceLimits:
+    """Per channel, the smaller of the host-config and the firmware-reported limit (V)."""
+    return DeviceLimits(
+        {ch: min(v, device.max_drive_v.get(ch, v)) for ch, v in host.max_drive_v.items()}
+    )
+
+
+class _Stoppable(Protocol):
+    def stop(self) -> None: ...
+
+
+_registry: weakref.WeakSet[Any] = weakref.WeakSet()
+_lock = threading.Lock()
+_installed = False
+_previous: dict[int, Any] = {}
+
+
+def zero_on_exit(device: _Stoppable) -> None:
+    """Zero ``device`` (call its ``stop()``) at interpreter exit and on SIGTERM/SIGHUP."""
+    global _installed
+    with _lock:
+        _registry.add(device)
+        if _installed:
+            return
+        _installed = True
+    atexit.register(zero_all, "exit")
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGTERM, signal.SIGHUP):
+            with contextlib.suppress(ValueError, OSError):
+                _previous[sig] = signal.signal(sig, _on_signal)
+
+
+def forget(device: _Stoppable) -> None:
+    """Stop watching ``device`` (after it was closed)."""
+    with _lock:
+        _registry.discard(device)
+
+
+def zero_all(reason: str) -> None:
+    """Call ``stop()`` on every registered device, ignoring failures (best effort)."""
+    with _lock:
+        devices = list(_registry)
+    for device in devices:
+        try:
+            device.stop()
+            log.warning("zeroed outputs of %s on %s", getattr(device, "port", device), reason)
+        except Exception as exc:  # a dead link cannot be zeroed from here; the watchdog will
+            log.error("could not zero %s on %s: %s", device, reason, exc)
+
+
+def _on_signal(signum: int, frame: Any) -> None:
+    zero_all(signal.Signals(signum).name)
+    previous: Callable[..., Any] | int | None = _previous.get(signum)
+    if callable(previous):
+        previous(signum, frame)
+        return
+    if previous == signal.SIG_IGN:
+        return
+    raise SystemExit(128 + signum)
