@@ -31,6 +31,18 @@ def run(args: argparse.Namespace) -> int:
     limits = max_level_db_sl(args.device_config)
     bad = 0
     for f in args.files:
+        if _is_usertest(f):
+            # User-test protocols (kind: usertest) have their own schema and loader.
+            from masking_lab.usertest import load_usertest
+
+            try:
+                design = load_usertest(f)
+            except ProtocolError as exc:
+                bad += 1
+                print(f"INVALID {exc}", file=sys.stderr)
+                continue
+            print(f"ok      {f}: {design.experiment} (usertest, {design.n_trials} trials)")
+            continue
         try:
             protocol = load_protocol(f, max_level_db_sl=limits)
         except ProtocolError as exc:
@@ -39,3 +51,15 @@ def run(args: argparse.Namespace) -> int:
             continue
         print(f"ok      {f}: {protocol.experiment} ({protocol.kind}, {len(protocol.sets)} sets)")
     return 1 if bad else 0
+
+
+def _is_usertest(path: str) -> bool:
+    """True if ``path`` parses as a mapping with ``kind: usertest`` (else load_protocol reports)."""
+    import yaml
+
+    try:
+        with open(path, encoding="utf-8") as fh:
+            data = yaml.safe_load(fh)
+    except (OSError, UnicodeDecodeError, yaml.YAMLError):
+        return False
+    return isinstance(data, dict) and data.get("kind") == "usertest"

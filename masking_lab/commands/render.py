@@ -1,0 +1,120 @@
+"""``masking-lab render SCENE --params P --out DIR``: compensated inputs along a scene's path."""
+
+from __future__ import annotations
+
+import argparse
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "render",
+        help="render a scene: per-point targets, compensated inputs, perceived intensities",
+        description="Render a scene file (protocols/scenes/*.yaml): for every interaction point "
+        "write the perceived targets, the masking-compensated inputs (paper Table 4), and the "
+        "masked ALs and perceived intensities with and without compensation (points.csv), a "
+        "summary (summary.json) and a figure like the paper's Figure 4 (figure4.png). Only the "
+        "masking functions of the scene's own stimulus pair are loaded; a single-channel scene "
+        "needs none. If they are not fitted, the protocol that measures just that pair is "
+        "written to DIR and the command exits 2. Points needing more than the rated level are "
+        "reported, never clipped. Exit 1 if some points have no unique compensated input.",
+    )
+    p.add_argument("scene", metavar="SCENE", help="scene YAML file")
+    p.add_argument("--params", metavar="FILE", help="masking_params.json from `masking-lab fit`")
+    p.add_argument("--out", required=True, metavar="DIR", help="output folder (created)")
+    p.add_argument("--max-mv-db-sl", type=float, metavar="DB", help="rated maximum MV input, dB SL")
+    p.add_argument("--max-ev-db-sl", type=float, metavar="DB", help="rated maximum EV input, dB SL")
+    p.add_argument(
+        "--device-config",
+        metavar="FILE",
+        help="rig config whose channels.<EV|MV>.max_level_db_sl are the rated maxima unless "
+        "--max-* say otherwise (default: the reference rig, protocols/devices/default.yaml)",
+    )
+    p.add_argument("--no-figure", action="store_true", help="skip figure4.png")
+    p.set_defaults(handler=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from masking_lab.errors import SolverError
+    from masking_lab.masking_params import read_masking_params
+    from masking_lab.render import (
+        measurement_protocol,
+        needed_pairs,
+        render_scene,
+        summarize,
+        write_measurement_protocol,
+        write_rendering,
+    )
+    from masking_lab.rig_limits import max_level_db_sl
+    from masking_lab.scene import load_scene
+    from masking_lab.solver import MissingMaskingError, PairProblem, pair_from_params
+
+    scene = load_scene(args.scene)
+    limits = max_level_db_sl(args.device_config)
+    max_mv = args.max_mv_db_sl if args.max_mv_db_sl is not None else limits.get("MV")
+    max_ev = args.max_ev_db_sl if args.max_ev_db_sl is not None else limits.get("EV")
+    pair = None
+    for mv, ev in needed_pairs(scene):
+        try:
+            if not args.params:
+                raise MissingMaskingError(
+                    f"scene {scene.name!r} plays {mv} with {ev} and needs their masking "
+                    "functions: pass --params masking_params.json",
+                    [PairProblem(ev, mv, "missing"), PairProblem(mv, ev, "missing")],
+                )
+            params = read_masking_params(args.params)
+            pair = pair_from_params(params, mv=mv, ev=ev, source=args.params)
+        except MissingMaskingError as exc:
+            written = write_measurement_protocol(measurement_protocol(exc.problems), args.out)
+            raise SolverError(
+                f"{exc}\n  wrote {written}: the protocol that measures just this pair. Check it "
+                f"with `masking-lab validate {written}`, run it after the participants' baseline, "
+                "fit, and render again"
+            ) from exc
+    rendering = render_scene(scene, pair, max_mv_db_sl=max_mv, max_ev_db_sl=max_ev)
+    written = write_rendering(rendering, args.out, figure=not args.no_figure)
+    summary = summarize(rendering)
+    if pair is None:
+        print(f"{scene.name}: single-channel scene, targets passed straight through")
+    else:
+        print(
+            f"{scene.name}: {pair.mv} with {pair.ev} (a={pair.a_db:g}, b={pair.b:g}, "
+            f"c={pair.c_db:g}, d={pair.d:g}, b·d={pair.bd:.3g}); "
+            + ", ".join(f"{k} {v}" for k, v in summary["status_counts"].items() if v)
+        )
+    for name, ch in summary["channels"].items():
+        lo, hi = ch["input_range_db_sl"] or ("-", "-")
+        line = f"  {name} ({ch['stimulus']}): inputs {_f(lo)}..{_f(hi)} dB SL"
+        if ch["points_above_rating"]:
+            spans = ", ".join(f"{a:.1f}-{b:.1f}" for a, b in ch["above_rating_mm"])
+            line += (
+                f"; {ch['points_above_rating']} of {summary['n_points']} points need more than "
+                f"the rated {ch['max_rated_db_sl']:g} dB SL (at {spans} mm)"
+            )
+        if ch["points_beyond_fitted_range"]:
+            lo_fit, hi_fit = ch["masks_other_fitted_range_db_sl"]
+            line += (
+                f"; at {ch['points_beyond_fitted_range']} points it masks beyond the "
+                f"{lo_fit:g}-{hi_fit:g} dB SL the other ramp was fitted on (extrapolated)"
+            )
+        unc = ch["uncompensated"]
+        line += (
+            f"; uncompensated: worst error {_f(unc['max_abs_error_db'])} dB, "
+            f"{unc['points_not_felt']} points not felt"
+        )
+        print(line)
+    for note in summary["notes"]:
+        print(f"  note: {note}")
+    for path in written:
+        print(f"  wrote {path}")
+    unsolved = summary["status_counts"]["none"] + summary["status_counts"]["multiple"]
+    if unsolved:
+        print(
+            f"  {unsolved} points have no unique compensated input (see the status column of "
+            "points.csv); with b·d ≥ 1 this pair cannot be compensated everywhere"
+        )
+        return 1
+    return 0
+
+
+def _f(x: object) -> str:
+    return f"{x:.1f}" if isinstance(x, float) else str(x)

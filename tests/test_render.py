@@ -1,0 +1,298 @@
+"""`masking-lab render` and masking_lab.render: outputs per scene, pass-through, missing pairs."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from masking_lab.cli import main
+from masking_lab.errors import SolverError
+from masking_lab.masking_params import write_masking_params
+from masking_lab.protocol import load_protocol
+from masking_lab.render import (
+    POINT_COLUMNS,
+    measurement_protocol,
+    render_scene,
+    runs_mm,
+    write_rendering,
+)
+from masking_lab.scene import GeometrySpec, PathSpec, Scene, TextureSpec, load_scene
+from masking_lab.solver import MutualMasking, PairProblem
+
+ROOT = Path(__file__).resolve().parents[1]
+SCENES = sorted((ROOT / "protocols" / "scenes").glob("*.yaml"))
+
+# Ground-truth ramps (paper Table 2 fits; coarse assumed like MV120): (a, b) for MV by EV and
+# (c, d) for EV by MV.
+RAMPS = {
+    "MV270": ((1.480, 1.113), (-2.240, 0.602)),
+    "MV180": ((1.304, 1.062), (-5.927, 0.658)),
+    "MV120am40": ((-0.387, 0.939), (-7.442, 0.711)),
+}
+
+
+def _fn(target, masker, a, b, status="fitted"):
+    return {
+        "target": target,
+        "masker": masker,
+        "masker_frequencies_hz": [120.0],
+        "intercept_db": a,
+        "slope": b,
+        "intercept_se_db": None,
+        "slope_se": None,
+        "intercept_ci_db": None,
+        "slope_ci": None,
+        "fitted_range_db_sl": [5.0, 25.0],
+        "knee_db_sl": None,
+        "adj_r2": None,
+        "n_points": 5,
+        "pooled_pairs": [f"{target}|{masker}"],
+        "status": status,
+        "message": None,
+    }
+
+
+def write_params(path: Path, ramps=RAMPS, extra=()) -> str:
+    functions = list(extra)
+    for mv, ((a, b), (c, d)) in ramps.items():
+        functions += [_fn(mv, "EV270", a, b), _fn("EV270", mv, c, d)]
+    doc = {
+        "schema_version": 1,
+        "software_version": "test",
+        "created_utc": "2024-01-01T00:00:00Z",
+        "provenance": {"source": "fit", "inputs": [], "settings": {}},
+        "functions": functions,
+    }
+    write_masking_params(path, doc)
+    return str(path)
+
+
+@pytest.fixture(scope="module")
+def params(tmp_path_factory):
+    return write_params(tmp_path_factory.mktemp("params") / "masking_params.json")
+
+
+@pytest.mark.parametrize("scene_file", SCENES, ids=lambda p: p.stem)
+def test_render_writes_outputs_for_every_shipped_scene(scene_file, params, tmp_path, capsys):
+    out = tmp_path / "out"
+    assert main(["render", str(scene_file), "--params", params, "--out", str(out)]) == 0
+    assert "wrote" in capsys.readouterr().out
+    table = pd.read_csv(out / "points.csv")
+    assert tuple(table.columns) == POINT_COLUMNS
+    scene = load_scene(scene_file)
+    assert len(table) == scene.path.n_points
+    (a, b), (c, d) = RAMPS[scene.texture.stimulus]
+    mv_t, ev_t = table["mv_target_db_sl"], table["ev_target_db_sl"]
+    # With compensation the participant feels the targets (Eq. 3-4 on the written inputs).
+    m_i, e_i = table["mv_input_db_sl"], table["ev_input_db_sl"]
+    assert np.allclose(m_i - np.maximum(0, a + b * e_i), mv_t, atol=1e-9)
+    assert np.allclose(e_i - np.maximum(0, c + d * m_i), ev_t, atol=1e-9)
+    assert np.allclose(table["mv_perceived_db_sl"], mv_t, atol=1e-9)
+    # Without it, each target is lowered by the other's masking at its target level.
+    assert np.allclose(table["mv_perceived_uncomp_db_sl"], mv_t - np.maximum(0, a + b * ev_t))
+    assert np.allclose(table["ev_perceived_uncomp_db_sl"], ev_t - np.maximum(0, c + d * mv_t))
+    assert set(table["status"]) == {"unique"}
+    png = (out / "figure4.png").read_bytes()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n"
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["scene"] == scene.name and summary["status_counts"]["unique"] == len(table)
+    assert summary["masking"]["b"] == b and summary["masking"]["d"] == d
+
+
+def test_bump_rough_needs_more_than_the_reference_rig_rates(params, tmp_path, capsys):
+    out = tmp_path / "br"
+    scene = str(ROOT / "protocols" / "scenes" / "bump_rough.yaml")
+    assert main(["render", scene, "--params", params, "--out", str(out), "--no-figure"]) == 0
+    text = capsys.readouterr().out
+    summary = json.loads((out / "summary.json").read_text())
+    mv = summary["channels"]["MV"]
+    # Reference rig: 30 dB SL per channel (protocols/devices/default.yaml).
+    assert mv["max_rated_db_sl"] == 30.0 and mv["points_above_rating"] > 0
+    table = pd.read_csv(out / "points.csv")
+    above = table["mv_input_db_sl"] > 30.0
+    assert above.sum() == mv["points_above_rating"]  # flagged exactly where needed ...
+    assert (table["mv_exceeds_rating"] == above.astype(int)).all()
+    assert table["mv_input_db_sl"].max() > 30.0  # ... and not clipped
+    assert "need more than the rated 30 dB SL" in text and "(extrapolated)" in text
+    assert not (out / "figure4.png").exists()
+    # Compensation makes the inputs mask beyond the 5-25 dB SL the ramps were fitted on.
+    assert mv["points_beyond_fitted_range"] == int((table["mv_input_db_sl"] > 25.0).sum())
+    # Uncompensated, the texture all but vanishes where EV climbs (paper Figure 8b).
+    assert (
+        table["mv_perceived_uncomp_db_sl"].min()
+        < 1.0
+        < 11.0
+        < mv["uncompensated"]["max_abs_error_db"]
+    )
+    assert mv["compensated"]["points_not_felt"] == 0
+    out2 = tmp_path / "br2"
+    args = ["render", scene, "--params", params, "--out", str(out2), "--no-figure"]
+    assert main([*args, "--max-mv-db-sl", "100", "--max-ev-db-sl", "100"]) == 0
+    capsys.readouterr()
+    assert (
+        json.loads((out2 / "summary.json").read_text())["channels"]["MV"]["points_above_rating"]
+        == 0
+    )
+
+
+def test_single_channel_scene_passes_through_without_parameters(tmp_path, capsys):
+    scene_file = tmp_path / "smooth_only.yaml"
+    scene_file.write_text(
+        "schema_version: 1\nscene: smooth_only\n"
+        "texture: {name: smooth, stimulus: MV270, perceived_db_sl: 6}\n"
+    )
+    out = tmp_path / "out"
+    assert main(["render", str(scene_file), "--out", str(out)]) == 0
+    assert "passed straight through" in capsys.readouterr().out
+    table = pd.read_csv(out / "points.csv")
+    assert (table["mv_input_db_sl"] == 6.0).all() and (table["mv_perceived_db_sl"] == 6.0).all()
+    assert np.isneginf(table["ev_input_db_sl"]).all()
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["single_channel"] and summary["masking"] is None
+    assert list(summary["channels"]) == ["MV"]
+    assert not list(out.glob("measure_*.yaml"))
+
+
+def test_missing_pair_writes_the_protocol_that_measures_just_it(tmp_path, capsys):
+    partial = write_params(
+        tmp_path / "partial.json",
+        ramps={"MV180": RAMPS["MV180"]},
+        extra=[_fn("MV120am40", "EV270", None, None, "insufficient_data")],
+    )
+    out = tmp_path / "out"
+    scene = str(ROOT / "protocols" / "scenes" / "hole_coarse.yaml")
+    assert main(["render", scene, "--params", partial, "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "MV120am40 masked by EV270: status 'insufficient_data'" in err
+    assert "EV270 masked by MV120am40: no entry" in err
+    written = out / "measure_EV270_MV120am40.yaml"
+    assert str(written) in err and not (out / "points.csv").exists()
+    protocol = load_protocol(written)
+    assert protocol.kind == "masked"
+    assert sorted((s.target.name, s.masker.name, s.masker_level_db_sl) for s in protocol.sets) == (
+        sorted(
+            (t, m, float(lv))
+            for t, m in (("MV120am40", "EV270"), ("EV270", "MV120am40"))
+            for lv in (5, 10, 15, 20, 25)
+        )
+    )
+    sc = protocol.sets[0].staircase
+    assert (sc.n_up, sc.n_down, sc.n_reversals, sc.n_reversals_averaged) == (1, 3, 11, 8)
+    assert main(["validate", str(written)]) == 0
+
+
+def test_two_channel_scene_without_params_writes_the_protocol(tmp_path, capsys):
+    out = tmp_path / "out"
+    scene = str(ROOT / "protocols" / "scenes" / "bump_rough.yaml")
+    assert main(["render", scene, "--out", str(out)]) == 2
+    assert "pass --params masking_params.json" in capsys.readouterr().err
+    protocol = load_protocol(out / "measure_EV270_MV180.yaml")
+    assert protocol.stimuli() == {"EV270", "MV180"} and len(protocol.sets) == 10
+
+
+def test_only_the_scene_pair_is_loaded(tmp_path, capsys):
+    # An unusable entry for another pair does not stop a scene that does not use it.
+    params = write_params(
+        tmp_path / "p.json",
+        ramps={"MV180": RAMPS["MV180"]},
+        extra=[_fn("MV120am40", "EV270", None, None, "insufficient_data")],
+    )
+    scene = str(ROOT / "protocols" / "scenes" / "bump_rough.yaml")
+    assert (
+        main(["render", scene, "--params", params, "--out", str(tmp_path / "o"), "--no-figure"])
+        == 0
+    )
+    capsys.readouterr()
+
+
+def test_folded_pair_is_reported_per_point_and_exits_1(tmp_path, capsys):
+    params = write_params(tmp_path / "p.json", ramps={"MV180": ((1.0, 2.0), (-1.0, 1.0))})
+    scene = str(ROOT / "protocols" / "scenes" / "bump_rough.yaml")
+    out = tmp_path / "o"
+    assert main(["render", scene, "--params", params, "--out", str(out), "--no-figure"]) == 1
+    assert "no unique compensated input" in capsys.readouterr().out
+    table = pd.read_csv(out / "points.csv")
+    not_unique = table["status"] != "unique"
+    assert not_unique.any()
+    assert table.loc[not_unique, "mv_input_db_sl"].isna().all()  # no silent pair
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["status_counts"]["unique"] + summary["status_counts"]["none"] + summary[
+        "status_counts"
+    ]["multiple"] == len(table)
+
+
+def test_bad_scene_or_params_exit_2(tmp_path, capsys):
+    assert main(["render", str(tmp_path / "nope.yaml"), "--out", str(tmp_path)]) == 2
+    assert "cannot read the scene" in capsys.readouterr().err
+    bad = tmp_path / "bad.json"
+    bad.write_text("{")
+    scene = str(ROOT / "protocols" / "scenes" / "bump_rough.yaml")
+    assert main(["render", scene, "--params", str(bad), "--out", str(tmp_path / "o")]) == 2
+    assert "not valid JSON" in capsys.readouterr().err
+
+
+def _tiny_scene():
+    return Scene(
+        "tiny",
+        PathSpec(length_mm=10.0, n_points=21),
+        GeometrySpec("bump", position_mm=5.0, height_mm=1.0, max_inclination=0.5),
+        TextureSpec("rough", "MV180", 12.0),
+    )
+
+
+def test_render_scene_refuses_a_wrong_or_missing_pair():
+    scene = _tiny_scene()
+    with pytest.raises(SolverError, match="needs their masking functions"):
+        render_scene(scene, None)
+    with pytest.raises(SolverError, match="for MV270 with EV270"):
+        render_scene(scene, MutualMasking(1, 1, -6, 0.6, mv="MV270", ev="EV270"))
+
+
+def test_render_scene_arrays_and_ideal_passthrough():
+    scene = _tiny_scene()
+    none = MutualMasking(0.0, 0.0, 0.0, 0.0, mv="MV180", ev="EV270")
+    r = render_scene(scene, none)
+    np.testing.assert_array_equal(r.mv_input_db_sl, r.mv_target_db_sl)
+    np.testing.assert_array_equal(r.ev_perceived_uncomp_db_sl, r.ev_target_db_sl)
+    np.testing.assert_allclose(r.t_s, r.x_mm / 51.0)
+    assert r.inputs(False)[0] is r.mv_target_db_sl and r.perceived(True)[1] is r.ev_perceived_db_sl
+
+
+def test_write_rendering_is_complete_and_json_is_strict(tmp_path):
+    scene = Scene(
+        "g", PathSpec(length_mm=10.0, n_points=5), GeometrySpec("hole", position_mm=5.0), None
+    )
+    r = render_scene(scene, None, max_ev_db_sl=8.0)
+    paths = write_rendering(r, tmp_path, figure=True)
+    assert sorted(p.name for p in paths) == ["figure4.png", "points.csv", "summary.json"]
+    summary = json.loads((tmp_path / "summary.json").read_text())  # strict: no NaN/Infinity
+    assert summary["channels"]["EV"]["max_rated_db_sl"] == 8.0
+    text = (tmp_path / "points.csv").read_text()
+    assert "-inf" in text and "nan" not in text.lower().replace("-inf", "")
+
+
+def test_runs_mm():
+    x = np.arange(8.0)
+    mask = np.array([1, 1, 0, 0, 1, 0, 1, 1], dtype=bool)
+    assert runs_mm(mask, x) == [(0.0, 1.0), (4.0, 4.0), (6.0, 7.0)]
+    assert runs_mm(np.zeros(3, dtype=bool), x[:3]) == []
+
+
+def test_measurement_protocol_needs_something_to_measure():
+    with pytest.raises(SolverError, match="nothing to measure"):
+        measurement_protocol([])
+    doc = measurement_protocol([PairProblem("EV270", "MV180", "missing")], levels_db_sl=[7.5])
+    assert doc["sets"] == [
+        {
+            "id": "EV270_by_MV180_7.5",
+            "target": "EV270",
+            "masker": "MV180",
+            "masker_level_db_sl": 7.5,
+        }
+    ]
+    assert math.isclose(doc["timing"]["stimulus_s"], 1.8)
