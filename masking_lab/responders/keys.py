@@ -1,0 +1,257 @@
+"""Terminal keypad responder: the participant answers 1, 2 or 3 on a terminal.
+
+For rigs without PsychoPy. The participant's terminal is the session's own (stdin/stdout) or a
+second one named by its path (``/dev/pts/N``, a serial keypad's tty). Keys are read one at a time
+without Enter (non-canonical mode, no echo); every key other than the allowed ones is ignored,
+including escape sequences (F5 sends ``ESC [ 1 5 ~``, which must not count as a ``1``). Keys typed
+while the stimuli play are discarded, so only an answer given after the last interval counts.
+The terminal's settings are restored after every trial, also when Ctrl-C interrupts it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import select
+import sys
+import termios
+import time
+from collections.abc import Callable, Iterator
+
+from masking_lab.device.base import PlayResult
+from masking_lab.errors import ResponderError
+from masking_lab.responders.base import Response, SetInfo, TrialPresentation
+
+INTERRUPT = "\x03"
+"""Ctrl-C as a byte (arrives only when the terminal's ISIG is off; otherwise it is SIGINT)."""
+
+ESCAPE_WAIT_S = 0.05
+"""How long an unfinished escape sequence waits for its next byte before it counts as Esc, s."""
+
+_ESC = 0x1B
+
+
+def parse_keys(data: bytes) -> tuple[list[str], bytes]:
+    """Split raw terminal input into key presses.
+
+    Parameters
+    ----------
+    data : bytes
+        Bytes read from the terminal (possibly the unfinished tail of an earlier read first).
+
+    Returns
+    -------
+    keys : list of str
+        One entry per key: a printable ASCII character, ``INTERRUPT`` for Ctrl-C, ``"\\n"`` for
+        Enter, or ``""`` for anything to ignore (escape sequences, other control keys, non-ASCII).
+    tail : bytes
+        An escape sequence cut off at the end of ``data``; prepend it to the next read.
+    """
+    keys: list[str] = []
+    i = 0
+    n = len(data)
+    while i < n:
+        b = data[i]
+        if b != _ESC:
+            if b == 0x03:
+                keys.append(INTERRUPT)
+            elif b in (0x0A, 0x0D):
+                keys.append("\n")
+            elif 0x20 <= b < 0x7F:
+                keys.append(chr(b))
+            else:
+                keys.append("")  # other control bytes, UTF-8 bytes of non-ASCII keys
+            i += 1
+            continue
+        # Escape: CSI (ESC [ params final), SS3 (ESC O x), Alt+key (ESC x) or a lone Esc.
+        if i + 1 >= n:
+            return keys, data[i:]
+        nxt = data[i + 1]
+        if nxt == ord("["):
+            j = i + 2
+            while j < n and not 0x40 <= data[j] <= 0x7E:
+                j += 1
+            if j >= n:
+                return keys, data[i:]
+            i = j + 1
+        elif nxt == ord("O"):
+            if i + 2 >= n:
+                return keys, data[i:]
+            i += 3
+        else:
+            i += 2  # Alt+key: not a plain key press
+        keys.append("")
+    return keys, b""
+
+
+class KeysResponder:
+    """Answers 3IFC trials with one key press, 1–3, on a terminal.
+
+    Parameters
+    ----------
+    in_fd : int, optional
+        File descriptor the keys come from (default: stdin). Must be a terminal.
+    out_fd : int, optional
+        File descriptor the prompts go to (default: stdout).
+    wait_for_start : bool
+        If True, :meth:`start_set` waits for the space bar so the participant starts each set.
+    owns_fds : bool
+        Close the descriptors in :meth:`close` (set by :meth:`open_tty`).
+
+    Raises
+    ------
+    ResponderError
+        If ``in_fd`` is not a terminal.
+    """
+
+    name = "keys"
+
+    def __init__(
+        self,
+        in_fd: int | None = None,
+        out_fd: int | None = None,
+        *,
+        wait_for_start: bool = True,
+        owns_fds: bool = False,
+    ) -> None:
+        self._in = sys.stdin.fileno() if in_fd is None else in_fd
+        self._out = sys.stdout.fileno() if out_fd is None else out_fd
+        self._wait_for_start = wait_for_start
+        self._owns_fds = owns_fds
+        self._closed = False
+        if not os.isatty(self._in):
+            raise ResponderError(
+                f"the keys responder reads the participant's answers from a terminal, but its "
+                f"input (fd {self._in}) is not one; run masking-lab in a terminal, give the "
+                "participant's terminal with its /dev/pts path, or use --responder sim"
+            )
+        self._tty_name = os.ttyname(self._in)
+
+    @classmethod
+    def open_tty(cls, path: str, *, wait_for_start: bool = True) -> KeysResponder:
+        """Use the terminal at ``path`` (e.g. ``/dev/pts/3``) for both keys and prompts.
+
+        Raises
+        ------
+        ResponderError
+            If the path cannot be opened or is not a terminal.
+        """
+        try:
+            fd = os.open(path, os.O_RDWR | os.O_NOCTTY)
+        except OSError as exc:
+            raise ResponderError(
+                f"{path}: cannot open the participant's terminal ({exc.strerror}); check the "
+                "path (run `tty` in that terminal) and its permissions"
+            ) from exc
+        try:
+            return cls(fd, fd, wait_for_start=wait_for_start, owns_fds=True)
+        except ResponderError:
+            os.close(fd)
+            raise
+
+    # -- Responder protocol ---------------------------------------------------------------
+
+    def start_set(self, info: SetInfo) -> None:
+        """Tell the participant a set begins; with ``wait_for_start``, wait for the space bar."""
+        self._write(
+            f"\nSet {info.set_number} of {info.n_sets}. In every trial three intervals play; "
+            "one feels different.\nSlide your fingertip left to right during each interval, "
+            "then press 1, 2 or 3 for the different one.\n"
+        )
+        if self._wait_for_start:
+            self._write("Press the space bar to start.\n")
+            with self._keypad_mode():
+                self._read_key(frozenset(" "))
+
+    def trial(
+        self, presentation: TrialPresentation, play: Callable[[], PlayResult]
+    ) -> tuple[PlayResult, Response]:
+        """Play the trial, then read the answer (1–3).
+
+        The response time runs from the moment ``play()`` returns (the end of the last
+        interval), s. Keys pressed while the trial plays are discarded.
+        """
+        with self._keypad_mode():
+            self._write(f"\nTrial {presentation.trial_index + 1}: feel the three intervals...\n")
+            result = play()
+            # Only an answer given after the stimuli counts.
+            termios.tcflush(self._in, termios.TCIFLUSH)
+            self._write("Which interval was different? Press 1, 2 or 3: ")
+            answered_from = time.monotonic()
+            key = self._read_key(frozenset("123"))
+            response_time_s = time.monotonic() - answered_from
+            self._write(f"{key}\n")
+        return result, Response(interval=int(key), response_time_s=response_time_s)
+
+    def close(self) -> None:
+        """Release the terminal (its settings are already restored after every read)."""
+        if self._closed:
+            return
+        self._closed = True
+        if self._owns_fds:
+            for fd in {self._in, self._out}:
+                with contextlib.suppress(OSError):
+                    os.close(fd)
+
+    # -- terminal handling ----------------------------------------------------------------
+
+    @contextlib.contextmanager
+    def _keypad_mode(self) -> Iterator[None]:
+        """Non-canonical, no echo, signals kept (Ctrl-C still interrupts); restored on exit."""
+        try:
+            saved = termios.tcgetattr(self._in)
+        except termios.error as exc:
+            raise ResponderError(
+                f"{self._tty_name}: cannot read the terminal settings ({exc}); the participant's "
+                "terminal was closed — resume the session from a working terminal"
+            ) from exc
+        mode = termios.tcgetattr(self._in)
+        mode[3] &= ~(termios.ICANON | termios.ECHO)  # lflag
+        mode[6][termios.VMIN] = 1
+        mode[6][termios.VTIME] = 0
+        termios.tcsetattr(self._in, termios.TCSANOW, mode)
+        try:
+            yield
+        finally:
+            # TCSANOW: never block here on output the other side does not read.
+            with contextlib.suppress(termios.error):
+                termios.tcsetattr(self._in, termios.TCSANOW, saved)
+
+    def _read_key(self, allowed: frozenset[str]) -> str:
+        """Block until one of ``allowed`` is pressed; ignore every other key."""
+        pending = b""
+        while True:
+            ready, _, _ = select.select([self._in], [], [], ESCAPE_WAIT_S if pending else None)
+            if not ready:
+                pending = b""  # a lone Esc: nothing followed it
+                continue
+            try:
+                data = os.read(self._in, 64)
+            except OSError as exc:
+                raise self._gone(exc.strerror) from exc
+            if not data:
+                raise self._gone("end of input")
+            keys, pending = parse_keys(pending + data)
+            for key in keys:
+                if key == INTERRUPT:
+                    raise KeyboardInterrupt
+                if key in allowed:
+                    return key
+
+    def _gone(self, why: str | None) -> ResponderError:
+        return ResponderError(
+            f"{self._tty_name}: the participant's terminal went away while waiting for a key "
+            f"({why}); the trial in flight is not logged — resume the session"
+        )
+
+    def _write(self, text: str) -> None:
+        data = text.encode()  # the terminal's own output processing turns \n into \r\n
+        try:
+            while data:
+                written = os.write(self._out, data)
+                data = data[written:]
+        except OSError as exc:
+            raise ResponderError(
+                f"{self._tty_name}: cannot write to the participant's terminal "
+                f"({exc.strerror}); resume the session from a working terminal"
+            ) from exc

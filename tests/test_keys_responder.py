@@ -1,0 +1,396 @@
+"""The terminal keypad responder, driven over real pseudo-terminals.
+
+The responder reads the pty's slave side; the test plays the participant by typing into the
+master side and reading the prompts from it. Ctrl-C needs the pty to be the controlling terminal
+of the responder's process, so that test forks a child with ``pty.fork``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import json
+import os
+import pty
+import select
+import signal
+import struct
+import subprocess
+import sys
+import termios
+import textwrap
+import threading
+import time
+
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from masking_lab.device.base import PlayResult, TrialPlan
+from masking_lab.errors import ResponderError
+from masking_lab.responders.base import SetInfo, TrialPresentation
+from masking_lab.responders.keys import INTERRUPT, KeysResponder, parse_keys
+from masking_lab.stimulus import Stimulus
+
+TIMEOUT_S = 10.0
+PROMPT = b"Press 1, 2 or 3"
+
+
+def presentation(trial_index: int = 0) -> TrialPresentation:
+    plan = TrialPlan(target=Stimulus("EV", 270.0), target_amplitude_v=0.5, target_interval=2)
+    return TrialPresentation("EV270", trial_index, plan, 0.0, -6.0, None, None)
+
+
+PLAYED = PlayResult([0.6, 3.0, 5.4], [0.6, 3.0, 5.4], 0.5, 0.0)
+
+
+class Participant:
+    """The master side of a pty: reads what the responder prints, types keys."""
+
+    def __init__(self, master_fd: int) -> None:
+        self.master = master_fd
+        self.seen = bytearray()
+
+    def wait_for(self, done, what: str, timeout: float = TIMEOUT_S) -> None:
+        """Read the terminal until ``done(seen)`` is true."""
+        deadline = time.monotonic() + timeout
+        while not done(bytes(self.seen)):
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise AssertionError(f"never saw {what}; terminal showed {bytes(self.seen)!r}")
+            ready, _, _ = select.select([self.master], [], [], left)
+            if ready:
+                try:
+                    chunk = os.read(self.master, 4096)
+                except OSError:  # EIO: the other side closed
+                    chunk = b""
+                if not chunk:
+                    raise AssertionError(f"terminal closed before {what}: {bytes(self.seen)!r}")
+                self.seen += chunk
+
+    def expect(self, text: bytes, timeout: float = TIMEOUT_S) -> None:
+        self.wait_for(lambda seen: text in seen, repr(text), timeout)
+
+    def line_after(self, marker: bytes, timeout: float = TIMEOUT_S) -> bytes:
+        """Wait for ``marker`` and the end of its line; return the rest of that line."""
+        self.wait_for(
+            lambda seen: marker in seen and b"\n" in seen.split(marker, 1)[1],
+            f"a whole line after {marker!r}",
+            timeout,
+        )
+        return bytes(self.seen).split(marker, 1)[1].split(b"\n", 1)[0].rstrip(b"\r")
+
+    def type(self, data: bytes) -> None:
+        os.write(self.master, data)
+
+
+def lflag(fd: int) -> int:
+    return termios.tcgetattr(fd)[3]
+
+
+def pending_input(fd: int) -> int:
+    """Bytes waiting in a terminal's input queue (FIONREAD)."""
+    return struct.unpack("i", fcntl.ioctl(fd, termios.FIONREAD, b"\0\0\0\0"))[0]
+
+
+def run_in_thread(fn):
+    box: dict = {}
+
+    def target():
+        try:
+            box["value"] = fn()
+        except BaseException as exc:  # handed to the test thread
+            box["error"] = exc
+
+    thread = threading.Thread(target=target, daemon=True)
+    thread.start()
+    return thread, box
+
+
+@pytest.fixture
+def pty_pair():
+    master, slave = os.openpty()
+    yield master, slave
+    for fd in (master, slave):
+        with contextlib.suppress(OSError):
+            os.close(fd)
+
+
+# -- pure parsing -----------------------------------------------------------------------------
+
+
+def test_parse_plain_keys_and_controls():
+    keys, tail = parse_keys(b"x2 \r\x03\x01")
+    assert keys == ["x", "2", " ", "\n", INTERRUPT, ""]
+    assert tail == b""
+
+
+@pytest.mark.parametrize(
+    "sequence",
+    [b"\x1b[15~", b"\x1b[1;5A", b"\x1b[11~", b"\x1bOP", b"\x1b1", b"\x1b[2~", b"\x1b[3~"],
+    ids=["F5", "ctrl-up", "F1-vt", "F1-ss3", "alt-1", "insert", "delete"],
+)
+def test_escape_sequences_are_one_ignored_key(sequence):
+    keys, tail = parse_keys(sequence + b"3")
+    assert keys == ["", "3"]
+    assert tail == b""
+
+
+@pytest.mark.parametrize("cut", [b"\x1b", b"\x1b[", b"\x1b[15", b"\x1bO"])
+def test_unfinished_escape_sequence_is_kept_for_the_next_read(cut):
+    keys, tail = parse_keys(b"1" + cut)
+    assert keys == ["1"]
+    assert tail == cut
+    rest = b"\x1b[15~"[len(cut) :] if cut.startswith(b"\x1b[") else b"P"
+    keys, tail = parse_keys(tail + rest + b"2")
+    assert keys == ["", "2"]
+
+
+def test_non_ascii_bytes_are_ignored():
+    keys, _ = parse_keys("é2".encode())
+    assert keys == ["", "", "2"]
+
+
+@given(
+    st.lists(
+        st.one_of(
+            st.builds(
+                lambda params, final: b"\x1b[" + params.encode() + bytes([final]),
+                st.text(alphabet="0123456789;", max_size=6),
+                st.integers(0x40, 0x7E),
+            ),
+            st.binary(min_size=1, max_size=1).filter(lambda b: 0x20 <= b[0] < 0x7F),
+        ),
+        max_size=20,
+    )
+)
+def test_digits_inside_escape_sequences_never_count(chunks):
+    keys, tail = parse_keys(b"".join(chunks))
+    plain = [c.decode() for c in chunks if not c.startswith(b"\x1b")]
+    assert [k for k in keys if k] == plain
+    assert tail == b""
+
+
+# -- over a real pty -------------------------------------------------------------------------
+
+
+def test_not_a_terminal_is_refused():
+    read_fd, write_fd = os.pipe()
+    try:
+        with pytest.raises(ResponderError, match=r"not one.*--responder sim"):
+            KeysResponder(read_fd, write_fd)
+    finally:
+        os.close(read_fd)
+        os.close(write_fd)
+
+
+def test_open_tty_with_a_bad_path_says_what_to_do(tmp_path):
+    with pytest.raises(ResponderError, match=r"cannot open the participant's terminal.*`tty`"):
+        KeysResponder.open_tty(str(tmp_path / "no-such-tty"))
+
+
+def test_open_tty_refuses_a_regular_file(tmp_path):
+    path = tmp_path / "file"
+    path.write_text("")
+    with pytest.raises(ResponderError, match="not one"):
+        KeysResponder.open_tty(str(path))
+
+
+def test_trial_ignores_other_keys_and_restores_the_terminal(pty_pair):
+    master, slave = pty_pair
+    before = termios.tcgetattr(slave)
+    assert before[3] & termios.ICANON and before[3] & termios.ECHO
+    responder = KeysResponder(slave, slave, wait_for_start=False)
+    participant = Participant(master)
+    modes_during_play = []
+
+    def play():
+        modes_during_play.append(lflag(slave))
+        return PLAYED
+
+    def answer():
+        participant.expect(PROMPT)
+        # Letters, a wrong digit, F5 (ESC [ 1 5 ~ holds a "1"), arrows, then the answer.
+        participant.type(b"x9\x1b[15~\x1b[A")
+        participant.type(b"2")
+        participant.expect(b"2\r\n")
+
+    thread, box = run_in_thread(answer)
+    result, response = responder.trial(presentation(), play)
+    thread.join(TIMEOUT_S)
+    assert "error" not in box, box.get("error")
+    assert result is PLAYED
+    assert response.interval == 2
+    assert response.response_time_s >= 0
+    assert response.finger_path == []
+    # Keypad mode while the trial ran; the original settings afterwards.
+    assert not modes_during_play[0] & (termios.ICANON | termios.ECHO)
+    assert termios.tcgetattr(slave) == before
+    responder.close()
+    responder.close()  # idempotent
+
+
+def test_keys_pressed_while_the_stimuli_play_are_discarded(pty_pair):
+    master, slave = pty_pair
+    responder = KeysResponder(slave, slave, wait_for_start=False)
+    participant = Participant(master)
+
+    def play():
+        # An eager participant presses 1 during the intervals; wait until the terminal has it.
+        participant.type(b"1")
+        deadline = time.monotonic() + TIMEOUT_S
+        while pending_input(slave) == 0:
+            assert time.monotonic() < deadline, "typed key never reached the terminal"
+            time.sleep(0.005)
+        return PLAYED
+
+    def answer():
+        participant.expect(PROMPT)
+        participant.type(b"3")
+
+    thread, box = run_in_thread(answer)
+    _, response = responder.trial(presentation(), play)
+    thread.join(TIMEOUT_S)
+    assert "error" not in box, box.get("error")
+    assert response.interval == 3
+
+
+def test_start_set_waits_for_the_space_bar(pty_pair):
+    master, slave = pty_pair
+    responder = KeysResponder(slave, slave, wait_for_start=True)
+    participant = Participant(master)
+    info = SetInfo("MV120_10", 2, 15, Stimulus("EV", 270.0), Stimulus("MV", 120.0), 10.0)
+    thread, box = run_in_thread(lambda: responder.start_set(info))
+    participant.expect(b"space bar")
+    participant.type(b"1x\r")  # not the space bar: still waiting
+    time.sleep(0.2)
+    assert thread.is_alive()
+    participant.type(b" ")
+    thread.join(TIMEOUT_S)
+    assert not thread.is_alive()
+    assert "error" not in box, box.get("error")
+    assert b"Set 2 of 15" in participant.seen
+
+
+def test_open_tty_reads_the_named_terminal(pty_pair):
+    master, slave = pty_pair
+    responder = KeysResponder.open_tty(os.ttyname(slave), wait_for_start=False)
+    participant = Participant(master)
+
+    def answer():
+        participant.expect(PROMPT)
+        participant.type(b"1")
+
+    thread, box = run_in_thread(answer)
+    _, response = responder.trial(presentation(4), lambda: PLAYED)
+    thread.join(TIMEOUT_S)
+    assert "error" not in box, box.get("error")
+    assert response.interval == 1
+    assert b"Trial 5" in participant.seen
+    responder.close()
+    with pytest.raises(OSError):
+        os.fstat(responder._in)  # the responder closed the fd it opened
+
+
+CHILD = textwrap.dedent(
+    """
+    import json, os, sys
+    from masking_lab.device.base import PlayResult, TrialPlan
+    from masking_lab.errors import ResponderError
+    from masking_lab.responders.base import TrialPresentation
+    from masking_lab.responders.keys import KeysResponder
+    from masking_lab.stimulus import Stimulus
+
+    plan = TrialPlan(target=Stimulus("EV", 270.0), target_amplitude_v=0.5, target_interval=1)
+    pres = TrialPresentation("EV270", 0, plan, 0.0, -6.0, None, None)
+    responder = KeysResponder(0, 1, wait_for_start=False)
+    print("TTY", os.ttyname(0), flush=True)
+    try:
+        _, response = responder.trial(pres, lambda: PlayResult([0.0] * 3, [0.0] * 3, 0.5, 0.0))
+    except KeyboardInterrupt:
+        print("INTERRUPTED", flush=True)
+        sys.exit(130)
+    except ResponderError as exc:
+        print("RESPONDER_ERROR", exc, file=sys.stderr, flush=True)
+        sys.exit(3)
+    print("ANSWER", json.dumps(response.interval), flush=True)
+    """
+)
+
+
+def wait_exit(pid: int, timeout: float = TIMEOUT_S) -> int:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        done, status = os.waitpid(pid, os.WNOHANG)
+        if done:
+            return os.waitstatus_to_exitcode(status)
+        time.sleep(0.01)
+    os.kill(pid, signal.SIGKILL)
+    os.waitpid(pid, 0)
+    raise AssertionError("child did not exit")
+
+
+def test_ctrl_c_interrupts_and_restores_the_terminal():
+    pid, master = pty.fork()
+    if pid == 0:  # child: the pty is its controlling terminal
+        os.execv(sys.executable, [sys.executable, "-c", CHILD])
+    try:
+        participant = Participant(master)
+        # "TTY /dev/pts/N" once Python has started
+        tty_path = participant.line_after(b"TTY ", timeout=30).decode()
+        watcher = os.open(tty_path, os.O_RDWR | os.O_NOCTTY)
+        try:
+            participant.expect(PROMPT)
+            assert not lflag(watcher) & termios.ICANON  # keypad mode is on
+            participant.type(b"\x03")  # Ctrl-C → SIGINT to the child
+            participant.expect(b"INTERRUPTED")
+            assert lflag(watcher) & termios.ICANON
+            assert lflag(watcher) & termios.ECHO
+        finally:
+            os.close(watcher)
+        assert wait_exit(pid) == 130
+    finally:
+        os.close(master)
+
+
+def test_answer_in_a_child_process_on_its_controlling_terminal():
+    pid, master = pty.fork()
+    if pid == 0:
+        os.execv(sys.executable, [sys.executable, "-c", CHILD])
+    try:
+        participant = Participant(master)
+        participant.expect(PROMPT, timeout=30)
+        participant.type(b"\x1bOQ3")  # F2 (SS3), then 3
+        assert json.loads(participant.line_after(b"ANSWER ")) == 3
+        assert wait_exit(pid) == 0
+    finally:
+        os.close(master)
+
+
+def test_terminal_hangup_is_a_responder_error():
+    master, slave = os.openpty()
+    # No controlling terminal (new session, inherited fds): a hangup is EIO/EOF, not SIGHUP.
+    proc = subprocess.Popen(
+        [sys.executable, "-c", CHILD],
+        stdin=slave,
+        stdout=slave,
+        stderr=subprocess.PIPE,
+        start_new_session=True,
+    )
+    os.close(slave)
+    try:
+        participant = Participant(master)
+        participant.expect(PROMPT, timeout=30)
+        os.close(master)
+        master = -1
+        _, err = proc.communicate(timeout=TIMEOUT_S)
+        assert proc.returncode == 3, err
+        assert b"RESPONDER_ERROR" in err
+        assert b"went away" in err or b"cannot write" in err
+        assert b"resume" in err
+    finally:
+        if master >= 0:
+            os.close(master)
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
