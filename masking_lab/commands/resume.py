@@ -1,0 +1,69 @@
+"""``masking-lab resume LOG``: continue an interrupted session exactly where it stopped."""
+
+from __future__ import annotations
+
+import argparse
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    from masking_lab.commands.run import _progress_flags
+
+    p = sub.add_parser(
+        "resume",
+        help="continue an interrupted session in its own log",
+        description="Continue a session stopped by a device fault, Ctrl-C, a kill or a power "
+        "cut. An incomplete last line is cut and reported; every set is rebuilt from its "
+        "logged responses and the session goes on with the same protocol (the copy in the "
+        "log), calibration, seed and set order. Exit codes as for `run`.",
+    )
+    p.add_argument("log", metavar="LOG", help="session log (.jsonl) to continue")
+    p.add_argument(
+        "--device",
+        metavar="SPEC",
+        help="device spec (default: the log's: sim, emulator, or serial:<logged port>)",
+    )
+    p.add_argument(
+        "--responder",
+        choices=("sim", "keys", "psychopy"),
+        help="who answers (default: the log's)",
+    )
+    p.add_argument(
+        "--device-config",
+        metavar="FILE",
+        help="rig config (default: the one the session started with)",
+    )
+    p.add_argument(
+        "--participant-tty",
+        metavar="PATH",
+        help="with --responder keys: the participant's terminal (default: this terminal)",
+    )
+    p.add_argument(
+        "--allow-changed-protocol",
+        action="store_true",
+        help="resume although the protocol file changed since the session started (the copy "
+        "stored in the log is used either way)",
+    )
+    _progress_flags(p)
+    p.set_defaults(handler=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from masking_lab.commands.run import device_unavailable, print_result
+    from masking_lab.errors import DeviceError
+    from masking_lab.runner import resume_session
+
+    try:
+        result = resume_session(
+            Path(args.log),
+            device=args.device,
+            responder=args.responder,
+            allow_changed_protocol=args.allow_changed_protocol,
+            device_config=Path(args.device_config) if args.device_config else None,
+            participant_tty=args.participant_tty,
+            progress=args.progress,
+        )
+    except DeviceError as exc:
+        return device_unavailable(args.command, exc)
+    return print_result(result)

@@ -1,0 +1,132 @@
+"""``masking-lab run PROTOCOL --participant ID --device SPEC --responder R``: run a session."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "run",
+        help="run a protocol's sets as 3IFC staircases for one participant",
+        description="Run the sets of a protocol as 3IFC one-up three-down staircases and write "
+        "a crash-safe session log to DATA/<participant>/. Baseline sessions write the "
+        "participant's calibration; masked sessions need it. Exit 0 when the session "
+        "completes, 2 on bad input, 3 on a device fault (or a device that cannot be opened), "
+        "130 when interrupted (a fault or interruption mid-session prints the "
+        "`masking-lab resume` command that continues it).",
+    )
+    p.add_argument("protocol", metavar="PROTOCOL", help="protocol YAML file")
+    p.add_argument("--participant", required=True, metavar="ID", help="participant id, e.g. S01")
+    p.add_argument(
+        "--device",
+        required=True,
+        metavar="SPEC",
+        help="sim (in-process), emulator (firmware emulator on a pseudo-terminal) or "
+        "serial:PORT (the rig)",
+    )
+    p.add_argument(
+        "--responder",
+        required=True,
+        choices=("sim", "keys", "psychopy"),
+        help="who answers: a simulated observer, a terminal keypad, or the PsychoPy window",
+    )
+    p.add_argument("--data", default="data", metavar="DIR", help="data folder (default: ./data)")
+    p.add_argument("--seed", type=int, metavar="N", help="session seed (default: drawn, logged)")
+    p.add_argument(
+        "--sets",
+        nargs="+",
+        metavar="ID",
+        help="run only these set ids (space- or comma-separated), in the seed's order",
+    )
+    p.add_argument(
+        "--real-time",
+        action="store_true",
+        help="use the real clock with the sim responder (default: virtual time with sim and "
+        "emulator devices, so a session takes seconds)",
+    )
+    p.add_argument(
+        "--ground-truth",
+        metavar="FILE",
+        help="ground truth of the simulated observer (default: protocols/simulation/"
+        "ground_truth.yaml)",
+    )
+    p.add_argument(
+        "--device-config",
+        metavar="FILE",
+        help="rig config: drive limits, serial settings, display (default: "
+        "protocols/devices/default.yaml)",
+    )
+    p.add_argument(
+        "--participant-tty",
+        metavar="PATH",
+        help="with --responder keys: the participant's terminal (e.g. /dev/pts/3); default: "
+        "this terminal",
+    )
+    _progress_flags(p)
+    p.set_defaults(handler=run)
+
+
+def _progress_flags(p: argparse.ArgumentParser) -> None:
+    group = p.add_mutually_exclusive_group()
+    group.add_argument(
+        "--progress",
+        dest="progress",
+        action="store_const",
+        const=True,
+        help="show the progress line even when stderr is not a terminal",
+    )
+    group.add_argument(
+        "--no-progress", dest="progress", action="store_const", const=False, help="hide it"
+    )
+
+
+def print_result(result) -> int:  # type: ignore[no-untyped-def]
+    """Print where the log is and one line per finished set; return the exit code."""
+    print(f"log: {result.log_path}")
+    for outcome in result.outcomes:
+        print(f"  {outcome.summary()}")
+    if result.message:
+        print(result.message, file=sys.stderr)
+    return int(result.exit_code)
+
+
+def run(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from masking_lab.errors import DeviceError
+    from masking_lab.runner import RunOptions, run_session
+
+    sets = None
+    if args.sets:
+        sets = tuple(s for item in args.sets for s in item.split(",") if s)
+    options = RunOptions(
+        protocol=Path(args.protocol),
+        participant=args.participant,
+        device=args.device,
+        responder=args.responder,
+        data_dir=Path(args.data),
+        seed=args.seed,
+        sets=sets,
+        real_time=args.real_time,
+        ground_truth=Path(args.ground_truth) if args.ground_truth else None,
+        device_config=Path(args.device_config) if args.device_config else None,
+        progress=args.progress,
+        participant_tty=args.participant_tty,
+    )
+    try:
+        result = run_session(options)
+    except DeviceError as exc:
+        return device_unavailable(args.command, exc)
+    return print_result(result)
+
+
+def device_unavailable(command: str, exc: Exception) -> int:
+    """The device (or the participant's window/terminal) could not be opened: exit 3."""
+    print(
+        f"masking-lab {command}: device error: {exc}\nNothing was played; fix the device and run "
+        "the same command again.",
+        file=sys.stderr,
+    )
+    return 3
