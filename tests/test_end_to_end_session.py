@@ -11,7 +11,7 @@ from __future__ import annotations
 import json
 
 import pytest
-from test_runner_support import REPO, assert_valid_log, of_kind, only_log, trials
+from runner_support import REPO, assert_valid_log, of_kind, only_log, trials
 
 from masking_lab.cli import main
 from masking_lab.schemas import schema_errors

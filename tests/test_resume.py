@@ -6,7 +6,7 @@ import io
 import json
 
 import pytest
-from test_runner_support import (
+from runner_support import (
     assert_valid_log,
     of_kind,
     records,

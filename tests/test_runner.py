@@ -12,7 +12,7 @@ import signal
 
 import pytest
 import yaml
-from test_runner_support import (
+from runner_support import (
     REPO,
     assert_valid_log,
     of_kind,

@@ -14,7 +14,7 @@ import time
 from pathlib import Path
 
 import pytest
-from test_runner_support import (
+from runner_support import (
     assert_valid_log,
     cli_popen,
     of_kind,
