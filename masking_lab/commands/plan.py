@@ -1,0 +1,387 @@
+"""``masking-lab plan PROTOCOL``: session time against threshold precision, before a participant.
+
+Simulated observers run the protocol's staircases thousands of times under a grid of stop
+rules, step schedules and estimators; the command prints what each setting costs (trials,
+minutes) and buys (AL bias and SD), answers "how many reversals for ±X dB", and writes CSV
+tables and the speed–accuracy figure to ``--out`` (see docs/speed-accuracy.md).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from masking_lab.plan import PlanResult
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be ≥ 1, got {value}")
+    return value
+
+
+def _count(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be ≥ 0, got {value}")
+    return value
+
+
+def _positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"must be a positive number, got {text}")
+    return value
+
+
+def _nonnegative_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not (math.isfinite(value) and value >= 0):
+        raise argparse.ArgumentTypeError(f"must be a number ≥ 0, got {text}")
+    return value
+
+
+def _finite_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"must be a finite number, got {text}")
+    return value
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "plan",
+        help="simulate a protocol to trade session time against threshold precision",
+        description="Run the protocol's staircases against simulated observers for a grid of "
+        "stop rules, step schedules and estimators; print trials, minutes, AL bias and SD per "
+        "setting, answer 'how many reversals for ±X dB', and write CSV tables and the "
+        "speed–accuracy figure to --out.",
+    )
+    p.add_argument("protocol", metavar="PROTOCOL", help="protocol YAML file")
+    p.add_argument(
+        "--replicates",
+        type=_positive_int,
+        default=2000,
+        help="simulated sessions per set (default 2000)",
+    )
+    p.add_argument(
+        "--ml-replicates",
+        type=_count,
+        default=500,
+        help="sessions per set fitted by maximum likelihood; 0 skips the ML estimator "
+        "(default 500: the fits cost far more than the simulation)",
+    )
+    p.add_argument(
+        "--stop-rules",
+        metavar="RULES",
+        help="RUN/AVERAGED pairs, comma-separated (default 7/4,9/6,11/8,13/10,15/12 and the "
+        "protocol's own)",
+    )
+    p.add_argument(
+        "--schedules",
+        metavar="STEPS",
+        help="up-step schedules in dB, ';'-separated, e.g. '4,4,4,2;4,2;2' (default: the "
+        "protocol's, its first and last step, its last step throughout)",
+    )
+    p.add_argument(
+        "--ratios",
+        metavar="RATIOS",
+        help="down/up step ratios crossed with the schedules, e.g. 1,0.7393 (default: the "
+        "protocol's)",
+    )
+    p.add_argument(
+        "--ground-truth",
+        metavar="FILE",
+        help="simulated population (YAML/JSON as protocols/simulation/ground_truth.yaml; "
+        "default: that file)",
+    )
+    p.add_argument(
+        "--scale-db",
+        type=_positive_float,
+        help="observers' psychometric logistic scale in dB (slope; default: the ground truth's)",
+    )
+    p.add_argument(
+        "--lapse", type=_nonnegative_float, help="observers' lapse rate (default: ground truth's)"
+    )
+    p.add_argument(
+        "--true-threshold-db",
+        type=_finite_float,
+        metavar="DB",
+        help="give every set this true threshold (protocol's level unit) instead of the ground "
+        "truth's",
+    )
+    p.add_argument(
+        "--no-spread",
+        action="store_true",
+        help="every observer has the population threshold (no between-participant spread)",
+    )
+    p.add_argument(
+        "--response-s",
+        type=_nonnegative_float,
+        default=1.0,
+        help="mean response time per trial in s, added to the protocol's timing (default 1.0)",
+    )
+    p.add_argument(
+        "--precision-db",
+        type=_positive_float,
+        default=1.0,
+        help="target ±X dB for 'reversals needed' (default 1.0)",
+    )
+    p.add_argument(
+        "--z",
+        type=_positive_float,
+        default=1.96,
+        help="±X dB means z·SD ≤ X in every set (default 1.96: 95 %% of sessions)",
+    )
+    p.add_argument(
+        "--max-reversals",
+        type=_positive_int,
+        default=41,
+        help="longest stop rule tried when answering 'reversals needed' (default 41)",
+    )
+    p.add_argument(
+        "--ml-lapse",
+        type=_nonnegative_float,
+        default=0.02,
+        help="lapse rate the ML fit assumes (default 0.02, as the analysis)",
+    )
+    p.add_argument(
+        "--ml-fixed-scale",
+        action="store_true",
+        help="fix the ML fit's scale at the observers' true one (optimistic; the analysis fits it)",
+    )
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--out", default="plan_out", help="output folder (default ./plan_out)")
+    p.add_argument(
+        "--per-set", action="store_true", help="print every setting per set, not just pooled"
+    )
+    p.set_defaults(handler=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    import numpy as np
+
+    from masking_lab import plan as P
+    from masking_lab.errors import AnalysisError, ProtocolError
+    from masking_lab.fileio import write_bytes_atomic, write_text_atomic
+    from masking_lab.observer import load_ground_truth
+    from masking_lab.plan_figures import png_bytes, speed_accuracy
+    from masking_lab.protocol import load_protocol
+    from masking_lab.psychometric import LEVITT_1U3D
+    from masking_lab.simulate import Observer
+
+    protocol = load_protocol(args.protocol)
+    if args.ground_truth is not None and not Path(args.ground_truth).is_file():
+        raise ProtocolError(
+            args.ground_truth,
+            "",
+            "no such ground-truth file; check the path given to --ground-truth",
+        )
+    truth = load_ground_truth(args.ground_truth)
+    truth_name = args.ground_truth or "protocols/simulation/ground_truth.yaml"
+    scale = truth.scale_db if args.scale_db is None else args.scale_db
+    lapse = truth.lapse if args.lapse is None else args.lapse
+    # The threshold is the 0.794 point, so p(correct) must be able to exceed it.
+    for flag, value in (("--lapse", lapse), ("--ml-lapse", args.ml_lapse)):
+        if not value < 1 - LEVITT_1U3D:
+            raise AnalysisError(
+                f"{flag} {value:g}: p(correct) could never reach the 0.794 that defines the "
+                f"threshold; use a lapse rate below {1 - LEVITT_1U3D:.3f} (typically 0–0.05)"
+            )
+    observer = Observer(scale, lapse, truth.guess)
+
+    rules = (
+        P.parse_stop_rules(args.stop_rules) if args.stop_rules else P.default_stop_rules(protocol)
+    )
+    ratios = P.parse_ratios(args.ratios) if args.ratios else None
+    if args.schedules:
+        schedules = P.parse_schedules(
+            args.schedules, ratios or (P.protocol_schedule(protocol).down_up_ratio,)
+        )
+    else:
+        schedules = P.default_schedules(protocol, ratios)
+    settings = P.PlanSettings(
+        stop_rules=rules,
+        schedules=schedules,
+        observer=observer,
+        replicates=args.replicates,
+        ml_replicates=args.ml_replicates,
+        response_s=args.response_s,
+        precision_db=args.precision_db,
+        z=args.z,
+        max_reversals=max(args.max_reversals, max(r.n_reversals for r in rules)),
+        ml_lapse=args.ml_lapse,
+        ml_fit_scale=not args.ml_fixed_scale,
+        seed=args.seed,
+    )
+    thresholds = P.true_thresholds_db(
+        protocol,
+        truth,
+        settings.replicates,
+        np.random.default_rng(np.random.SeedSequence([args.seed, 0x7412])),
+        spread=not args.no_spread,
+        override_db=args.true_threshold_db,
+        truth_source=truth_name,
+    )
+
+    def progress(msg: str) -> None:
+        print(f"plan: {msg}", file=sys.stderr, flush=True)
+
+    result = P.run_plan(protocol, settings, thresholds, progress=progress)
+    cap = P.protocol_staircase(protocol).max_trials
+    unit = "dB SL" if protocol.level_unit == "db_sl" else "dB re 1 V"
+    header = [
+        f"masking-lab plan: {args.protocol} — {protocol.experiment} ({protocol.kind}, "
+        f"{len(protocol.sets)} sets, levels in {unit})",
+        f"{settings.replicates} simulated sessions per set ({settings.ml_replicates} for the ML "
+        f"fit), seed {settings.seed}; observers: logistic scale {scale:g} dB, lapse {lapse:g}, "
+        f"guess {truth.guess:.3g}; true thresholds: "
+        + (
+            f"{args.true_threshold_db:g} {unit} in every set"
+            if args.true_threshold_db is not None
+            else f"{truth_name}" + ("" if not args.no_spread else " (no spread)")
+        ),
+        f"one trial = {protocol.timing.trial_s:g} s + {settings.response_s:g} s response + "
+        f"{protocol.timing.inter_trial_s:g} s pause = {result.trial_s:g} s; trial cap "
+        f"{cap if cap is not None else 'none'}; bias = mean(AL − true threshold)",
+    ]
+    text = "\n".join(
+        [
+            *header,
+            "",
+            format_table(result),
+            "",
+            format_per_set(result, only_own=not args.per_set),
+            "",
+            f"Reversals needed for ±{settings.precision_db:g} dB (stop rules RUN/RUN−"
+            f"{result.protocol_rule.n_reversals - result.protocol_rule.n_averaged}, no trial "
+            "cap):",
+            *(f"  {P.answer_text(a, settings, cap)}" for a in result.answers),
+        ]
+    )
+    print(text)
+
+    out = Path(args.out)
+    files = {
+        "plan.txt": text + "\n",
+        "plan_table.csv": P.rows_to_csv(result.table),
+        "plan_sets.csv": P.rows_to_csv(result.per_set),
+        "plan_ladder.csv": P.rows_to_csv(result.ladder),
+    }
+    for name, content in files.items():
+        write_text_atomic(out / name, content)
+    fig = speed_accuracy(result, title=f"{protocol.experiment}: speed against accuracy")
+    write_bytes_atomic(out / "plan_speed_accuracy.png", png_bytes(fig))
+    print(
+        f"\nwrote {', '.join(str(out / n) for n in [*files, 'plan_speed_accuracy.png'])}",
+        file=sys.stderr,
+    )
+    return 0
+
+
+def _num(value: Any, fmt: str) -> str:
+    if value is None or (isinstance(value, float) and not math.isfinite(value)):
+        return "—"
+    return format(value, fmt)
+
+
+def format_table(result: PlanResult) -> str:
+    """The pooled table: one line per (schedule, rule), both estimators side by side."""
+    s = result.settings
+    z = s.z
+    lines = [
+        f"{'':23}{'trials':^11}{'minutes':^13}{'ends (%)':^16}"
+        f"{'reversal mean (dB)':^22}{'ML fit (dB)':^22}",
+        f"{'schedule (dB)':<16}{'rule':<7}{'med':>5}{'p90':>6}{'med':>7}{'p90':>6}"
+        f"{'AL':>6}{'ceil':>5}{'cap':>5}"
+        f"{'bias':>8}{'SD':>6}{f'±{z:g}SD':>8}"
+        f"{'bias':>8}{'SD':>6}{f'±{z:g}SD':>8}",
+    ]
+    by_key: dict[tuple, dict[str, dict]] = {}
+    for row in result.table:
+        key = (row["schedule"], row["down_up_ratio"], row["n_reversals"], row["n_averaged"])
+        by_key.setdefault(key, {})[row["estimator"]] = row
+    last_sched = None
+    for ests in by_key.values():
+        rm = ests["reversal_mean"]
+        ml = ests.get("ml", {})
+        sched = rm["schedule"] + (
+            "" if rm["down_up_ratio"] == 1.0 else f" d/u {rm['down_up_ratio']:g}"
+        )
+        if last_sched is not None and sched != last_sched:
+            lines.append("")
+        last_sched = sched
+        mark = "*" if rm.get("own") else " "
+        ends = rm["ceiling"] + rm["floor"]
+        lines.append(
+            f"{sched:<16}{mark}{rm['rule']:<6}{rm['trials_median']:>5.0f}{rm['trials_p90']:>6.0f}"
+            f"{rm['minutes_median']:>7.1f}{rm['minutes_p90']:>6.1f}"
+            f"{100 * rm['completed']:>6.1f}{100 * ends:>5.1f}{100 * rm['trial_cap']:>5.1f}"
+            f"{_num(rm.get('bias_db'), '+8.2f')}{_num(rm.get('sd_db'), '6.2f')}"
+            f"{_num(z * rm.get('worst_sd_db', math.nan), '8.2f')}"
+            f"{_num(ml.get('bias_db'), '+8.2f')}{_num(ml.get('sd_db'), '6.2f')}"
+            f"{_num(z * ml.get('worst_sd_db', math.nan), '8.2f')}"
+        )
+    lines.append(
+        f"* this protocol. Pooled over sets: bias is averaged, SD is the root-mean-square "
+        f"within-set SD, ±{z:g}SD uses the worst set. AL = sessions ending with a threshold; "
+        "ceil = ceiling or floor; cap = trial cap."
+    )
+    return "\n".join(lines)
+
+
+def format_per_set(result: PlanResult, *, only_own: bool) -> str:
+    """Per-set rows for the protocol's own setting (or every setting)."""
+    own_rule, own_sched = result.protocol_rule, result.protocol_schedule
+    steps = ",".join(f"{v:g}" for v in own_sched.step_sizes_db)
+    rows = [
+        r
+        for r in result.per_set
+        if not only_own
+        or (
+            r["schedule"] == steps
+            and r["down_up_ratio"] == own_sched.down_up_ratio
+            and r["rule"] == own_rule.label
+        )
+    ]
+    title = (
+        f"Per set, this protocol's setting ({steps} dB, {own_rule.label}):"
+        if only_own
+        else "Per set:"
+    )
+    lines = [
+        title,
+        f"{'set':<12}{'schedule':<16}{'rule':<7}{'estimator':<15}{'trials':>7}{'p90':>5}"
+        f"{'AL %':>7}{'bias':>8}{'SD':>6}",
+    ]
+    for r in rows:
+        sched = r["schedule"] + (
+            "" if r["down_up_ratio"] == 1.0 else f" d/u {r['down_up_ratio']:g}"
+        )
+        lines.append(
+            f"{r['set']:<12}{sched:<16}{r['rule']:<7}{r['estimator']:<15}"
+            f"{r['trials_median']:>7.0f}{r['trials_p90']:>5.0f}{100 * r['completed']:>7.1f}"
+            f"{_num(r.get('bias_db'), '+8.2f')}{_num(r.get('sd_db'), '6.2f')}"
+        )
+    return "\n".join(lines)
