@@ -31,6 +31,8 @@ def test_demo_runs_every_stage_through_the_emulator(demo_run, capsys):
     assert code == 0
     logs = sorted((out / "data").rglob("*.jsonl"))
     assert len(logs) == 30  # 10 participants x 3 protocols
+    statuses = [o["status"] for p in logs for o in read_log(p).records if o["record"] == "set_end"]
+    assert len(statuses) == 340 and set(statuses) == {"completed"}
     for path in logs[:3]:
         log = read_log(path)
         assert log.header["device"]["backend"] == "emulator"
@@ -57,8 +59,10 @@ def test_fitted_parameters_recover_the_ground_truth(demo_run):
         pairs = [tuple(p.split("|")) for p in f["pooled_pairs"]]
         lo, hi = f["fitted_range_db_sl"]
         a, b = sample_truth(truth, people, pairs, np.arange(lo, hi + 1e-9, 5.0))
-        assert f["intercept_ci_db"][0] <= a <= f["intercept_ci_db"][1], f
-        assert f["slope_ci"][0] <= b <= f["slope_ci"][1], f
+        # Within 3 standard errors: six correlated 95 % intervals all cover the truth only about
+        # 3 times in 4, so a per-interval check would pass or fail with the seed.
+        assert abs(f["intercept_db"] - a) <= 3 * f["intercept_se_db"], f
+        assert abs(f["slope"] - b) <= 3 * f["slope_se"], f
 
 
 def test_summary_puts_fits_beside_truth(demo_run):
