@@ -167,8 +167,10 @@ def ml_threshold(
 
     # Coarse grid first (vectorised): the likelihood of a short track can have shallow local
     # optima, and a good start makes the bounded quasi-Newton step reliable.
-    grid_t = np.linspace(t_bounds[0], t_bounds[1], 41)
-    grid_s = np.array([0.5, 1.0, 2.0, 4.0, 8.0])
+    # Small scales too: a short track often fits best with a near-step function, and starting
+    # from a wide one the optimiser stops at a lower local maximum.
+    grid_t = np.linspace(t_bounds[0], t_bounds[1], 81)
+    grid_s = np.array([0.15, 0.3, 0.5, 1.0, 2.0, 4.0, 8.0])
     tt, ss = np.meshgrid(grid_t, grid_s, indexing="ij")
     grid_nll = _neg_log_lik_grid(x, r, tt.ravel(), ss.ravel(), guess, lapse0, p_target)
     best = int(np.argmin(grid_nll))
