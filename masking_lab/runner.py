@@ -1285,10 +1285,6 @@ def _fault_kind(exc: DeviceError) -> str:
     kind = getattr(exc, "kind", None)
     if isinstance(kind, str) and kind:
         return kind
-    if "WATCHDOG" in str(exc):
-        # The firmware aborts the playing trial before it reports the trip itself, so the
-        # host may raise on the ABORTED event (reason WATCHDOG) rather than on WATCHDOG.
-        return "watchdog"
     for cls in type(exc).__mro__:
         if cls.__name__ in _FAULT_KINDS:
             return _FAULT_KINDS[cls.__name__]

@@ -263,11 +263,7 @@ class SerialDevice:
         next_ping = time.monotonic() + ping_every
         while seq not in self._done:
             if seq in self._aborted:
-                why = self._aborted.pop(seq).fields.get("why", "?")
-                raise DeviceFaultError(
-                    f"device on {self.port} aborted trial PLAY #{seq} ({why}); outputs zeroed. "
-                    f"Check the rig, {RESUME_HINT}"
-                )
+                raise self._abort_error(seq, self._aborted.pop(seq))
             now = time.monotonic()
             if now >= deadline:
                 raise DeviceTimeoutError(
@@ -466,6 +462,26 @@ class SerialDevice:
         self._record(exc)
         if events == "raise":
             raise exc
+
+    def _abort_error(self, seq: int, frame: proto.Frame) -> DeviceError:
+        """The error for a trial the firmware aborted; a watchdog abort reads like the trip.
+
+        The firmware aborts the playing trial before it reports the trip itself, so which of
+        the two events the host sees first is a race: both must give the same fault.
+        """
+        why = frame.fields.get("why", "?")
+        if why == "WATCHDOG":
+            exc: DeviceError = DeviceFaultError(
+                f"device on {self.port} watchdog tripped during trial PLAY #{seq}: the host was "
+                "quiet too long while an output was on, so the firmware zeroed both outputs. "
+                f"Keep the host responsive; {RESUME_HINT}"
+            )
+            exc.kind = "watchdog"  # type: ignore[attr-defined]  # logged as the fault's kind
+            return exc
+        return DeviceFaultError(
+            f"device on {self.port} aborted trial PLAY #{seq} ({why}); outputs zeroed. "
+            f"Check the rig, {RESUME_HINT}"
+        )
 
     def _refusal(self, name: str, frame: proto.Frame) -> DeviceError:
         text = f"device on {self.port} refused {name} #{frame.seq}: {frame.code} {frame.text}"
