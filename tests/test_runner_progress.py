@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import io
 import os
+import select
+import time
 
 import pytest
 
@@ -77,6 +79,17 @@ def test_messages_are_printed_even_when_progress_is_quiet():
     assert stream.getvalue() == "session log: x.jsonl\n"
 
 
+def _read_until(fd: int, text: str, timeout_s: float = 5.0) -> str:
+    # One read() of a pty returns what has arrived so far, which under load can be a part.
+    out = b""
+    deadline = time.monotonic() + timeout_s
+    while text.encode() not in out and time.monotonic() < deadline:
+        ready, _, _ = select.select([fd], [], [], 0.1)
+        if ready:
+            out += os.read(fd, 4096)
+    return out.decode()
+
+
 def test_on_a_terminal_the_line_is_redrawn_in_place():
     master, slave = os.openpty()
     try:
@@ -86,7 +99,7 @@ def test_on_a_terminal_the_line_is_redrawn_in_place():
             p.update("trial 1")
             p.update("trial 2")
             p.message("set done")
-        out = os.read(master, 4096).decode()
+        out = _read_until(master, "set done")
     finally:
         os.close(master)
         os.close(slave)
