@@ -22,6 +22,7 @@ COMMANDS = (
     "emulate",
     "analyze",
     "fit",
+    "usertest-report",
     "solve",
     "render",
     "plan",
@@ -38,10 +39,12 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"masking-lab {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name in COMMANDS:
+        # A command with a hyphen lives in a module with an underscore (usertest-report).
+        module_name = f"masking_lab.commands.{name.replace('-', '_')}"
         try:
-            module = importlib.import_module(f"masking_lab.commands.{name}")
+            module = importlib.import_module(module_name)
         except ModuleNotFoundError as exc:
-            if exc.name == f"masking_lab.commands.{name}":
+            if exc.name == module_name:
                 continue  # command not built yet
             raise
         module.register(sub)

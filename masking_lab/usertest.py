@@ -832,7 +832,8 @@ def _paired(wide: Any, measure: str, stats: Any) -> PairedComparison:
             f"a paired test needs ≥ 2 participants with both conditions, got {n}",
         )
     sd = float(np.std(diff, ddof=1))
-    if sd == 0.0:
+    # Rates are multiples of 1/trials: equal differences can differ in the last bits.
+    if sd <= 1e-12 * max(1.0, float(np.max(np.abs(diff)))):
         return PairedComparison(
             measure,
             n,

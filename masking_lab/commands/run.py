@@ -64,6 +64,18 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="with --responder keys: the participant's terminal (e.g. /dev/pts/3); default: "
         "this terminal",
     )
+    usertest = p.add_argument_group("user tests (protocols with kind: usertest)")
+    usertest.add_argument(
+        "--params",
+        metavar="FILE",
+        help="masking_params.json (from `masking-lab fit`) for the compensated condition",
+    )
+    usertest.add_argument(
+        "--allow-clipping",
+        action="store_true",
+        help="play inputs above the rig's limits clipped to them (logged per trial) instead of "
+        "refusing the session",
+    )
     _progress_flags(p)
     p.set_defaults(handler=run)
 
@@ -97,7 +109,10 @@ def run(args: argparse.Namespace) -> int:
 
     from masking_lab.errors import DeviceError
     from masking_lab.runner import RunOptions, run_session
+    from masking_lab.usertest_runner import is_usertest_protocol
 
+    if is_usertest_protocol(args.protocol):
+        return _run_usertest(args)
     sets = None
     if args.sets:
         sets = tuple(s for item in args.sets for s in item.split(",") if s)
@@ -120,6 +135,47 @@ def run(args: argparse.Namespace) -> int:
     except DeviceError as exc:
         return device_unavailable(args.command, exc)
     return print_result(result)
+
+
+def _run_usertest(args: argparse.Namespace) -> int:
+    """``run`` of a user-test protocol: the user-test session (masking_lab.usertest_runner)."""
+    from pathlib import Path
+
+    from masking_lab.errors import DeviceError, MaskingLabError
+    from masking_lab.usertest_runner import UserTestOptions, run_usertest
+
+    if args.sets:
+        raise MaskingLabError("--sets: a user-test protocol has no sets; leave it out")
+    options = UserTestOptions(
+        protocol=Path(args.protocol),
+        participant=args.participant,
+        device=args.device,
+        responder=args.responder,
+        data_dir=Path(args.data),
+        params=Path(args.params) if args.params else None,
+        seed=args.seed,
+        allow_clipping=args.allow_clipping,
+        real_time=args.real_time,
+        ground_truth=Path(args.ground_truth) if args.ground_truth else None,
+        device_config=Path(args.device_config) if args.device_config else None,
+        progress=args.progress,
+        participant_tty=args.participant_tty,
+    )
+    try:
+        result = run_usertest(options)
+    except DeviceError as exc:
+        return device_unavailable(args.command, exc)
+    return print_usertest_result(result)
+
+
+def print_usertest_result(result) -> int:  # type: ignore[no-untyped-def]
+    """Print where the log is and the correct answers so far; return the exit code."""
+    print(f"log: {result.log_path}")
+    for line in result.summary_lines():
+        print(f"  {line}")
+    if result.message:
+        print(result.message, file=sys.stderr)
+    return int(result.exit_code)
 
 
 def device_unavailable(command: str, exc: Exception) -> int:
