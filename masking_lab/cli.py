@@ -40,13 +40,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name in COMMANDS:
         # A command with a hyphen lives in a module with an underscore (usertest-report).
-        module_name = f"masking_lab.commands.{name.replace('-', '_')}"
-        try:
-            module = importlib.import_module(module_name)
-        except ModuleNotFoundError as exc:
-            if exc.name == module_name:
-                continue  # command not built yet
-            raise
+        module = importlib.import_module(f"masking_lab.commands.{name.replace('-', '_')}")
         module.register(sub)
     return parser
 

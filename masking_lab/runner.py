@@ -257,12 +257,12 @@ def run_session(
         missing calibration, unknown responder, unreadable ground truth.
     """
     out = ProgressLine(stream, force=options.progress)
-    participant = _check_participant(options.participant)
+    participant = check_participant(options.participant)
     if options.responder not in RESPONDERS:
         raise MaskingLabError(
             f"--responder {options.responder!r}: choose one of {', '.join(RESPONDERS)}"
         )
-    _check_device_spec(options.device)
+    check_device_spec(options.device)
     protocol = load_protocol(options.protocol, max_level_db_sl=_rig_limits(options.device_config))
     seed = options.seed if options.seed is not None else secrets.randbits(32)
     if seed < 0:
@@ -277,11 +277,11 @@ def run_session(
         require(cal, needed, data_dir)
         calibration = {name: float(cal.unmasked_al_db_v[name]) for name in sorted(needed)}
 
-    virtual = _use_virtual_clock(options.device, options.responder, options.real_time)
+    virtual = use_virtual_clock(options.device, options.responder, options.real_time)
     clock: Clock = VirtualClock() if virtual else RealClock()
     observer = None
     if options.responder == "sim":
-        observer = _observer_record(options.ground_truth)
+        observer = observer_record(options.ground_truth)
     context = SessionContext(
         participant,
         seed,
@@ -291,7 +291,7 @@ def run_session(
         options.device_config,
         options.participant_tty,
     )
-    opener = open_device or _default_opener(options.device_config)
+    opener = open_device or default_opener(options.device_config)
     maker = make_responder or _default_responder
     responder = maker(options.responder, context)
     try:
@@ -312,10 +312,10 @@ def run_session(
         device_config=options.device_config,
     )
     try:
-        log_path = _new_log_path(data_dir, protocol.experiment, participant)
+        log_path = new_log_path(data_dir, protocol.experiment, participant)
         writer = SessionLogWriter.create(log_path, {**header, "session_id": log_path.stem})
     except BaseException:
-        _close_quietly(device, responder)
+        close_quietly(device, responder)
         raise
     out.message(f"session log: {log_path}")
     session = _Session(
@@ -380,7 +380,7 @@ def resume_session(
     path = Path(log_path)
     log = read_log(path)
     header = log.header
-    _check_header(header, path)
+    check_header(header, path)
     if log.ended:
         raise LogError(
             f"{path}: this session has finished (it has a session_end record); there is nothing "
@@ -398,21 +398,21 @@ def resume_session(
     _check_trials(path, protocol, existing)
 
     virtual = header["clock"] == "virtual"
-    last_t = _last_time_s(log)
+    last_t = last_time_s(log)
     clock: Clock
     if virtual:
         clock = VirtualClock(start=last_t)
     else:
-        clock = _OffsetClock(RealClock(), _seconds_since(header["created_utc"], last_t))
+        clock = OffsetClock(RealClock(), seconds_since(header["created_utc"], last_t))
     observer = header.get("simulated_observer")
     if responder_name == "sim" and observer is None:
-        observer = _observer_record(None)
-    config_path = device_config if device_config is not None else _header_device_config(header)
+        observer = observer_record(None)
+    config_path = device_config if device_config is not None else header_device_config(header)
     context = SessionContext(
         participant, seed, clock, protocol, observer, config_path, participant_tty
     )
-    spec = _check_device_spec(device or _device_spec_from_header(header))
-    opener = open_device or _default_opener(config_path)
+    spec = check_device_spec(device or device_spec_from_header(header))
+    opener = open_device or default_opener(config_path)
     maker = make_responder or _default_responder
     resp = maker(responder_name, context)
     try:
@@ -423,7 +423,7 @@ def resume_session(
     try:
         writer, _ = SessionLogWriter.reopen(path)
     except BaseException:
-        _close_quietly(dev, resp)
+        close_quietly(dev, resp)
         raise
     dropped = log.truncated_tail is not None
     if dropped:
@@ -436,7 +436,7 @@ def resume_session(
         # Nothing in the log says why it stopped: it was killed or the machine went down.
         where = _position(log)
         writer.append(
-            _drop_none(
+            drop_none(
                 {
                     "record": "fault",
                     "kind": "unclean_stop",
@@ -450,13 +450,13 @@ def resume_session(
     writer.append(
         {
             "record": "resume",
-            "resumed_utc": _utc_now(),
+            "resumed_utc": utc_now(),
             "software_version": __version__,
             "dropped_partial_line": dropped,
-            "device": _device_record(dev.identity),
+            "device": device_record(dev.identity),
         }
     )
-    _warn_device_change(header.get("device", {}), dev.identity, out)
+    warn_device_change(header.get("device", {}), dev.identity, out)
     out.message(f"resuming {path}")
     session = _Session(
         protocol=protocol,
@@ -514,7 +514,7 @@ class _Session:
         self.finished_trials: list[int] = []
         self.trial_seconds: list[float] = []
         self.where: tuple[str | None, int | None] = (None, None)
-        self.signals = _Signals()
+        self.signals = SessionSignals()
 
     # -- top level --------------------------------------------------------------------------
 
@@ -524,13 +524,13 @@ class _Session:
             with self.signals:
                 self._run_sets()
                 self._append(
-                    {"record": "session_end", "status": "completed", "ended_utc": _utc_now()}
+                    {"record": "session_end", "status": "completed", "ended_utc": utc_now()}
                 )
             self.out.clear()
             return SessionResult(path, EXIT_COMPLETED, self.outcomes)
         except DeviceError as exc:
             stopped = self._stop_device()
-            kind = _fault_kind(exc)
+            kind = fault_kind(exc)
             note = (
                 "outputs zeroed"
                 if stopped
@@ -568,7 +568,7 @@ class _Session:
             self._fault("crash", f"{type(exc).__name__}: {exc}")
             raise
         finally:
-            _close_quietly(self.device, self.responder)
+            close_quietly(self.device, self.responder)
             self.writer.close()
 
     def _run_sets(self) -> None:
@@ -655,7 +655,7 @@ class _Session:
             self.clock.sleep_until(self.clock.now() + response.response_time_s)
         correct = response.interval == interval
         after = state.update(correct)
-        record = _drop_none(
+        record = drop_none(
             {
                 "record": "trial",
                 "set_id": plan.set_id,
@@ -675,7 +675,7 @@ class _Session:
                 "played_target_v": played.played_target_v,
                 "played_masker_v": played.played_masker_v,
                 "finger_path": [list(p) for p in response.finger_path] or None,
-                "device_extra": _jsonable(played.extra) or None,
+                "device_extra": jsonable(played.extra) or None,
             }
         )
         # Either the record is on disk before the next trial or the trial never happened.
@@ -690,7 +690,7 @@ class _Session:
             # Calibration first: a crash before set_end replays the set and writes it again.
             source = _relative(self.writer.path, self.data_dir)
             _, previous = record_al(
-                self.data_dir, self.participant, plan.target.name, al, source, _utc_now()
+                self.data_dir, self.participant, plan.target.name, al, source, utc_now()
             )
             was = f" (was {previous:.2f})" if previous is not None and previous != al else ""
             self.out.message(
@@ -832,7 +832,7 @@ class _Session:
             self.writer.append(record)
 
     def _fault(self, kind: str, message: str) -> None:
-        record = _drop_none(
+        record = drop_none(
             {
                 "record": "fault",
                 "kind": kind,
@@ -859,7 +859,7 @@ class _Session:
 # Signals
 
 
-class _Signals:
+class SessionSignals:
     """SIGINT/SIGTERM/SIGHUP raise :class:`SessionInterrupted`, except while a record is written.
 
     (SIGHUP: the experimenter's terminal closed.)
@@ -870,7 +870,7 @@ class _Signals:
         self._deferring = False
         self._pending: int | None = None
 
-    def __enter__(self) -> _Signals:
+    def __enter__(self) -> SessionSignals:
         if threading.current_thread() is threading.main_thread():
             for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
                 self._previous[sig] = signal.signal(sig, self._handle)
@@ -892,7 +892,7 @@ class _Signals:
 
 
 class _Deferred:
-    def __init__(self, signals: _Signals) -> None:
+    def __init__(self, signals: SessionSignals) -> None:
         self.signals = signals
 
     def __enter__(self) -> None:
@@ -909,7 +909,7 @@ class _Deferred:
 # Clocks
 
 
-class _OffsetClock:
+class OffsetClock:
     """A real clock whose zero is the session's start, so a resumed session's times continue."""
 
     virtual = False
@@ -925,13 +925,13 @@ class _OffsetClock:
         self.base.sleep_until(t - self.offset_s)
 
 
-def _use_virtual_clock(device: str, responder: str, real_time: bool) -> bool:
+def use_virtual_clock(device: str, responder: str, real_time: bool) -> bool:
     if real_time or responder != "sim":
         return False
     return device == "sim" or device == "emulator"
 
 
-def _seconds_since(created_utc: str, floor_s: float) -> float:
+def seconds_since(created_utc: str, floor_s: float) -> float:
     try:
         created = dt.datetime.fromisoformat(created_utc.replace("Z", "+00:00"))
         elapsed = (dt.datetime.now(dt.UTC) - created).total_seconds()
@@ -940,7 +940,7 @@ def _seconds_since(created_utc: str, floor_s: float) -> float:
     return max(elapsed, floor_s)
 
 
-def _last_time_s(log: SessionLog) -> float:
+def last_time_s(log: SessionLog) -> float:
     last = 0.0
     for rec in log.records:
         for key in ("t_s",):
@@ -958,7 +958,7 @@ def _last_time_s(log: SessionLog) -> float:
 # Defaults for devices and responders
 
 
-def _default_opener(device_config: Path | None) -> DeviceOpener:
+def default_opener(device_config: Path | None) -> DeviceOpener:
     def opener(spec: str, clock: Clock) -> Device:
         from masking_lab.device import factory
 
@@ -971,7 +971,7 @@ def _default_responder(name: str, context: SessionContext) -> Responder:
     if name == "sim":
         from masking_lab.responders.sim import SimResponder
 
-        obs = context.simulated_observer or _observer_record(None)
+        obs = context.simulated_observer or observer_record(None)
         truth = ground_truth_from_dict(obs["truth"], str(obs.get("ground_truth_path")))
         participant = make_participant(truth, context.participant, int(obs["population_seed"]))
         return SimResponder(participant, context.seed, str(obs.get("ground_truth_path") or ""))
@@ -988,7 +988,7 @@ def _default_responder(name: str, context: SessionContext) -> Responder:
     raise MaskingLabError(f"responder {name!r}: choose one of {', '.join(RESPONDERS)}")
 
 
-def _observer_record(ground_truth: Path | None) -> dict[str, Any]:
+def observer_record(ground_truth: Path | None) -> dict[str, Any]:
     from masking_lab.resources import shipped
 
     if ground_truth is None:
@@ -1035,18 +1035,18 @@ def _header(
 ) -> dict[str, Any]:
     header: dict[str, Any] = {
         "schema_version": 1,
-        "created_utc": _utc_now(),
+        "created_utc": utc_now(),
         "software_version": __version__,
         "protocol": {
             # Absolute, so resume can compare the file from any working directory.
             "path": str(Path(protocol.path).resolve()),
             "sha256": protocol.sha256,
             "experiment": protocol.experiment,
-            "content": _jsonable(protocol.content),
+            "content": jsonable(protocol.content),
         },
         "participant": participant,
         "calibration": dict(calibration),
-        "device": _device_record(device),
+        "device": device_record(device),
         "responder": responder,
         "seed": int(seed),
         "set_order": list(order),
@@ -1059,7 +1059,7 @@ def _header(
     return header
 
 
-def _device_record(identity: DeviceIdentity) -> dict[str, Any]:
+def device_record(identity: DeviceIdentity) -> dict[str, Any]:
     return {
         "backend": identity.backend,
         "model": identity.model,
@@ -1086,7 +1086,7 @@ def _settings_from_record(start_record: Mapping[str, Any], spec: SetSpec) -> Sta
     return StaircaseSettings(**data)
 
 
-def _check_device_spec(spec: str) -> str:
+def check_device_spec(spec: str) -> str:
     if not _DEVICE_SPEC.match(spec.strip()):
         raise MaskingLabError(
             f"--device {spec!r}: choose sim, emulator, serial:PORT (e.g. serial:/dev/ttyACM0) "
@@ -1095,7 +1095,7 @@ def _check_device_spec(spec: str) -> str:
     return spec.strip()
 
 
-def _check_participant(participant: str) -> str:
+def check_participant(participant: str) -> str:
     if not _PARTICIPANT.match(participant or ""):
         raise MaskingLabError(
             f"--participant {participant!r}: use letters, digits, '_', '-' and '.' only (it "
@@ -1130,7 +1130,7 @@ def _stimuli_of(protocol: Protocol, order: Sequence[str]) -> set[str]:
     return names
 
 
-def _new_log_path(data_dir: Path, experiment: str, participant: str) -> Path:
+def new_log_path(data_dir: Path, experiment: str, participant: str) -> Path:
     stamp = dt.datetime.now(dt.UTC).strftime("%Y%m%dT%H%M%SZ")
     folder = data_dir / participant
     base = f"{experiment}-{participant}-{stamp}"
@@ -1142,7 +1142,7 @@ def _new_log_path(data_dir: Path, experiment: str, participant: str) -> Path:
     return path
 
 
-def _check_header(header: Mapping[str, Any], path: Path) -> None:
+def check_header(header: Mapping[str, Any], path: Path) -> None:
     errors = schema_errors(dict(header), "session_log")
     if errors:
         raise LogError(
@@ -1247,7 +1247,7 @@ def _bound_reason(state: Staircase, plan: SetPlan) -> str:
     return f"reached the trial cap ({sc.max_trials} trials) before {sc.n_reversals} reversals"
 
 
-def _device_spec_from_header(header: Mapping[str, Any]) -> str:
+def device_spec_from_header(header: Mapping[str, Any]) -> str:
     dev = header.get("device") or {}
     backend = str(dev.get("backend", "sim"))
     if backend == "serial":
@@ -1259,15 +1259,15 @@ def _device_spec_from_header(header: Mapping[str, Any]) -> str:
     raise LogError(f"the log's device back-end {backend!r} cannot be reopened; pass --device")
 
 
-def _header_device_config(header: Mapping[str, Any]) -> Path | None:
+def header_device_config(header: Mapping[str, Any]) -> Path | None:
     value = header.get("device_config")
     return Path(value) if value else None
 
 
-def _warn_device_change(
+def warn_device_change(
     logged: Mapping[str, Any], identity: DeviceIdentity, out: ProgressLine
 ) -> None:
-    now = _device_record(identity)
+    now = device_record(identity)
     changed = [
         k
         for k in ("backend", "model", "serial_number", "firmware_version", "max_drive_v")
@@ -1280,7 +1280,7 @@ def _warn_device_change(
         )
 
 
-def _fault_kind(exc: DeviceError) -> str:
+def fault_kind(exc: DeviceError) -> str:
     """The fault record's ``kind`` for a device or responder error."""
     kind = getattr(exc, "kind", None)
     if isinstance(kind, str) and kind:
@@ -1302,17 +1302,17 @@ _FAULT_KINDS = {
 }
 
 
-def _drop_none(record: dict[str, Any]) -> dict[str, Any]:
+def drop_none(record: dict[str, Any]) -> dict[str, Any]:
     keep_null = {"level_db_sl", "at_bound", "set_id", "trial_index"}
     return {k: v for k, v in record.items() if v is not None or k in keep_null}
 
 
-def _jsonable(value: Any) -> Any:
+def jsonable(value: Any) -> Any:
     """A JSON-safe copy: mappings, sequences, finite numbers, strings; others as strings."""
     if isinstance(value, Mapping):
-        return {str(k): _jsonable(v) for k, v in value.items()}
+        return {str(k): jsonable(v) for k, v in value.items()}
     if isinstance(value, list | tuple):
-        return [_jsonable(v) for v in value]
+        return [jsonable(v) for v in value]
     if isinstance(value, bool) or value is None or isinstance(value, str | int):
         return value
     if isinstance(value, float):
@@ -1329,11 +1329,11 @@ def _relative(path: Path, base: Path) -> str:
         return str(path)
 
 
-def _utc_now() -> str:
+def utc_now() -> str:
     return dt.datetime.now(dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
 
 
-def _close_quietly(device: Device, responder: Responder) -> None:
+def close_quietly(device: Device, responder: Responder) -> None:
     for close in (device.close, responder.close):
         try:
             close()

@@ -73,28 +73,28 @@ from masking_lab.runner import (
     EXIT_COMPLETED,
     EXIT_DEVICE_FAULT,
     EXIT_INTERRUPTED,
+    OffsetClock,
     SessionInterrupted,
     SessionResult,
-    _check_device_spec,
-    _check_header,
-    _check_participant,
-    _close_quietly,
-    _default_opener,
-    _device_record,
-    _device_spec_from_header,
-    _drop_none,
-    _fault_kind,
-    _header_device_config,
-    _jsonable,
-    _last_time_s,
-    _new_log_path,
-    _observer_record,
-    _OffsetClock,
-    _seconds_since,
-    _Signals,
-    _use_virtual_clock,
-    _utc_now,
-    _warn_device_change,
+    SessionSignals,
+    check_device_spec,
+    check_header,
+    check_participant,
+    close_quietly,
+    default_opener,
+    device_record,
+    device_spec_from_header,
+    drop_none,
+    fault_kind,
+    header_device_config,
+    jsonable,
+    last_time_s,
+    new_log_path,
+    observer_record,
+    seconds_since,
+    use_virtual_clock,
+    utc_now,
+    warn_device_change,
 )
 from masking_lab.session_log import SessionLogWriter, read_log
 from masking_lab.solver import MissingMaskingError, MutualMasking, PairProblem
@@ -302,13 +302,13 @@ def run_usertest(
         ``allow_clipping`` (:class:`LevelError`), a responder that cannot do the tracking.
     """
     out = ProgressLine(stream, force=options.progress)
-    participant = _check_participant(options.participant)
+    participant = check_participant(options.participant)
     if options.responder not in RESPONDERS:
         raise MaskingLabError(
             f"--responder {options.responder!r}: the user test is answered by "
             f"{', '.join(RESPONDERS)}"
         )
-    _check_device_spec(options.device)
+    check_device_spec(options.device)
     _check_stream_settings(options.update_hz, options.deadband_db)
     design = load_usertest(options.protocol)
     if design.tracking == "finger" and options.responder == "keys":
@@ -327,9 +327,9 @@ def run_usertest(
     objects = render_objects(design, pairs)
     rig_max = _rig_limits(options.device_config)
 
-    virtual = _use_virtual_clock(options.device, options.responder, options.real_time)
+    virtual = use_virtual_clock(options.device, options.responder, options.real_time)
     clock: Clock = VirtualClock() if virtual else RealClock()
-    observer = _observer_record(options.ground_truth) if options.responder == "sim" else None
+    observer = observer_record(options.ground_truth) if options.responder == "sim" else None
     context = UserTestContext(
         participant,
         seed,
@@ -340,7 +340,7 @@ def run_usertest(
         options.device_config,
         options.participant_tty,
     )
-    opener = open_device or _default_opener(options.device_config)
+    opener = open_device or default_opener(options.device_config)
     maker = make_responder or default_responder
     responder = maker(options.responder, context)
     try:
@@ -377,10 +377,10 @@ def run_usertest(
             limits=limits,
             over=over,
         )
-        log_path = _new_log_path(data_dir, design.experiment, participant)
+        log_path = new_log_path(data_dir, design.experiment, participant)
         writer = SessionLogWriter.create(log_path, {**header, "session_id": log_path.stem})
     except BaseException:
-        _close_quietly(device, responder)  # type: ignore[arg-type]
+        close_quietly(device, responder)  # type: ignore[arg-type]
         raise
     out.message(f"session log: {log_path}")
     session = _UserTestSession(
@@ -432,7 +432,7 @@ def resume_usertest(
     path = Path(log_path)
     log = read_log(path)
     header = log.header
-    _check_header(header, path)
+    check_header(header, path)
     if header.get("kind") != KIND:
         raise LogError(f"{path}: not a user-test session log; resume it with `masking-lab resume`")
     if log.ended:
@@ -461,21 +461,21 @@ def resume_usertest(
     allow_clipping = bool(ut.get("allow_clipping", False))
 
     virtual = header["clock"] == "virtual"
-    last_t = _last_time_s(log)
+    last_t = last_time_s(log)
     clock: Clock
     if virtual:
         clock = VirtualClock(start=last_t)
     else:
-        clock = _OffsetClock(RealClock(), _seconds_since(header["created_utc"], last_t))
+        clock = OffsetClock(RealClock(), seconds_since(header["created_utc"], last_t))
     observer = header.get("simulated_observer")
     if responder_name == "sim" and observer is None:
-        observer = _observer_record(None)
-    config_path = device_config if device_config is not None else _header_device_config(header)
+        observer = observer_record(None)
+    config_path = device_config if device_config is not None else header_device_config(header)
     context = UserTestContext(
         participant, seed, clock, design, objects, observer, config_path, participant_tty
     )
-    spec = _check_device_spec(device or _device_spec_from_header(header))
-    opener = open_device or _default_opener(config_path)
+    spec = check_device_spec(device or device_spec_from_header(header))
+    opener = open_device or default_opener(config_path)
     maker = make_responder or default_responder
     resp = maker(responder_name, context)
     try:
@@ -494,7 +494,7 @@ def resume_usertest(
         _refuse_or_warn(exceedances(design, objects, limits), allow_clipping, participant, out)
         writer, _ = SessionLogWriter.reopen(path)
     except BaseException:
-        _close_quietly(dev, resp)  # type: ignore[arg-type]
+        close_quietly(dev, resp)  # type: ignore[arg-type]
         raise
     dropped = log.truncated_tail is not None
     if dropped:
@@ -506,7 +506,7 @@ def resume_usertest(
     if last is None or last.get("record") != "fault":
         # Nothing in the log says why it stopped: it was killed or the machine went down.
         writer.append(
-            _drop_none(
+            drop_none(
                 {
                     "record": "fault",
                     "kind": "unclean_stop",
@@ -520,13 +520,13 @@ def resume_usertest(
     writer.append(
         {
             "record": "resume",
-            "resumed_utc": _utc_now(),
+            "resumed_utc": utc_now(),
             "software_version": __version__,
             "dropped_partial_line": dropped,
-            "device": _device_record(dev.identity),
+            "device": device_record(dev.identity),
         }
     )
-    _warn_device_change(header.get("device", {}), dev.identity, out)
+    warn_device_change(header.get("device", {}), dev.identity, out)
     out.message(f"resuming {path} at trial {len(logged) + 1} of {len(trials)}")
     session = _UserTestSession(
         design=design,
@@ -553,7 +553,7 @@ def default_responder(name: str, context: UserTestContext) -> UserTestResponder:
         from masking_lab.observer import ground_truth_from_dict
         from masking_lab.responders.usertest_sim import UserTestSimResponder
 
-        obs = context.simulated_observer or _observer_record(None)
+        obs = context.simulated_observer or observer_record(None)
         source = str(obs.get("ground_truth_path") or "the ground truth")
         truth = ground_truth_from_dict(obs["truth"], source)
         return UserTestSimResponder.from_ground_truth(
@@ -779,17 +779,17 @@ def _header(
         )
     header: dict[str, Any] = {
         "schema_version": 1,
-        "created_utc": _utc_now(),
+        "created_utc": utc_now(),
         "software_version": __version__,
         "protocol": {
             "path": str(Path(design.path).resolve()),
             "sha256": design.sha256,
             "experiment": design.experiment,
-            "content": _jsonable(design.content),
+            "content": jsonable(design.content),
         },
         "participant": participant,
         "calibration": dict(calibration),
-        "device": _device_record(device.identity),
+        "device": device_record(device.identity),
         "responder": responder,
         "seed": int(seed),
         "set_order": [],
@@ -806,8 +806,8 @@ def _header(
                     "b": p.b,
                     "c_db": p.c_db,
                     "d": p.d,
-                    "f_fitted_range_db_sl": _jsonable(p.f_fitted_range_db_sl),
-                    "g_fitted_range_db_sl": _jsonable(p.g_fitted_range_db_sl),
+                    "f_fitted_range_db_sl": jsonable(p.f_fitted_range_db_sl),
+                    "g_fitted_range_db_sl": jsonable(p.g_fitted_range_db_sl),
                 }
                 for _, p in sorted(pairs.items())
             ],
@@ -987,7 +987,7 @@ class _UserTestSession:
         self.logged = list(logged)
         self.where: int | None = None
         self.trial_seconds: list[float] = []
-        self.signals = _Signals()
+        self.signals = SessionSignals()
         self._plans: dict[tuple[tuple[str, str], str], PresentationPlan] = {}
         self.max_drive_v = dict(device.identity.limits.max_drive_v)
 
@@ -999,13 +999,13 @@ class _UserTestSession:
             with self.signals:
                 self._run_trials()
                 self._append(
-                    {"record": "session_end", "status": "completed", "ended_utc": _utc_now()}
+                    {"record": "session_end", "status": "completed", "ended_utc": utc_now()}
                 )
             self.out.clear()
             return self._result(EXIT_COMPLETED, "")
         except DeviceError as exc:
             stopped = self._stop_device()
-            kind = _fault_kind(exc)
+            kind = fault_kind(exc)
             note = (
                 "outputs zeroed"
                 if stopped
@@ -1043,7 +1043,7 @@ class _UserTestSession:
             self._fault("crash", f"{type(exc).__name__}: {exc}")
             raise
         finally:
-            _close_quietly(self.device, self.responder)  # type: ignore[arg-type]
+            close_quietly(self.device, self.responder)  # type: ignore[arg-type]
             self.writer.close()
 
     def _run_trials(self) -> None:
@@ -1343,7 +1343,7 @@ class _UserTestSession:
             self.writer.append(record)
 
     def _fault(self, kind: str, message: str) -> None:
-        record = _drop_none(
+        record = drop_none(
             {
                 "record": "fault",
                 "kind": kind,

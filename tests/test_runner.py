@@ -28,7 +28,7 @@ from runner_support import (
 from masking_lab.cli import main
 from masking_lab.errors import CalibrationError, MaskingLabError, ProtocolError
 from masking_lab.protocol import load_protocol
-from masking_lab.runner import RunOptions, SessionInterrupted, _Signals, run_session
+from masking_lab.runner import RunOptions, SessionInterrupted, SessionSignals, run_session
 
 CAL = {"EV270": -14.0, "MV120": -26.0, "MV180": -30.0, "MV270": -32.0}
 
@@ -313,7 +313,7 @@ def test_cli_a_device_that_cannot_be_opened_exits_3_before_anything_is_logged(tm
 def test_signals_wait_until_the_record_is_written():
     before = signal.getsignal(signal.SIGTERM)
     written = []
-    with pytest.raises(SessionInterrupted) as info, _Signals() as signals:
+    with pytest.raises(SessionInterrupted) as info, SessionSignals() as signals:
         with signals.deferred():
             os.kill(os.getpid(), signal.SIGTERM)
             written.append("record")  # still runs: the signal waits for the block to end
@@ -321,5 +321,5 @@ def test_signals_wait_until_the_record_is_written():
     assert written == ["record"]
     assert info.value.signum == signal.SIGTERM
     assert signal.getsignal(signal.SIGTERM) is before
-    with pytest.raises(SessionInterrupted), _Signals():
+    with pytest.raises(SessionInterrupted), SessionSignals():
         os.kill(os.getpid(), signal.SIGINT)
