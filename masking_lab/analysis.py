@@ -990,6 +990,13 @@ def run_analyze(
             if progress:
                 progress(i, len(paths))
             continue
+        if h.get("kind") == "usertest":
+            reason = "a user-test log (no staircases): analyse it with masking-lab usertest-report"
+            skipped.append({"path": rel, "reason": reason})
+            problems.append({"log": rel, "problem": reason, "action": "file skipped"})
+            if progress:
+                progress(i, len(paths))
+            continue
         inputs.append({"path": rel, "sha256": hashlib.sha256(raw).hexdigest()})
         if isinstance(h.get("created_utc"), str) and _UTC_RE.match(h["created_utc"]):
             created.append(h["created_utc"])

@@ -466,3 +466,23 @@ def test_logs_of_the_real_runner_are_analysed(tmp_path, capsys):
     entries = load_masking_params(out / "masking_params.json")
     assert set(entries) == {("EV270", "MV120"), ("EV270", "MV270")}
     assert all(e.status == "fitted" for e in entries.values())
+
+
+def test_user_test_logs_are_skipped_with_a_pointer(study, tmp_path):
+    import shutil
+
+    data = tmp_path / "data"
+    shutil.copytree(study, data)
+    header = {
+        "record": "header",
+        "kind": "usertest",
+        "participant": "S01",
+        "protocol": {"experiment": "usertest"},
+    }
+    (data / "usertest-S01.jsonl").write_text(json.dumps(header) + "\n")
+    out = tmp_path / "out"
+    assert main(["analyze", str(data), "--out", str(out), "--figures", "none", "--quiet"]) == 0
+    problems = _read_csv(out / "problems.csv")
+    skipped = [p for p in problems if p["log"] == "usertest-S01.jsonl"]
+    assert skipped and "usertest-report" in skipped[0]["problem"]
+    assert skipped[0]["action"] == "file skipped"
