@@ -21,15 +21,10 @@ import dataclasses
 import datetime as dt
 import math
 import os
-import re
 import secrets
-import signal
-import sys
-import threading
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from types import FrameType
 from typing import Any, TextIO
 
 import yaml
@@ -40,7 +35,6 @@ from masking_lab.clock import Clock, RealClock, VirtualClock
 from masking_lab.device.base import Device, DeviceIdentity, TrialPlan
 from masking_lab.errors import (
     CalibrationError,
-    DeviceError,
     LevelError,
     LogError,
     MaskingLabError,
@@ -50,7 +44,6 @@ from masking_lab.observer import ground_truth_from_dict, make_participant
 from masking_lab.progress import ProgressLine, format_progress
 from masking_lab.protocol import Protocol, SetSpec, load_protocol, parse_protocol
 from masking_lab.responders.base import Responder, SetInfo, TrialPresentation
-from masking_lab.schemas import key_path, schema_errors
 from masking_lab.session_log import SessionLog, SessionLogWriter, SetRecords, read_log
 from masking_lab.session_plan import (
     UNIT_LABEL,
@@ -61,17 +54,40 @@ from masking_lab.session_plan import (
     plan_set,
     plan_trial,
 )
+
+# EXIT_* and the signal classes were public here first; the noqa lines re-export them.
+from masking_lab.session_shell import (
+    EXIT_COMPLETED,  # noqa: F401
+    EXIT_DEVICE_FAULT,  # noqa: F401
+    EXIT_INTERRUPTED,  # noqa: F401
+    DeviceOpener,
+    SessionInterrupted,  # noqa: F401
+    SessionShell,
+    SessionSignals,  # noqa: F401
+    check_device_spec,
+    check_header,
+    check_participant,
+    close_on_failure,
+    create_log,
+    default_opener,
+    device_record,
+    device_spec_from_header,
+    drop_none,
+    observer_record,
+    open_device_and_responder,
+    record_resume,
+    refuse_finished,
+    resume_clock,
+    resume_device_config,
+    resume_observer,
+    resume_responder_name,
+    use_virtual_clock,
+    utc_now,
+)
 from masking_lab.staircase import Staircase, StaircaseSettings, replay, start
 
-EXIT_COMPLETED = 0
-EXIT_DEVICE_FAULT = 3
-EXIT_INTERRUPTED = 130
-
 RESPONDERS = ("sim", "keys", "psychopy")
-_PARTICIPANT = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
-_DEVICE_SPEC = re.compile(r"^(sim|emulator|serial:.+|nidaq(:.+)?)$")
 
-DeviceOpener = Callable[[str, Clock], Device]
 ResponderMaker = Callable[[str, "SessionContext"], Responder]
 
 
@@ -217,14 +233,6 @@ class SessionContext:
     participant_tty: str | None = None
 
 
-class SessionInterrupted(KeyboardInterrupt):
-    """SIGINT, SIGTERM or SIGHUP arrived during a session."""
-
-    def __init__(self, signum: int) -> None:
-        self.signum = signum
-        super().__init__(signal.Signals(signum).name)
-
-
 # --------------------------------------------------------------------------------------------
 # Entry points
 
@@ -291,14 +299,14 @@ def run_session(
         options.device_config,
         options.participant_tty,
     )
-    opener = open_device or default_opener(options.device_config)
-    maker = make_responder or _default_responder
-    responder = maker(options.responder, context)
-    try:
-        device = opener(options.device, clock)
-    except BaseException:
-        responder.close()
-        raise
+    device, responder = open_device_and_responder(
+        make_responder or _default_responder,
+        options.responder,
+        context,
+        open_device or default_opener(options.device_config),
+        options.device,
+        clock,
+    )
     header = _header(
         protocol=protocol,
         participant=participant,
@@ -311,13 +319,9 @@ def run_session(
         observer=observer,
         device_config=options.device_config,
     )
-    try:
-        log_path = new_log_path(data_dir, protocol.experiment, participant)
-        writer = SessionLogWriter.create(log_path, {**header, "session_id": log_path.stem})
-    except BaseException:
-        close_quietly(device, responder)
-        raise
-    out.message(f"session log: {log_path}")
+    with close_on_failure(device, responder):
+        writer = create_log(data_dir, protocol.experiment, participant, header)
+    out.message(f"session log: {writer.path}")
     session = _Session(
         protocol=protocol,
         participant=participant,
@@ -381,82 +385,34 @@ def resume_session(
     log = read_log(path)
     header = log.header
     check_header(header, path)
-    if log.ended:
-        raise LogError(
-            f"{path}: this session has finished (it has a session_end record); there is nothing "
-            "to resume. Start a new session with `masking-lab run`"
-        )
+    refuse_finished(log, path)
     protocol = _protocol_from_header(header, path, allow_changed_protocol, out)
     participant = str(header["participant"])
     seed = int(header["seed"])
     order = [str(s) for s in header["set_order"]]
     calibration = {k: float(v) for k, v in header["calibration"].items()}
-    responder_name = responder or str(header.get("responder", "sim"))
-    if responder_name not in RESPONDERS:
-        raise MaskingLabError(f"responder {responder_name!r}: choose one of {RESPONDERS}")
+    responder_name = resume_responder_name(header, responder, RESPONDERS)
     existing = log.sets()
     _check_trials(path, protocol, existing)
 
-    virtual = header["clock"] == "virtual"
-    last_t = last_time_s(log)
-    clock: Clock
-    if virtual:
-        clock = VirtualClock(start=last_t)
-    else:
-        clock = OffsetClock(RealClock(), seconds_since(header["created_utc"], last_t))
-    observer = header.get("simulated_observer")
-    if responder_name == "sim" and observer is None:
-        observer = observer_record(None)
-    config_path = device_config if device_config is not None else header_device_config(header)
+    clock = resume_clock(header, log)
+    observer = resume_observer(header, responder_name)
+    config_path = resume_device_config(device_config, header)
     context = SessionContext(
         participant, seed, clock, protocol, observer, config_path, participant_tty
     )
     spec = check_device_spec(device or device_spec_from_header(header))
-    opener = open_device or default_opener(config_path)
-    maker = make_responder or _default_responder
-    resp = maker(responder_name, context)
-    try:
-        dev = opener(spec, clock)
-    except BaseException:
-        resp.close()
-        raise
-    try:
-        writer, _ = SessionLogWriter.reopen(path)
-    except BaseException:
-        close_quietly(dev, resp)
-        raise
-    dropped = log.truncated_tail is not None
-    if dropped:
-        out.message(
-            f"{path}: cut an incomplete last line ({len(log.truncated_tail or '')} characters, "
-            "a record being written when the session stopped); the trial it held is re-run"
-        )
-    last = log.records[-1] if log.records else None
-    if last is None or last.get("record") != "fault":
-        # Nothing in the log says why it stopped: it was killed or the machine went down.
-        where = _position(log)
-        writer.append(
-            drop_none(
-                {
-                    "record": "fault",
-                    "kind": "unclean_stop",
-                    "message": "the session stopped without recording why (killed, crashed or "
-                    "power lost)" + ("; an incomplete last line was cut" if dropped else ""),
-                    "set_id": where[0],
-                    "trial_index": where[1],
-                }
-            )
-        )
-    writer.append(
-        {
-            "record": "resume",
-            "resumed_utc": utc_now(),
-            "software_version": __version__,
-            "dropped_partial_line": dropped,
-            "device": device_record(dev.identity),
-        }
+    dev, resp = open_device_and_responder(
+        make_responder or _default_responder,
+        responder_name,
+        context,
+        open_device or default_opener(config_path),
+        spec,
+        clock,
     )
-    warn_device_change(header.get("device", {}), dev.identity, out)
+    with close_on_failure(dev, resp):
+        writer, _ = SessionLogWriter.reopen(path)
+    record_resume(writer, log, dev.identity, out, _position(log))
     out.message(f"resuming {path}")
     session = _Session(
         protocol=protocol,
@@ -479,7 +435,7 @@ def resume_session(
 # The session loop
 
 
-class _Session:
+class _Session(SessionShell[SessionResult]):
     """One process's part of a session: runs the unfinished sets of ``order``."""
 
     def __init__(
@@ -498,78 +454,33 @@ class _Session:
         out: ProgressLine,
         existing: Mapping[str, SetRecords],
     ) -> None:
+        super().__init__(clock=clock, device=device, responder=responder, writer=writer, out=out)
         self.protocol = protocol
         self.participant = participant
         self.data_dir = data_dir
         self.seed = seed
         self.order = list(order)
         self.calibration = dict(calibration)
-        self.clock = clock
-        self.device = device
-        self.responder = responder
-        self.writer = writer
-        self.out = out
+        self.responder: Responder = responder
         self.existing = dict(existing)
         self.outcomes: list[SetOutcome] = []
         self.finished_trials: list[int] = []
         self.trial_seconds: list[float] = []
         self.where: tuple[str | None, int | None] = (None, None)
-        self.signals = SessionSignals()
 
     # -- top level --------------------------------------------------------------------------
 
     def run(self) -> SessionResult:
-        path = self.writer.path
-        try:
-            with self.signals:
-                self._run_sets()
-                self._append(
-                    {"record": "session_end", "status": "completed", "ended_utc": utc_now()}
-                )
-            self.out.clear()
-            return SessionResult(path, EXIT_COMPLETED, self.outcomes)
-        except DeviceError as exc:
-            stopped = self._stop_device()
-            kind = fault_kind(exc)
-            note = (
-                "outputs zeroed"
-                if stopped
-                else ("the device did not take the stop command; its watchdog zeroes the outputs")
-            )
-            self._fault(kind, f"{exc} ({note})")
-            message = (
-                f"device fault ({kind}) in set {self.where[0]}, trial {self.where[1]}: {exc}. "
-                f"{note[0].upper() + note[1:]}. Check the device and cable, then resume with: "
-                f"masking-lab resume {path}"
-            )
-            self.out.message(message)
-            return SessionResult(path, EXIT_DEVICE_FAULT, self.outcomes, message)
-        except KeyboardInterrupt as exc:
-            self._stop_device()
-            name = (
-                exc.args[0]
-                if isinstance(exc, SessionInterrupted)
-                else "the keyboard (Ctrl-C, or Escape in the participant window)"
-            )
-            self._fault("interrupted", f"interrupted by {name}; outputs zeroed")
-            message = (
-                f"interrupted in set {self.where[0]}, trial {self.where[1]}; nothing logged is "
-                f"lost. Resume with: masking-lab resume {path}"
-            )
-            self.out.message(message)
-            return SessionResult(path, EXIT_INTERRUPTED, self.outcomes, message)
-        except MaskingLabError as exc:
-            self._stop_device()
-            self._fault("error", str(exc))
-            self.out.message(f"stopped: {exc}. Fix it, then resume with: masking-lab resume {path}")
-            raise
-        except BaseException as exc:
-            self._stop_device()
-            self._fault("crash", f"{type(exc).__name__}: {exc}")
-            raise
-        finally:
-            close_quietly(self.device, self.responder)
-            self.writer.close()
+        return self.run_guarded(self._run_sets)
+
+    def _result(self, code: int, message: str) -> SessionResult:
+        return SessionResult(self.writer.path, code, self.outcomes, message)
+
+    def _where_text(self) -> str:
+        return f"set {self.where[0]}, trial {self.where[1]}"
+
+    def _position(self) -> tuple[str | None, int | None]:
+        return self.where
 
     def _run_sets(self) -> None:
         for rec in self.existing.values():
@@ -826,145 +737,9 @@ class _Session:
             self.out.update(f"rest: {int(left // 60)}:{int(left % 60):02d} left")
             self.clock.sleep_until(min(end, self.clock.now() + 1.0))
 
-    def _append(self, record: dict[str, Any]) -> None:
-        # SIGINT/SIGTERM wait until the record is on disk.
-        with self.signals.deferred():
-            self.writer.append(record)
-
-    def _fault(self, kind: str, message: str) -> None:
-        record = drop_none(
-            {
-                "record": "fault",
-                "kind": kind,
-                "message": message,
-                "set_id": self.where[0],
-                "trial_index": self.where[1],
-                "t_s": self.clock.now(),
-            }
-        )
-        try:
-            self.writer.append(record)
-        except (OSError, ValueError) as exc:  # the disk itself failed: say so, keep going down
-            print(f"could not log the fault ({exc}): {message}", file=sys.stderr)
-
-    def _stop_device(self) -> bool:
-        try:
-            self.device.stop()
-            return True
-        except Exception:  # a dead device cannot stop; its watchdog does
-            return False
-
-
-# --------------------------------------------------------------------------------------------
-# Signals
-
-
-class SessionSignals:
-    """SIGINT/SIGTERM/SIGHUP raise :class:`SessionInterrupted`, except while a record is written.
-
-    (SIGHUP: the experimenter's terminal closed.)
-    """
-
-    def __init__(self) -> None:
-        self._previous: dict[int, Any] = {}
-        self._deferring = False
-        self._pending: int | None = None
-
-    def __enter__(self) -> SessionSignals:
-        if threading.current_thread() is threading.main_thread():
-            for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
-                self._previous[sig] = signal.signal(sig, self._handle)
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        for sig, handler in self._previous.items():
-            signal.signal(sig, handler)
-        self._previous.clear()
-
-    def _handle(self, signum: int, frame: FrameType | None) -> None:
-        if self._deferring:
-            self._pending = signum
-            return
-        raise SessionInterrupted(signum)
-
-    def deferred(self) -> _Deferred:
-        return _Deferred(self)
-
-
-class _Deferred:
-    def __init__(self, signals: SessionSignals) -> None:
-        self.signals = signals
-
-    def __enter__(self) -> None:
-        self.signals._deferring = True
-
-    def __exit__(self, exc_type: object, *rest: object) -> None:
-        self.signals._deferring = False
-        pending, self.signals._pending = self.signals._pending, None
-        if pending is not None and exc_type is None:
-            raise SessionInterrupted(pending)
-
-
-# --------------------------------------------------------------------------------------------
-# Clocks
-
-
-class OffsetClock:
-    """A real clock whose zero is the session's start, so a resumed session's times continue."""
-
-    virtual = False
-
-    def __init__(self, base: Clock, offset_s: float) -> None:
-        self.base = base
-        self.offset_s = float(offset_s)
-
-    def now(self) -> float:
-        return self.base.now() + self.offset_s
-
-    def sleep_until(self, t: float) -> None:
-        self.base.sleep_until(t - self.offset_s)
-
-
-def use_virtual_clock(device: str, responder: str, real_time: bool) -> bool:
-    if real_time or responder != "sim":
-        return False
-    return device == "sim" or device == "emulator"
-
-
-def seconds_since(created_utc: str, floor_s: float) -> float:
-    try:
-        created = dt.datetime.fromisoformat(created_utc.replace("Z", "+00:00"))
-        elapsed = (dt.datetime.now(dt.UTC) - created).total_seconds()
-    except ValueError:
-        elapsed = 0.0
-    return max(elapsed, floor_s)
-
-
-def last_time_s(log: SessionLog) -> float:
-    last = 0.0
-    for rec in log.records:
-        for key in ("t_s",):
-            v = rec.get(key)
-            if isinstance(v, int | float) and math.isfinite(v):
-                last = max(last, float(v))
-        for key in ("planned_onsets_s", "actual_onsets_s"):
-            for v in rec.get(key) or ():
-                if isinstance(v, int | float) and math.isfinite(v):
-                    last = max(last, float(v))
-    return last
-
 
 # --------------------------------------------------------------------------------------------
 # Defaults for devices and responders
-
-
-def default_opener(device_config: Path | None) -> DeviceOpener:
-    def opener(spec: str, clock: Clock) -> Device:
-        from masking_lab.device import factory
-
-        return factory.open_device(spec, device_config, clock)
-
-    return opener
 
 
 def _default_responder(name: str, context: SessionContext) -> Responder:
@@ -986,28 +761,6 @@ def _default_responder(name: str, context: SessionContext) -> Responder:
 
         return psychopy_window.make_responder(context)  # type: ignore[attr-defined]
     raise MaskingLabError(f"responder {name!r}: choose one of {', '.join(RESPONDERS)}")
-
-
-def observer_record(ground_truth: Path | None) -> dict[str, Any]:
-    from masking_lab.resources import shipped
-
-    if ground_truth is None:
-        text = shipped("protocols", "simulation/ground_truth.yaml").read_text(encoding="utf-8")
-        source = "protocols/simulation/ground_truth.yaml"
-    else:
-        try:
-            text = Path(ground_truth).read_text(encoding="utf-8")
-        except OSError as exc:
-            raise ProtocolError(
-                str(ground_truth), "", f"cannot read the ground truth ({exc.strerror or exc})"
-            ) from exc
-        source = str(ground_truth)
-    try:
-        truth = yaml.safe_load(text)  # JSON is YAML too
-    except yaml.YAMLError as exc:
-        raise ProtocolError(source, "", f"malformed YAML or JSON: {exc}") from exc
-    ground_truth_from_dict(truth, source)  # validate now, before the session starts
-    return {"ground_truth_path": source, "population_seed": 0, "truth": truth}
 
 
 def _rig_limits(device_config: Path | None) -> dict[str, float]:
@@ -1059,17 +812,6 @@ def _header(
     return header
 
 
-def device_record(identity: DeviceIdentity) -> dict[str, Any]:
-    return {
-        "backend": identity.backend,
-        "model": identity.model,
-        "serial_number": identity.serial_number,
-        "firmware_version": identity.firmware_version,
-        "port": identity.port,
-        "max_drive_v": {k: float(v) for k, v in identity.limits.max_drive_v.items()},
-    }
-
-
 def _settings_record(settings: StaircaseSettings) -> dict[str, Any]:
     record = dataclasses.asdict(settings)
     record["step_sizes_db"] = list(settings.step_sizes_db)
@@ -1084,24 +826,6 @@ def _settings_from_record(start_record: Mapping[str, Any], spec: SetSpec) -> Sta
     data = {k: v for k, v in data.items() if k in known}
     data["step_sizes_db"] = tuple(data.get("step_sizes_db", spec.staircase.step_sizes_db))
     return StaircaseSettings(**data)
-
-
-def check_device_spec(spec: str) -> str:
-    if not _DEVICE_SPEC.match(spec.strip()):
-        raise MaskingLabError(
-            f"--device {spec!r}: choose sim, emulator, serial:PORT (e.g. serial:/dev/ttyACM0) "
-            "or nidaq[:DEVICE]"
-        )
-    return spec.strip()
-
-
-def check_participant(participant: str) -> str:
-    if not _PARTICIPANT.match(participant or ""):
-        raise MaskingLabError(
-            f"--participant {participant!r}: use letters, digits, '_', '-' and '.' only (it "
-            "names the participant's data folder), e.g. S01"
-        )
-    return participant
 
 
 def _select_sets(protocol: Protocol, order: list[str], wanted: Sequence[str] | None) -> list[str]:
@@ -1128,27 +852,6 @@ def _stimuli_of(protocol: Protocol, order: Sequence[str]) -> set[str]:
         if spec.masker is not None:
             names.add(spec.masker.name)
     return names
-
-
-def new_log_path(data_dir: Path, experiment: str, participant: str) -> Path:
-    stamp = dt.datetime.now(dt.UTC).strftime("%Y%m%dT%H%M%SZ")
-    folder = data_dir / participant
-    base = f"{experiment}-{participant}-{stamp}"
-    path = folder / f"{base}.jsonl"
-    n = 2
-    while path.exists():  # two sessions in one second: never overwrite, number the newer one
-        path = folder / f"{base}-{n}.jsonl"
-        n += 1
-    return path
-
-
-def check_header(header: Mapping[str, Any], path: Path) -> None:
-    errors = schema_errors(dict(header), "session_log")
-    if errors:
-        raise LogError(
-            f"{path}: line 1: the header breaks the session-log schema at {key_path(errors[0])}: "
-            f"{errors[0].message}; this log cannot be resumed"
-        )
 
 
 def _protocol_from_header(
@@ -1247,66 +950,6 @@ def _bound_reason(state: Staircase, plan: SetPlan) -> str:
     return f"reached the trial cap ({sc.max_trials} trials) before {sc.n_reversals} reversals"
 
 
-def device_spec_from_header(header: Mapping[str, Any]) -> str:
-    dev = header.get("device") or {}
-    backend = str(dev.get("backend", "sim"))
-    if backend == "serial":
-        if not dev.get("port"):
-            raise LogError("the log's device has no port; pass --device serial:PORT")
-        return f"serial:{dev['port']}"
-    if backend in ("sim", "emulator"):
-        return backend
-    raise LogError(f"the log's device back-end {backend!r} cannot be reopened; pass --device")
-
-
-def header_device_config(header: Mapping[str, Any]) -> Path | None:
-    value = header.get("device_config")
-    return Path(value) if value else None
-
-
-def warn_device_change(
-    logged: Mapping[str, Any], identity: DeviceIdentity, out: ProgressLine
-) -> None:
-    now = device_record(identity)
-    changed = [
-        k
-        for k in ("backend", "model", "serial_number", "firmware_version", "max_drive_v")
-        if k in logged and logged[k] != now[k]
-    ]
-    if changed:
-        out.message(
-            "note: the device differs from the one the session started with "
-            f"({', '.join(changed)}); the resume record logs the new one"
-        )
-
-
-def fault_kind(exc: DeviceError) -> str:
-    """The fault record's ``kind`` for a device or responder error."""
-    kind = getattr(exc, "kind", None)
-    if isinstance(kind, str) and kind:
-        return kind
-    for cls in type(exc).__mro__:
-        if cls.__name__ in _FAULT_KINDS:
-            return _FAULT_KINDS[cls.__name__]
-    return "device"
-
-
-# Error classes (masking_lab.errors) → fault kinds in the log; most specific class first wins.
-_FAULT_KINDS = {
-    "SafetyLimitError": "safety_limit",
-    "DeviceTimeoutError": "timeout",
-    "DeviceDisconnectedError": "disconnected",
-    "DeviceProtocolError": "garbage",
-    "DeviceFaultError": "device_fault",
-    "ResponderError": "responder",
-}
-
-
-def drop_none(record: dict[str, Any]) -> dict[str, Any]:
-    keep_null = {"level_db_sl", "at_bound", "set_id", "trial_index"}
-    return {k: v for k, v in record.items() if v is not None or k in keep_null}
-
-
 def jsonable(value: Any) -> Any:
     """A JSON-safe copy: mappings, sequences, finite numbers, strings; others as strings."""
     if isinstance(value, Mapping):
@@ -1327,15 +970,3 @@ def _relative(path: Path, base: Path) -> str:
         return os.path.relpath(path, base)
     except ValueError:
         return str(path)
-
-
-def utc_now() -> str:
-    return dt.datetime.now(dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
-
-
-def close_quietly(device: Device, responder: Responder) -> None:
-    for close in (device.close, responder.close):
-        try:
-            close()
-        except Exception as exc:  # closing must not hide the real outcome
-            print(f"warning: while closing: {exc}", file=sys.stderr)

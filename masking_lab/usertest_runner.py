@@ -47,7 +47,6 @@ from masking_lab.clock import Clock, RealClock, VirtualClock
 from masking_lab.device.base import Device
 from masking_lab.errors import (
     CalibrationError,
-    DeviceError,
     LevelError,
     LogError,
     MaskingLabError,
@@ -67,36 +66,30 @@ from masking_lab.responders.usertest_base import (
     UserTestResponder,
     UserTrialPresentation,
 )
-
-# The threshold runner's shared pieces: same checks, clocks, records and fault handling.
-from masking_lab.runner import (
-    EXIT_COMPLETED,
-    EXIT_DEVICE_FAULT,
-    EXIT_INTERRUPTED,
-    OffsetClock,
-    SessionInterrupted,
-    SessionResult,
-    SessionSignals,
+from masking_lab.runner import SessionResult, jsonable
+from masking_lab.session_log import SessionLogWriter, read_log
+from masking_lab.session_shell import (
+    DeviceOpener,
+    SessionShell,
     check_device_spec,
     check_header,
     check_participant,
-    close_quietly,
+    close_on_failure,
+    create_log,
     default_opener,
     device_record,
     device_spec_from_header,
-    drop_none,
-    fault_kind,
-    header_device_config,
-    jsonable,
-    last_time_s,
-    new_log_path,
     observer_record,
-    seconds_since,
+    open_device_and_responder,
+    record_resume,
+    refuse_finished,
+    resume_clock,
+    resume_device_config,
+    resume_observer,
+    resume_responder_name,
     use_virtual_clock,
     utc_now,
-    warn_device_change,
 )
-from masking_lab.session_log import SessionLogWriter, read_log
 from masking_lab.solver import MissingMaskingError, MutualMasking, PairProblem
 from masking_lab.stimulus import CHANNELS, Channel, Stimulus, parse_stimulus
 from masking_lab.usertest import (
@@ -131,7 +124,6 @@ RESPONDERS = ("sim", "keys", "psychopy")
 RECORD = "usertest_trial"
 
 UserTestResponderMaker = Callable[[str, "UserTestContext"], UserTestResponder]
-DeviceOpener = Callable[[str, Clock], Device]
 
 
 # --------------------------------------------------------------------------------------------
@@ -340,15 +332,15 @@ def run_usertest(
         options.device_config,
         options.participant_tty,
     )
-    opener = open_device or default_opener(options.device_config)
-    maker = make_responder or default_responder
-    responder = maker(options.responder, context)
-    try:
-        device = opener(options.device, clock)
-    except BaseException:
-        responder.close()
-        raise
-    try:
+    device, responder = open_device_and_responder(
+        make_responder or default_responder,
+        options.responder,
+        context,
+        open_device or default_opener(options.device_config),
+        options.device,
+        clock,
+    )
+    with close_on_failure(device, responder):
         _check_watchdog(device)
         limits = stimulus_limits(
             _stimuli_of(design), calibration, rig_max, device.identity.limits.max_drive_v
@@ -377,12 +369,8 @@ def run_usertest(
             limits=limits,
             over=over,
         )
-        log_path = new_log_path(data_dir, design.experiment, participant)
-        writer = SessionLogWriter.create(log_path, {**header, "session_id": log_path.stem})
-    except BaseException:
-        close_quietly(device, responder)  # type: ignore[arg-type]
-        raise
-    out.message(f"session log: {log_path}")
+        writer = create_log(data_dir, design.experiment, participant, header)
+    out.message(f"session log: {writer.path}")
     session = _UserTestSession(
         design=design,
         objects=objects,
@@ -435,11 +423,7 @@ def resume_usertest(
     check_header(header, path)
     if header.get("kind") != KIND:
         raise LogError(f"{path}: not a user-test session log; resume it with `masking-lab resume`")
-    if log.ended:
-        raise LogError(
-            f"{path}: this session has finished (it has a session_end record); there is nothing "
-            "to resume. Start a new session with `masking-lab run`"
-        )
+    refuse_finished(log, path)
     ut = header["usertest"]
     design = _design_from_header(header, path, allow_changed_protocol, out)
     pairs = _pairs_from_header(ut, path)
@@ -450,9 +434,7 @@ def resume_usertest(
     trials = trial_list(design, seed)
     logged = [r for r in log.records if r.get("record") == RECORD]
     _check_logged(path, trials, logged, participant)
-    responder_name = responder or str(header.get("responder", "sim"))
-    if responder_name not in RESPONDERS:
-        raise MaskingLabError(f"responder {responder_name!r}: choose one of {RESPONDERS}")
+    responder_name = resume_responder_name(header, responder, RESPONDERS)
     if design.tracking == "finger" and responder_name == "keys":
         raise ProtocolError(design.path, "tracking", "finger tracking cannot be answered by keys")
     settings = ut.get("stream") or {}
@@ -460,30 +442,22 @@ def resume_usertest(
     deadband_db = float(settings.get("deadband_db", DEADBAND_DB))
     allow_clipping = bool(ut.get("allow_clipping", False))
 
-    virtual = header["clock"] == "virtual"
-    last_t = last_time_s(log)
-    clock: Clock
-    if virtual:
-        clock = VirtualClock(start=last_t)
-    else:
-        clock = OffsetClock(RealClock(), seconds_since(header["created_utc"], last_t))
-    observer = header.get("simulated_observer")
-    if responder_name == "sim" and observer is None:
-        observer = observer_record(None)
-    config_path = device_config if device_config is not None else header_device_config(header)
+    clock = resume_clock(header, log)
+    observer = resume_observer(header, responder_name)
+    config_path = resume_device_config(device_config, header)
     context = UserTestContext(
         participant, seed, clock, design, objects, observer, config_path, participant_tty
     )
     spec = check_device_spec(device or device_spec_from_header(header))
-    opener = open_device or default_opener(config_path)
-    maker = make_responder or default_responder
-    resp = maker(responder_name, context)
-    try:
-        dev = opener(spec, clock)
-    except BaseException:
-        resp.close()
-        raise
-    try:
+    dev, resp = open_device_and_responder(
+        make_responder or default_responder,
+        responder_name,
+        context,
+        open_device or default_opener(config_path),
+        spec,
+        clock,
+    )
+    with close_on_failure(dev, resp):
         _check_watchdog(dev)
         rig_max = {k: float(v) for k, v in (ut.get("rig_max_level_db_sl") or {}).items()}
         if device_config is not None:
@@ -493,40 +467,7 @@ def resume_usertest(
         )
         _refuse_or_warn(exceedances(design, objects, limits), allow_clipping, participant, out)
         writer, _ = SessionLogWriter.reopen(path)
-    except BaseException:
-        close_quietly(dev, resp)  # type: ignore[arg-type]
-        raise
-    dropped = log.truncated_tail is not None
-    if dropped:
-        out.message(
-            f"{path}: cut an incomplete last line ({len(log.truncated_tail or '')} characters, "
-            "a record being written when the session stopped); the trial it held is re-run"
-        )
-    last = log.records[-1] if log.records else None
-    if last is None or last.get("record") != "fault":
-        # Nothing in the log says why it stopped: it was killed or the machine went down.
-        writer.append(
-            drop_none(
-                {
-                    "record": "fault",
-                    "kind": "unclean_stop",
-                    "message": "the session stopped without recording why (killed, crashed or "
-                    "power lost)" + ("; an incomplete last line was cut" if dropped else ""),
-                    "set_id": None,
-                    "trial_index": len(logged),
-                }
-            )
-        )
-    writer.append(
-        {
-            "record": "resume",
-            "resumed_utc": utc_now(),
-            "software_version": __version__,
-            "dropped_partial_line": dropped,
-            "device": device_record(dev.identity),
-        }
-    )
-    warn_device_change(header.get("device", {}), dev.identity, out)
+    record_resume(writer, log, dev.identity, out, (None, len(logged)))
     out.message(f"resuming {path} at trial {len(logged) + 1} of {len(trials)}")
     session = _UserTestSession(
         design=design,
@@ -950,7 +891,7 @@ def _check_logged(
 # The session loop
 
 
-class _UserTestSession:
+class _UserTestSession(SessionShell[UserTestResult]):
     """One process's part of a user test: runs the trials not yet logged."""
 
     def __init__(
@@ -971,6 +912,8 @@ class _UserTestSession:
         out: ProgressLine,
         logged: Sequence[Mapping[str, Any]],
     ) -> None:
+        super().__init__(clock=clock, device=device, responder=responder, writer=writer, out=out)
+        self.responder: UserTestResponder = responder
         self.design = design
         self.objects = objects
         self.participant = participant
@@ -979,72 +922,16 @@ class _UserTestSession:
         self.allow_clipping = allow_clipping
         self.deadband_db = float(deadband_db)
         self.ticks_s = tick_offsets_s(design.timing.stimulus_s, update_hz)
-        self.clock = clock
-        self.device = device
-        self.responder = responder
-        self.writer = writer
-        self.out = out
         self.logged = list(logged)
         self.where: int | None = None
         self.trial_seconds: list[float] = []
-        self.signals = SessionSignals()
         self._plans: dict[tuple[tuple[str, str], str], PresentationPlan] = {}
         self.max_drive_v = dict(device.identity.limits.max_drive_v)
 
     # -- top level --------------------------------------------------------------------------
 
     def run(self) -> UserTestResult:
-        path = self.writer.path
-        try:
-            with self.signals:
-                self._run_trials()
-                self._append(
-                    {"record": "session_end", "status": "completed", "ended_utc": utc_now()}
-                )
-            self.out.clear()
-            return self._result(EXIT_COMPLETED, "")
-        except DeviceError as exc:
-            stopped = self._stop_device()
-            kind = fault_kind(exc)
-            note = (
-                "outputs zeroed"
-                if stopped
-                else "the device did not take the stop command; its watchdog zeroes the outputs"
-            )
-            self._fault(kind, f"{exc} ({note})")
-            message = (
-                f"device fault ({kind}) in user-test trial {self._where_text()}: {exc}. "
-                f"{note[0].upper() + note[1:]}. Check the device and cable, then resume with: "
-                f"masking-lab resume {path}"
-            )
-            self.out.message(message)
-            return self._result(EXIT_DEVICE_FAULT, message)
-        except KeyboardInterrupt as exc:
-            self._stop_device()
-            name = (
-                exc.args[0]
-                if isinstance(exc, SessionInterrupted)
-                else "the keyboard (Ctrl-C, or Escape in the participant window)"
-            )
-            self._fault("interrupted", f"interrupted by {name}; outputs zeroed")
-            message = (
-                f"interrupted in user-test trial {self._where_text()}; nothing logged is lost. "
-                f"Resume with: masking-lab resume {path}"
-            )
-            self.out.message(message)
-            return self._result(EXIT_INTERRUPTED, message)
-        except MaskingLabError as exc:
-            self._stop_device()
-            self._fault("error", str(exc))
-            self.out.message(f"stopped: {exc}. Fix it, then resume with: masking-lab resume {path}")
-            raise
-        except BaseException as exc:
-            self._stop_device()
-            self._fault("crash", f"{type(exc).__name__}: {exc}")
-            raise
-        finally:
-            close_quietly(self.device, self.responder)  # type: ignore[arg-type]
-            self.writer.close()
+        return self.run_guarded(self._run_trials)
 
     def _run_trials(self) -> None:
         design = self.design
@@ -1334,38 +1221,11 @@ class _UserTestSession:
 
     def _where_text(self) -> str:
         if self.where is None:
-            return "(before the first trial)"
-        return f"{self.where + 1} of {len(self.trials)}"
+            return "user-test trial (before the first trial)"
+        return f"user-test trial {self.where + 1} of {len(self.trials)}"
 
-    def _append(self, record: dict[str, Any]) -> None:
-        # SIGINT/SIGTERM wait until the record is on disk.
-        with self.signals.deferred():
-            self.writer.append(record)
-
-    def _fault(self, kind: str, message: str) -> None:
-        record = drop_none(
-            {
-                "record": "fault",
-                "kind": kind,
-                "message": message,
-                "set_id": None,
-                "trial_index": self.where,
-                "t_s": self.clock.now(),
-            }
-        )
-        try:
-            self.writer.append(record)
-        except (OSError, ValueError) as exc:  # the disk itself failed: say so, keep going down
-            import sys
-
-            print(f"could not log the fault ({exc}): {message}", file=sys.stderr)
-
-    def _stop_device(self) -> bool:
-        try:
-            self.device.stop()
-            return True
-        except Exception:  # a dead device cannot stop; its watchdog does
-            return False
+    def _position(self) -> tuple[str | None, int | None]:
+        return None, self.where
 
 
 def correct_counts(records: Sequence[Mapping[str, Any]]) -> dict[str, dict[str, int]]:
