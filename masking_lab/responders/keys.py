@@ -219,9 +219,22 @@ class KeysResponder:
 
     def _read_key(self, allowed: frozenset[str]) -> str:
         """Block until one of ``allowed`` is pressed; ignore every other key."""
+        key = self._read_key_until(allowed, None)
+        assert key is not None  # no deadline: only a key ends the wait
+        return key
+
+    def _read_key_until(self, allowed: frozenset[str], deadline: float | None) -> str | None:
+        """Wait for one of ``allowed`` until ``deadline`` (``time.monotonic`` s; None: forever).
+
+        Returns the key, or None when the deadline passes first; every other key is ignored.
+        """
         pending = b""
         while True:
-            ready, _, _ = select.select([self._in], [], [], ESCAPE_WAIT_S if pending else None)
+            left = None if deadline is None else deadline - time.monotonic()
+            if left is not None and left <= 0:
+                return None
+            wait = left if not pending else min(ESCAPE_WAIT_S, left or ESCAPE_WAIT_S)
+            ready, _, _ = select.select([self._in], [], [], wait)
             if not ready:
                 pending = b""  # a lone Esc: nothing followed it
                 continue

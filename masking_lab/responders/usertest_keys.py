@@ -10,13 +10,11 @@ response timeout in the protocol, an answer not given in time is logged as no an
 
 from __future__ import annotations
 
-import os
-import select
 import termios
 import time
 from collections.abc import Callable
 
-from masking_lab.responders.keys import ESCAPE_WAIT_S, INTERRUPT, KeysResponder, parse_keys
+from masking_lab.responders.keys import KeysResponder
 from masking_lab.responders.usertest_base import (
     FingerReader,
     StreamResult,
@@ -97,31 +95,6 @@ class UserTestKeysResponder(KeysResponder):
             return int(self._read_key(allowed))
         key = self._read_key_until(allowed, deadline)
         return None if key is None else int(key)
-
-    def _read_key_until(self, allowed: frozenset[str], deadline: float) -> str | None:
-        """Like ``_read_key`` but gives up (None) at ``deadline``."""
-        pending = b""
-        while True:
-            left = deadline - time.monotonic()
-            if left <= 0:
-                return None
-            wait = min(left, ESCAPE_WAIT_S) if pending else left
-            ready, _, _ = select.select([self._in], [], [], wait)
-            if not ready:
-                pending = b""
-                continue
-            try:
-                data = os.read(self._in, 64)
-            except OSError as exc:
-                raise self._gone(exc.strerror) from exc
-            if not data:
-                raise self._gone("end of input")
-            keys, pending = parse_keys(pending + data)
-            for key in keys:
-                if key == INTERRUPT:
-                    raise KeyboardInterrupt
-                if key in allowed:
-                    return key
 
 
 def _keys(names: tuple[str, ...]) -> str:
