@@ -337,6 +337,10 @@ class PsychoPyWindowResponder:
             "Slide your fingertip from left to right with the yellow dot in each interval.\n"
             "Then press 1, 2 or 3 for the different one."
         )
+        self._show_instructions()
+
+    def _show_instructions(self) -> None:
+        """Show the instruction text; with ``wait_for_start``, wait for space (Esc aborts)."""
         self._prompt.text = "Press the space bar to start." if self._wait_for_start else ""
         self._event.clearEvents()
         while True:

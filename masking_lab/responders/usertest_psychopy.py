@@ -23,7 +23,6 @@ from masking_lab.device.base import TrialPlan
 from masking_lab.responders.base import TrialPresentation
 from masking_lab.responders.psychopy_window import (
     ABORT_KEYS,
-    START_KEYS,
     NoiseSettings,
     PsychoPyWindowResponder,
     _PlayThread,
@@ -80,19 +79,7 @@ class UserTestWindowResponder(PsychoPyWindowResponder):
             "Then press the geometry, then the texture:\n\n"
             f"{_listing(self._geometries)}\n{_listing(self._textures)}"
         )
-        self._prompt.text = "Press the space bar to start." if self._wait_for_start else ""
-        self._event.clearEvents()
-        while True:
-            self._text.draw()
-            self._prompt.draw()
-            self._flip()
-            if not self._wait_for_start:
-                return
-            keys = self._event.getKeys(keyList=[*START_KEYS, *ABORT_KEYS])
-            if any(key in ABORT_KEYS for key in keys):
-                raise KeyboardInterrupt
-            if keys:
-                return
+        self._show_instructions()
 
     def trial(
         self,
