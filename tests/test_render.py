@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
+from params_support import masking_entry
 
 from masking_lab.cli import main
 from masking_lab.errors import SolverError
@@ -36,31 +37,10 @@ RAMPS = {
 }
 
 
-def _fn(target, masker, a, b, status="fitted"):
-    return {
-        "target": target,
-        "masker": masker,
-        "masker_frequencies_hz": [120.0],
-        "intercept_db": a,
-        "slope": b,
-        "intercept_se_db": None,
-        "slope_se": None,
-        "intercept_ci_db": None,
-        "slope_ci": None,
-        "fitted_range_db_sl": [5.0, 25.0],
-        "knee_db_sl": None,
-        "adj_r2": None,
-        "n_points": 5,
-        "pooled_pairs": [f"{target}|{masker}"],
-        "status": status,
-        "message": None,
-    }
-
-
 def write_params(path: Path, ramps=RAMPS, extra=()) -> str:
     functions = list(extra)
     for mv, ((a, b), (c, d)) in ramps.items():
-        functions += [_fn(mv, "EV270", a, b), _fn("EV270", mv, c, d)]
+        functions += [masking_entry(mv, "EV270", a, b), masking_entry("EV270", mv, c, d)]
     doc = {
         "schema_version": 1,
         "software_version": "test",
@@ -162,7 +142,7 @@ def test_missing_pair_writes_the_protocol_that_measures_just_it(tmp_path, capsys
     partial = write_params(
         tmp_path / "partial.json",
         ramps={"MV180": RAMPS["MV180"]},
-        extra=[_fn("MV120am40", "EV270", None, None, "insufficient_data")],
+        extra=[masking_entry("MV120am40", "EV270", None, None, "insufficient_data")],
     )
     out = tmp_path / "out"
     scene = str(ROOT / "protocols" / "scenes" / "hole_coarse.yaml")
@@ -200,7 +180,7 @@ def test_only_the_scene_pair_is_loaded(tmp_path, capsys):
     params = write_params(
         tmp_path / "p.json",
         ramps={"MV180": RAMPS["MV180"]},
-        extra=[_fn("MV120am40", "EV270", None, None, "insufficient_data")],
+        extra=[masking_entry("MV120am40", "EV270", None, None, "insufficient_data")],
     )
     scene = str(ROOT / "protocols" / "scenes" / "bump_rough.yaml")
     assert (

@@ -7,6 +7,7 @@ import subprocess
 import sys
 
 import pytest
+from params_support import masking_entry
 
 from masking_lab.cli import main
 from masking_lab.masking_params import write_masking_params
@@ -125,36 +126,14 @@ def _write_params(tmp_path, functions):
     return str(path)
 
 
-def _fn(target, masker, a, b, status="fitted"):
-    mv = target if target.startswith("MV") else masker
-    return {
-        "target": target,
-        "masker": masker,
-        "masker_frequencies_hz": [float(mv[2:5])],
-        "intercept_db": a,
-        "slope": b,
-        "intercept_se_db": None,
-        "slope_se": None,
-        "intercept_ci_db": None,
-        "slope_ci": None,
-        "fitted_range_db_sl": [5.0, 25.0],
-        "knee_db_sl": None,
-        "adj_r2": None,
-        "n_points": 5,
-        "pooled_pairs": [f"{target}|{masker}"],
-        "status": status,
-        "message": None,
-    }
-
-
 def test_params_file_with_named_stimuli(tmp_path, capsys):
     params = _write_params(
         tmp_path,
         [
-            _fn("MV180", "EV270", 1.39, 1.09),
-            _fn("EV270", "MV180", -6.22, 0.66),
-            _fn("MV120", "EV270", -0.387, 0.939),
-            _fn("EV270", "MV120", -7.44, 0.711),
+            masking_entry("MV180", "EV270", 1.39, 1.09),
+            masking_entry("EV270", "MV180", -6.22, 0.66),
+            masking_entry("MV120", "EV270", -0.387, 0.939),
+            masking_entry("EV270", "MV120", -7.44, 0.711),
         ],
     )
     code, out = run_json(
@@ -169,7 +148,11 @@ def test_params_file_with_named_stimuli(tmp_path, capsys):
 
 def test_params_file_with_one_mv_stimulus_needs_no_name(tmp_path, capsys):
     params = _write_params(
-        tmp_path, [_fn("MV270", "EV270", 1.48, 1.113), _fn("EV270", "MV270", -2.24, 0.602)]
+        tmp_path,
+        [
+            masking_entry("MV270", "EV270", 1.48, 1.113),
+            masking_entry("EV270", "MV270", -2.24, 0.602),
+        ],
     )
     code, out = run_json(capsys, "--params", params, "--mv-target", "6", "--ev-target", "0")
     assert code == 0 and out["mv_stimulus"] == "MV270"
@@ -222,7 +205,10 @@ def test_params_problems_exit_2(tmp_path, capsys):
     assert "software_version" in capsys.readouterr().err
     unfitted = _write_params(
         tmp_path,
-        [_fn("MV180", "EV270", None, None, "insufficient_data"), _fn("EV270", "MV180", -6, 0.6)],
+        [
+            masking_entry("MV180", "EV270", None, None, "insufficient_data"),
+            masking_entry("EV270", "MV180", -6, 0.6),
+        ],
     )
     code = main(
         ["solve", "--params", unfitted, "--mv", "MV180", "--mv-target", "1", "--ev-target", "1"]
@@ -233,7 +219,11 @@ def test_params_problems_exit_2(tmp_path, capsys):
 
 def test_no_masking_entries_are_used_and_reported(tmp_path, capsys):
     params = _write_params(
-        tmp_path, [_fn("MV180", "EV270", 1.39, 1.09), _fn("EV270", "MV180", 0.0, 0.0, "no_masking")]
+        tmp_path,
+        [
+            masking_entry("MV180", "EV270", 1.39, 1.09),
+            masking_entry("EV270", "MV180", 0.0, 0.0, "no_masking"),
+        ],
     )
     code, out = run_json(capsys, "--params", params, "--mv-target", "12", "--ev-target", "5")
     assert code == 0 and out["d"] == 0.0

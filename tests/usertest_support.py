@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 import yaml
+from params_support import masking_entry
 
 from masking_lab.masking_params import write_masking_params
 from masking_lab.resources import shipped
@@ -72,32 +73,11 @@ def write_usertest(
     return path
 
 
-def _fn(target: str, masker: str, a: float, b: float, status: str = "fitted") -> dict[str, Any]:
-    return {
-        "target": target,
-        "masker": masker,
-        "masker_frequencies_hz": [120.0],
-        "intercept_db": a,
-        "slope": b,
-        "intercept_se_db": None,
-        "slope_se": None,
-        "intercept_ci_db": None,
-        "slope_ci": None,
-        "fitted_range_db_sl": [5.0, 25.0],
-        "knee_db_sl": None,
-        "adj_r2": None,
-        "n_points": 5,
-        "pooled_pairs": [f"{target}|{masker}"],
-        "status": status,
-        "message": None,
-    }
-
-
 def write_params(path: Path, ramps: dict = RAMPS, drop: tuple[tuple[str, str], ...] = ()) -> Path:
     """A masking_params.json with both directions of every pair in ``ramps`` minus ``drop``."""
     functions = []
     for mv, ((a, b), (c, d)) in ramps.items():
-        functions += [_fn(mv, "EV270", a, b), _fn("EV270", mv, c, d)]
+        functions += [masking_entry(mv, "EV270", a, b), masking_entry("EV270", mv, c, d)]
     functions = [f for f in functions if (f["target"], f["masker"]) not in drop]
     doc = {
         "schema_version": 1,
