@@ -1,7 +1,8 @@
 """How the cost of `masking-lab analyze` grows with the number of logged sessions.
 
 Simulates a ten-participant study once (baseline, experiment I, experiment II: 30 real session
-logs written by ``masking_lab.synthetic_logs``), then builds folders of 100, 1,000 and 10,000
+logs written by ``masking_lab.simulation.synthetic_logs``), then builds folders of 100, 1,000 and
+10,000
 sessions by copying those logs under new participant ids (only the header line changes, so every
 file is a complete, realistic session of 4 or 15 staircases). Each folder is analysed once,
 in-process, with the default settings except figures (per-session track figures would dominate
@@ -27,8 +28,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from masking_lab.analysis import AnalysisSettings, run_analyze
-from masking_lab.synthetic_logs import simulate_study
+from masking_lab.analysis.batch import AnalysisSettings, run_analyze
+from masking_lab.simulation.synthetic_logs import simulate_study
 
 
 def build_folder(pool: Path, dest: Path, n_sessions: int) -> int:

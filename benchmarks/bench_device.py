@@ -27,13 +27,13 @@ from contextlib import contextmanager
 import numpy as np
 import serial
 
-from masking_lab.clock import RealClock, VirtualClock
+from masking_lab.core.clock import RealClock, VirtualClock
+from masking_lab.core.stimulus import parse_stimulus
+from masking_lab.core.trial import TrialPlan
 from masking_lab.device import protocol as proto
-from masking_lab.device.base import TrialPlan
 from masking_lab.device.config import default_device_config
-from masking_lab.device.factory import open_device
+from masking_lab.device.registry import open_device
 from masking_lab.device.serial_device import SerialDevice
-from masking_lab.stimulus import parse_stimulus
 
 PLAN = TrialPlan(
     target=parse_stimulus("EV270"),
@@ -53,7 +53,7 @@ PAPER_PLAN = TrialPlan(
 @contextmanager
 def emulator_process(*extra: str):
     proc = subprocess.Popen(
-        [sys.executable, "-m", "masking_lab.cli", "emulate", *extra],
+        [sys.executable, "-m", "masking_lab.commands.cli", "emulate", *extra],
         stdout=subprocess.PIPE,
         stderr=subprocess.DEVNULL,
         text=True,

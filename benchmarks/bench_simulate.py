@@ -5,8 +5,10 @@
 Both run the paper's staircase (experiment I settings: 1-up 3-down, steps 4,4,4,2 dB, 11
 reversals, last 8 averaged, bounds −20…45 dB SL, 150-trial cap) against the same simulated
 observers (logistic scale 1.5 dB, lapse 0.02, true thresholds 0–13 dB SL). The baseline is what
-one would write without :mod:`masking_lab.simulate`: a Python loop over sessions, each driving
-:class:`masking_lab.staircase.Staircase` trial by trial. Prints sessions per second for each
+one would write without :mod:`masking_lab.procedures.staircase_batch`: a Python loop over sessions,
+each driving
+:class:`masking_lab.procedures.staircase.Staircase` trial by trial. Prints sessions per second for
+each
 and their ratio (one run, same machine, so the ratio is what to compare across machines).
 """
 
@@ -17,9 +19,9 @@ import time
 
 import numpy as np
 
-from masking_lab.psychometric import Psychometric
-from masking_lab.simulate import Observer, simulate
-from masking_lab.staircase import StaircaseSettings, start
+from masking_lab.core.psychometric import Psychometric
+from masking_lab.procedures.staircase import StaircaseSettings, start
+from masking_lab.procedures.staircase_batch import Observer, simulate
 
 SETTINGS = StaircaseSettings(
     start_level_db=20.0,
@@ -73,8 +75,10 @@ def main() -> None:
     loop_rate = args.sessions / loop_s
     vec_rate = args.sessions / vec_s
     print(f"sessions: {args.sessions} (experiment I staircase, 11/8, steps 4,4,4,2 dB)")
-    print(f"per-session loop over masking_lab.staircase: {loop_rate:10.0f} sessions/s")
-    print(f"vectorized masking_lab.simulate:            {vec_rate:10.0f} sessions/s")
+    print(f"per-session loop over masking_lab.procedures.staircase: {loop_rate:10.0f} sessions/s")
+    print(
+        f"vectorized masking_lab.procedures.staircase_batch:            {vec_rate:10.0f} sessions/s"
+    )
     print(f"ratio vectorized / loop:                    {vec_rate / loop_rate:10.1f}×")
 
 

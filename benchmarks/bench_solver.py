@@ -3,7 +3,8 @@
     python benchmarks/bench_solver.py            # 10^3 … 10^7 points
     python benchmarks/bench_solver.py --max-exp 6 --root-points 500
 
-For each size n it times the vectorised :func:`masking_lab.solver.solve` on n random targets
+For each size n it times the vectorised :func:`masking_lab.rendering.solver.solve` on n random
+targets
 and compares it with (a) a per-point Python loop over :meth:`MutualMasking.solve_point` and
 (b) a generic root finder (``scipy.optimize.root``, hybr) on the same targets. The baselines are
 slow, so they are timed on the first ``--loop-points`` / ``--root-points`` targets and their
@@ -20,7 +21,7 @@ import time
 import numpy as np
 from scipy.optimize import root
 
-from masking_lab.solver import MutualMasking, forward, solve
+from masking_lab.rendering.solver import MutualMasking, forward, solve
 
 # Paper §3.4's pooled values: MV by EV (1.39, 1.09), EV by MV (−6.22, 0.66).
 PAIR = MutualMasking(1.39, 1.09, -6.22, 0.66, mv="MV180", ev="EV270")

@@ -2,7 +2,7 @@
 
 Run:  python benchmarks/bench_usertest.py [--participants N] [--emulator-participants N]
 
-Prints, in one run, a baseline (the pure simulated study, :func:`masking_lab.usertest
+Prints, in one run, a baseline (the pure simulated study, :func:`masking_lab.usertest.design
 .simulate_usertest`: no device, no log, no streaming) and, as ratios to it, per participant of
 the paper's 120-trial user test:
 
@@ -27,17 +27,17 @@ from pathlib import Path
 
 import yaml
 
-from masking_lab.masking_params import write_masking_params
-from masking_lab.observer import load_ground_truth, make_participant
-from masking_lab.resources import shipped
-from masking_lab.solver import MutualMasking
-from masking_lab.usertest import (
+from masking_lab.formats.masking_params import write_masking_params
+from masking_lab.formats.resources import shipped
+from masking_lab.rendering.solver import MutualMasking
+from masking_lab.simulation.observer import load_ground_truth, make_participant
+from masking_lab.usertest.design import (
     IdentificationObserver,
     load_usertest,
     render_objects,
     simulate_usertest,
 )
-from masking_lab.usertest_runner import UserTestOptions, run_usertest
+from masking_lab.usertest.runner import UserTestOptions, run_usertest
 
 STIMULI = ("EV270", "MV120am40", "MV180", "MV270")
 
@@ -150,7 +150,7 @@ def main() -> None:
         for i in range(args.emulator_participants):
             seconds, result = session(files, folder / "emu", f"E{i:02d}", "emulator", i)
             emu.append(seconds)
-            from masking_lab.session_log import read_log
+            from masking_lab.formats.session_log import read_log
 
             log = read_log(result.log_path)
             frames += [r["n_frames"] for r in log.records if r.get("record") == "usertest_trial"]

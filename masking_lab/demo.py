@@ -25,9 +25,9 @@ from typing import Any, TextIO
 
 import numpy as np
 
-from masking_lab.errors import MaskingLabError
-from masking_lab.observer import GroundTruth
-from masking_lab.resources import shipped
+from masking_lab.core.errors import MaskingLabError
+from masking_lab.formats.resources import shipped
+from masking_lab.simulation.observer import GroundTruth
 
 PROTOCOLS = ("baseline", "experiment1", "experiment2")
 SCENE = "bump_rough"
@@ -85,7 +85,7 @@ def session_seed(master: int, participant_index: int, protocol_index: int) -> in
 
 def _run_participant(out: str, device: str, master_seed: int, index: int) -> list[SessionDone]:
     """Worker: one participant's three sessions, in order. Runs in a child process."""
-    from masking_lab.runner import RunOptions, run_session
+    from masking_lab.session.runner import RunOptions, run_session
 
     participant = f"S{index:02d}"
     done: list[SessionDone] = []
@@ -144,7 +144,7 @@ def run_demo(settings: DemoSettings, stream: TextIO | None = None) -> int:
     t_collect = time.perf_counter() - t_start
 
     print("analysing the logs ...", file=err, flush=True)
-    from masking_lab.analysis import AnalysisSettings, run_analyze
+    from masking_lab.analysis.batch import AnalysisSettings, run_analyze
 
     summary = run_analyze(
         out / "data",
@@ -157,8 +157,8 @@ def run_demo(settings: DemoSettings, stream: TextIO | None = None) -> int:
     rendering_summary = _render(out)
     total = time.perf_counter() - t_start
 
-    from masking_lab.masking_params import read_masking_params
-    from masking_lab.observer import load_ground_truth
+    from masking_lab.formats.masking_params import read_masking_params
+    from masking_lab.simulation.observer import load_ground_truth
 
     params = read_masking_params(out / "analysis" / "masking_params.json")
     truth = load_ground_truth()
@@ -219,11 +219,11 @@ def _progress(err: TextIO, k: int, total: int, s: SessionDone) -> None:
 
 
 def _render(out: Path) -> dict[str, Any]:
-    from masking_lab.masking_params import read_masking_params
-    from masking_lab.render import needed_pairs, render_scene, summarize, write_rendering
-    from masking_lab.rig_limits import max_level_db_sl
-    from masking_lab.scene import load_scene
-    from masking_lab.solver import pair_from_params
+    from masking_lab.device.rig_limits import max_level_db_sl
+    from masking_lab.formats.masking_params import read_masking_params
+    from masking_lab.rendering.render import needed_pairs, render_scene, summarize, write_rendering
+    from masking_lab.rendering.scene import load_scene
+    from masking_lab.rendering.solver import pair_from_params
 
     scene = load_scene(str(shipped("protocols", f"scenes/{SCENE}.yaml")))
     params_path = out / "analysis" / "masking_params.json"
@@ -271,8 +271,8 @@ def sample_truth(
     -------
     (intercept_db, slope)
     """
-    from masking_lab.observer import make_participant
-    from masking_lab.ramp_fit import fit_ramp
+    from masking_lab.analysis.ramp_fit import fit_ramp
+    from masking_lab.simulation.observer import make_participant
 
     x = np.asarray(levels_db_sl, dtype=float)
     people = [make_participant(truth, pid, 0) for pid in participants]

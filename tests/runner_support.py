@@ -17,8 +17,8 @@ from typing import Any
 import jsonschema
 import yaml
 
-from masking_lab.resources import shipped
-from masking_lab.schemas import load_schema, schema_errors
+from masking_lab.formats.resources import shipped
+from masking_lab.formats.schemas import load_schema, schema_errors
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -155,9 +155,9 @@ def of_kind(recs: list[dict[str, Any]], kind: str) -> list[dict[str, Any]]:
 
 
 def cli(*args: str, cwd: Path | None = None, timeout: float = 60) -> subprocess.CompletedProcess:
-    """Run ``python -m masking_lab.cli ARGS`` to completion."""
+    """Run ``python -m masking_lab.commands.cli ARGS`` to completion."""
     return subprocess.run(
-        [sys.executable, "-m", "masking_lab.cli", *args],
+        [sys.executable, "-m", "masking_lab.commands.cli", *args],
         capture_output=True,
         text=True,
         timeout=timeout,
@@ -167,9 +167,9 @@ def cli(*args: str, cwd: Path | None = None, timeout: float = 60) -> subprocess.
 
 
 def cli_popen(*args: str, cwd: Path | None = None) -> subprocess.Popen:
-    """Start ``python -m masking_lab.cli ARGS`` without waiting."""
+    """Start ``python -m masking_lab.commands.cli ARGS`` without waiting."""
     return subprocess.Popen(
-        [sys.executable, "-m", "masking_lab.cli", *args],
+        [sys.executable, "-m", "masking_lab.commands.cli", *args],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,

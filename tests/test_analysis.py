@@ -14,14 +14,14 @@ import pandas as pd
 import pytest
 from scipy.stats import norm
 
-from masking_lab.analysis import AnalysisSettings, progress_printer, run_analyze
-from masking_lab.cli import main
-from masking_lab.errors import AnalysisError
-from masking_lab.masking_params import load_masking_params
-from masking_lab.observer import load_ground_truth
-from masking_lab.ramp_fit import ramp_least_squares
-from masking_lab.schemas import schema_errors
-from masking_lab.synthetic_logs import simulate_study
+from masking_lab.analysis.batch import AnalysisSettings, progress_printer, run_analyze
+from masking_lab.analysis.ramp_fit import ramp_least_squares
+from masking_lab.commands.cli import main
+from masking_lab.core.errors import AnalysisError
+from masking_lab.formats.masking_params import load_masking_params
+from masking_lab.formats.schemas import schema_errors
+from masking_lab.simulation.observer import load_ground_truth
+from masking_lab.simulation.synthetic_logs import simulate_study
 
 LEVELS = np.array([5.0, 10.0, 15.0, 20.0, 25.0])
 PROTOCOLS = Path(__file__).resolve().parents[1] / "protocols"

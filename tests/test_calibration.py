@@ -7,7 +7,8 @@ import math
 
 import pytest
 
-from masking_lab.calibration import (
+from masking_lab.core.errors import CalibrationError
+from masking_lab.formats.calibration import (
     Calibration,
     calibration_path,
     load_calibration,
@@ -17,8 +18,7 @@ from masking_lab.calibration import (
     with_al,
     write_calibration,
 )
-from masking_lab.errors import CalibrationError
-from masking_lab.schemas import schema_errors
+from masking_lab.formats.schemas import schema_errors
 
 
 def test_recording_als_merges_per_stimulus_and_validates(tmp_path):

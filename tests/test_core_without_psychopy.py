@@ -26,7 +26,7 @@ PROBE = textwrap.dedent(
     for name in names:
         if name not in optional:
             importlib.import_module(name)
-    from masking_lab.cli import main
+    from masking_lab.commands.cli import main
     try:
         main(["--help"])
     except SystemExit as exc:
@@ -48,7 +48,7 @@ def test_every_core_module_imports_with_psychopy_blocked():
     assert res.returncode == 0, res.stderr[-3000:]
     assert "imported" in res.stdout
     # --help lists every command, and every command module registers (none silently skipped)
-    from masking_lab.cli import COMMANDS, build_parser
+    from masking_lab.commands.cli import COMMANDS, build_parser
 
     assert set(build_parser()._subparsers._group_actions[0].choices) == set(COMMANDS)
     for command in COMMANDS:

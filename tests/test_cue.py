@@ -8,7 +8,10 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from masking_lab.cue import (
+from masking_lab.core.errors import ProtocolError
+from masking_lab.core.stimulus import Stimulus
+from masking_lab.core.trial import TrialPlan
+from masking_lab.responders.cue import (
     CUE_SPEED_MM_S,
     CueLayout,
     DisplayGeometry,
@@ -16,9 +19,6 @@ from masking_lab.cue import (
     finger_sample,
     should_record,
 )
-from masking_lab.device.base import TrialPlan
-from masking_lab.errors import ProtocolError
-from masking_lab.stimulus import Stimulus
 
 PAPER = TrialTiming(lead_in_s=1.2, stimulus_s=1.8, gap_s=0.6)
 LAYOUT = CueLayout(PAPER)

@@ -9,14 +9,14 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from masking_lab.cli import main
+from masking_lab.commands.cli import main
+from masking_lab.core.errors import MaskingLabError
+from masking_lab.core.masking import MaskingFunction
 from masking_lab.demo import sample_truth
-from masking_lab.errors import MaskingLabError
-from masking_lab.masking import MaskingFunction
-from masking_lab.masking_params import read_masking_params
-from masking_lab.observer import load_ground_truth
-from masking_lab.schemas import schema_errors
-from masking_lab.session_log import read_log
+from masking_lab.formats.masking_params import read_masking_params
+from masking_lab.formats.schemas import schema_errors
+from masking_lab.formats.session_log import read_log
+from masking_lab.simulation.observer import load_ground_truth
 
 
 @pytest.fixture(scope="module")

@@ -7,16 +7,16 @@ import importlib.util
 import numpy as np
 import pytest
 
-from masking_lab import waveforms
-from masking_lab.clock import RealClock, VirtualClock
-from masking_lab.device.base import TrialPlan
+from masking_lab.core import waveforms
+from masking_lab.core.clock import RealClock, VirtualClock
+from masking_lab.core.errors import DeviceError, SafetyLimitError
+from masking_lab.core.stimulus import parse_stimulus
+from masking_lab.core.trial import TrialPlan
 from masking_lab.device.config import load_device_config
-from masking_lab.device.factory import open_device
 from masking_lab.device.nidaq import build_output_buffer
+from masking_lab.device.registry import open_device
 from masking_lab.device.serial_device import SerialDevice
 from masking_lab.device.sim import SimDevice
-from masking_lab.errors import DeviceError, SafetyLimitError
-from masking_lab.stimulus import parse_stimulus
 
 EV270, MV120 = parse_stimulus("EV270"), parse_stimulus("MV120")
 HAVE_NIDAQMX = importlib.util.find_spec("nidaqmx") is not None

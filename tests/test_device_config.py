@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import pytest
 
+from masking_lab.core.errors import DeviceConfigError, ProtocolError
 from masking_lab.device.config import load_device_config
-from masking_lab.errors import DeviceConfigError, ProtocolError
-from masking_lab.rig_limits import max_level_db_sl
+from masking_lab.device.rig_limits import max_level_db_sl
 
 GOOD = """\
 schema_version: 1

@@ -15,13 +15,8 @@ import tty
 
 import pytest
 
-from masking_lab.clock import RealClock, VirtualClock
-from masking_lab.device import protocol as proto
-from masking_lab.device.base import TrialPlan
-from masking_lab.device.config import load_device_config
-from masking_lab.device.emulator import FirmwareEmulator
-from masking_lab.device.serial_device import SerialDevice
-from masking_lab.errors import (
+from masking_lab.core.clock import RealClock, VirtualClock
+from masking_lab.core.errors import (
     DeviceDisconnectedError,
     DeviceError,
     DeviceFaultError,
@@ -29,7 +24,12 @@ from masking_lab.errors import (
     DeviceTimeoutError,
     SafetyLimitError,
 )
-from masking_lab.stimulus import parse_stimulus
+from masking_lab.core.stimulus import parse_stimulus
+from masking_lab.core.trial import TrialPlan
+from masking_lab.device import protocol as proto
+from masking_lab.device.config import load_device_config
+from masking_lab.device.emulator import FirmwareEmulator
+from masking_lab.device.serial_device import SerialDevice
 
 HOST_RIG = """\
 schema_version: 1
@@ -577,10 +577,10 @@ def test_a_device_that_reboots_mid_session_is_reported(closing, rig):
 CHILD = textwrap.dedent(
     """
     import os, signal, sys, time
-    from masking_lab.clock import RealClock
+    from masking_lab.core.clock import RealClock
     from masking_lab.device.config import load_device_config
     from masking_lab.device.serial_device import SerialDevice
-    from masking_lab.stimulus import parse_stimulus
+    from masking_lab.core.stimulus import parse_stimulus
 
     port, config, how = sys.argv[1:4]
     dev = SerialDevice(port, load_device_config(config), RealClock())

@@ -375,7 +375,7 @@ def test_emulate_command_prints_its_port_serves_it_and_zeroes_on_sigterm(tmp_pat
         [
             sys.executable,
             "-m",
-            "masking_lab.cli",
+            "masking_lab.commands.cli",
             "emulate",
             "--config",
             str(cfg),
@@ -416,7 +416,7 @@ def test_emulate_command_reports_a_bad_config(tmp_path):
     cfg = tmp_path / "bad.yaml"
     cfg.write_text("schema_version: 1\nchannels: {EV: {max_drive_v: 99}}\n", encoding="utf-8")
     proc = subprocess.run(
-        [sys.executable, "-m", "masking_lab.cli", "emulate", "--config", str(cfg)],
+        [sys.executable, "-m", "masking_lab.commands.cli", "emulate", "--config", str(cfg)],
         capture_output=True,
         text=True,
         timeout=20,

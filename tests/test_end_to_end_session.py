@@ -13,8 +13,8 @@ import json
 import pytest
 from runner_support import REPO, assert_valid_log, of_kind, only_log, trials
 
-from masking_lab.cli import main
-from masking_lab.schemas import schema_errors
+from masking_lab.commands.cli import main
+from masking_lab.formats.schemas import schema_errors
 
 psychopy_data = pytest.importorskip("psychopy.data", reason="PsychoPy is in the [test] extra")
 from psychopy import logging as psychopy_logging  # noqa: E402

@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from masking_lab.errors import AnalysisError
-from masking_lab.estimators import ml_threshold, reversal_mean_al
-from masking_lab.psychometric import LEVITT_1U3D, Psychometric
-from masking_lab.staircase import StaircaseSettings, implied_target_p, start
+from masking_lab.core.errors import AnalysisError
+from masking_lab.core.psychometric import LEVITT_1U3D, Psychometric
+from masking_lab.procedures.estimators import ml_threshold, reversal_mean_al
+from masking_lab.procedures.staircase import StaircaseSettings, implied_target_p, start
 
 
 def _track(psy, rng, start_db=20.0):
@@ -104,7 +104,7 @@ def test_ml_rejects_bad_arguments():
 def test_ml_gradient_matches_finite_differences():
     from scipy.optimize import check_grad
 
-    from masking_lab.estimators import _nll_and_grad
+    from masking_lab.procedures.estimators import _nll_and_grad
 
     rng = np.random.default_rng(0)
     x = rng.uniform(0, 10, 60)

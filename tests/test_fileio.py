@@ -5,7 +5,7 @@ from __future__ import annotations
 import os
 import stat
 
-from masking_lab.fileio import write_bytes_atomic, write_text_atomic
+from masking_lab.formats.fileio import write_bytes_atomic, write_text_atomic
 
 
 def test_atomic_write_replaces_and_leaves_no_temp_files(tmp_path):

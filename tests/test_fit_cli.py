@@ -10,9 +10,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from masking_lab.cli import main
-from masking_lab.masking_params import load_masking_params
-from masking_lab.schemas import schema_errors
+from masking_lab.commands.cli import main
+from masking_lab.formats.masking_params import load_masking_params
+from masking_lab.formats.schemas import schema_errors
 
 TABLE2 = Path(__file__).resolve().parents[1] / "data_schema" / "shifts.csv"
 PAPER_POOLS = ["--pool", "EV270|MV:120+180", "--pool", "MV|EV270:180+270"]

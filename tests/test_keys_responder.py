@@ -26,11 +26,11 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from masking_lab.device.base import PlayResult, TrialPlan
-from masking_lab.errors import ResponderError
+from masking_lab.core.errors import ResponderError
+from masking_lab.core.stimulus import Stimulus
+from masking_lab.core.trial import PlayResult, TrialPlan
 from masking_lab.responders.base import SetInfo, TrialPresentation
 from masking_lab.responders.keys import INTERRUPT, KeysResponder, parse_keys
-from masking_lab.stimulus import Stimulus
 
 TIMEOUT_S = 10.0
 PROMPT = b"Press 1, 2 or 3"
@@ -295,11 +295,11 @@ def test_open_tty_reads_the_named_terminal(pty_pair):
 CHILD = textwrap.dedent(
     """
     import json, os, sys
-    from masking_lab.device.base import PlayResult, TrialPlan
-    from masking_lab.errors import ResponderError
+    from masking_lab.core.trial import PlayResult, TrialPlan
+    from masking_lab.core.errors import ResponderError
     from masking_lab.responders.base import TrialPresentation
     from masking_lab.responders.keys import KeysResponder
-    from masking_lab.stimulus import Stimulus
+    from masking_lab.core.stimulus import Stimulus
 
     plan = TrialPlan(target=Stimulus("EV", 270.0), target_amplitude_v=0.5, target_interval=1)
     pres = TrialPresentation("EV270", 0, plan, 0.0, -6.0, None, None)

@@ -9,8 +9,8 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from masking_lab import levels as L
-from masking_lab.errors import LevelError
+from masking_lab.core import levels as L
+from masking_lab.core.errors import LevelError
 
 
 def test_volts_and_db_re_1v():

@@ -7,8 +7,8 @@ import json
 
 import pytest
 
-from masking_lab.errors import AnalysisError, ProtocolError
-from masking_lab.masking_params import (
+from masking_lab.core.errors import AnalysisError, ProtocolError
+from masking_lab.formats.masking_params import (
     MaskingParamsError,
     load_masking_params,
     masking_params_json,

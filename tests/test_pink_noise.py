@@ -10,8 +10,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy import signal
 
-from masking_lab.errors import LevelError
-from masking_lab.pink_noise import (
+from masking_lab.core.errors import LevelError
+from masking_lab.responders.pink_noise import (
     PINK_SLOPE_DB_PER_OCTAVE,
     loop_buffer,
     normalize_rms,

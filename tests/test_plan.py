@@ -9,13 +9,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from masking_lab import plan as P
-from masking_lab.cli import main
-from masking_lab.errors import AnalysisError, ProtocolError, StaircaseError
-from masking_lab.observer import load_ground_truth
-from masking_lab.plan_figures import png_bytes, speed_accuracy
-from masking_lab.protocol import load_protocol
-from masking_lab.simulate import COMPLETED, TRIAL_CAP, Observer, simulate
+from masking_lab.commands.cli import main
+from masking_lab.core.errors import AnalysisError, ProtocolError, StaircaseError
+from masking_lab.formats.protocol import load_protocol
+from masking_lab.planning import plan as P
+from masking_lab.planning.figures import png_bytes, speed_accuracy
+from masking_lab.procedures.staircase_batch import COMPLETED, TRIAL_CAP, Observer, simulate
+from masking_lab.simulation.observer import load_ground_truth
 
 ROOT = Path(__file__).resolve().parents[1]
 EXP1 = ROOT / "protocols" / "experiment1.yaml"

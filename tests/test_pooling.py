@@ -4,8 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from masking_lab.errors import AnalysisError
-from masking_lab.pooling import (
+from masking_lab.analysis.pooling import (
     decide_pooling,
     explicit_pooling,
     no_pooling,
@@ -13,7 +12,8 @@ from masking_lab.pooling import (
     pool_all,
     pool_by_paired_tests,
 )
-from masking_lab.stats import PairedTest
+from masking_lab.analysis.stats import PairedTest
+from masking_lab.core.errors import AnalysisError
 
 LEVELS = ["MV120", "MV180", "MV270"]
 

@@ -9,9 +9,9 @@ from pathlib import Path
 
 import pytest
 
-from masking_lab.cli import main
-from masking_lab.errors import ProtocolError
-from masking_lab.protocol import load_protocol, parse_protocol
+from masking_lab.commands.cli import main
+from masking_lab.core.errors import ProtocolError
+from masking_lab.formats.protocol import load_protocol, parse_protocol
 
 ROOT = Path(__file__).resolve().parents[1]
 PAPER = sorted((ROOT / "protocols").glob("*.yaml"))
@@ -177,7 +177,7 @@ def test_console_script_exit_codes(tmp_path):
     bad = tmp_path / "bad.yaml"
     bad.write_text("schema_version: 1\n")
     res = subprocess.run(
-        [sys.executable, "-m", "masking_lab.cli", "validate", str(bad)],
+        [sys.executable, "-m", "masking_lab.commands.cli", "validate", str(bad)],
         capture_output=True,
         text=True,
     )

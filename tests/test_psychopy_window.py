@@ -26,11 +26,12 @@ import time
 import numpy as np
 import pytest
 
-from masking_lab.clock import RealClock
-from masking_lab.cue import CueLayout, DisplayGeometry, TrialTiming
-from masking_lab.device.base import PlayResult, TrialPlan
-from masking_lab.errors import DeviceError, ProtocolError
+from masking_lab.core.clock import RealClock
+from masking_lab.core.errors import DeviceError, ProtocolError
+from masking_lab.core.stimulus import Stimulus
+from masking_lab.core.trial import PlayResult, TrialPlan
 from masking_lab.responders.base import SetInfo, TrialPresentation
+from masking_lab.responders.cue import CueLayout, DisplayGeometry, TrialTiming
 from masking_lab.responders.psychopy_window import (
     CUE_MOVING,
     CUE_WAITING,
@@ -40,7 +41,6 @@ from masking_lab.responders.psychopy_window import (
     PsychoPyWindowResponder,
     display_geometry,
 )
-from masking_lab.stimulus import Stimulus
 
 REQUIRE = os.environ.get("MASKING_LAB_REQUIRE_DISPLAY") == "1"
 # 800 × 600 px on a 400 mm wide screen: 0.5 mm per px, so positions are easy to check by hand.
@@ -390,10 +390,10 @@ def test_full_screen_at_another_resolution_is_refused(x_display, clock):
 
 
 def test_runner_factory_opens_full_screen_from_the_rig_config(x_display, clock, tmp_path):
-    from masking_lab.protocol import load_protocol
-    from masking_lab.resources import shipped
+    from masking_lab.formats.protocol import load_protocol
+    from masking_lab.formats.resources import shipped
     from masking_lab.responders.psychopy_window import make_responder
-    from masking_lab.runner import SessionContext
+    from masking_lab.session.runner import SessionContext
 
     reference = shipped("protocols", "devices/default.yaml").read_text(encoding="utf-8")
     head = reference.split("\ndisplay:")[0]
@@ -445,9 +445,9 @@ def run_python(code: str, env: dict) -> subprocess.CompletedProcess:
 OPEN_WINDOW = """
     import sys
     {prelude}
-    from masking_lab.clock import RealClock
-    from masking_lab.cue import DisplayGeometry
-    from masking_lab.errors import ResponderError
+    from masking_lab.core.clock import RealClock
+    from masking_lab.responders.cue import DisplayGeometry
+    from masking_lab.core.errors import ResponderError
     from masking_lab.responders.psychopy_window import PsychoPyWindowResponder
     try:
         PsychoPyWindowResponder(DisplayGeometry(400.0, 800, 600), RealClock(), fullscr=False)

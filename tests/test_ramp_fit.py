@@ -8,14 +8,14 @@ import statsmodels.api as sm
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from masking_lab.errors import AnalysisError
-from masking_lab.ramp_fit import (
+from masking_lab.analysis.ramp_fit import (
     fit_ramp,
     participant_bootstrap,
     ramp_least_squares,
     ramp_least_squares_batch,
     with_bootstrap,
 )
+from masking_lab.core.errors import AnalysisError
 
 LEVELS = np.array([5.0, 10.0, 15.0, 20.0, 25.0])
 # Paper Table 2 (mean AL shifts, dB) at 5..25 dB SL.

@@ -1,4 +1,5 @@
-"""`masking-lab render` and masking_lab.render: outputs per scene, pass-through, missing pairs."""
+"""`masking-lab render` and masking_lab.rendering.render: outputs per scene, pass-through, missing
+pairs."""
 
 from __future__ import annotations
 
@@ -11,19 +12,19 @@ import pandas as pd
 import pytest
 from params_support import masking_entry
 
-from masking_lab.cli import main
-from masking_lab.errors import SolverError
-from masking_lab.masking_params import write_masking_params
-from masking_lab.protocol import load_protocol
-from masking_lab.render import (
+from masking_lab.commands.cli import main
+from masking_lab.core.errors import SolverError
+from masking_lab.formats.masking_params import write_masking_params
+from masking_lab.formats.protocol import load_protocol
+from masking_lab.rendering.render import (
     POINT_COLUMNS,
     measurement_protocol,
     render_scene,
     runs_mm,
     write_rendering,
 )
-from masking_lab.scene import GeometrySpec, PathSpec, Scene, TextureSpec, load_scene
-from masking_lab.solver import MutualMasking, PairProblem
+from masking_lab.rendering.scene import GeometrySpec, PathSpec, Scene, TextureSpec, load_scene
+from masking_lab.rendering.solver import MutualMasking, PairProblem
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENES = sorted((ROOT / "protocols" / "scenes").glob("*.yaml"))

@@ -16,9 +16,9 @@ from runner_support import (
     write_protocol,
 )
 
-from masking_lab.cli import main
-from masking_lab.errors import LogError
-from masking_lab.runner import RunOptions, resume_session, run_session
+from masking_lab.commands.cli import main
+from masking_lab.core.errors import LogError
+from masking_lab.session.runner import RunOptions, resume_session, run_session
 
 CAL = {"EV270": -14.0, "MV120": -26.0}
 

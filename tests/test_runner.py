@@ -25,10 +25,10 @@ from runner_support import (
     write_protocol,
 )
 
-from masking_lab.cli import main
-from masking_lab.errors import CalibrationError, MaskingLabError, ProtocolError
-from masking_lab.protocol import load_protocol
-from masking_lab.runner import RunOptions, SessionInterrupted, SessionSignals, run_session
+from masking_lab.commands.cli import main
+from masking_lab.core.errors import CalibrationError, MaskingLabError, ProtocolError
+from masking_lab.formats.protocol import load_protocol
+from masking_lab.session.runner import RunOptions, SessionInterrupted, SessionSignals, run_session
 
 CAL = {"EV270": -14.0, "MV120": -26.0, "MV180": -30.0, "MV270": -32.0}
 

@@ -9,7 +9,7 @@ import time
 
 import pytest
 
-from masking_lab.progress import ProgressLine, format_duration, format_progress
+from masking_lab.session.progress import ProgressLine, format_duration, format_progress
 
 
 def test_progress_line_reads_as_the_issue_shows_it():

@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import pytest
 
-from masking_lab.device.base import PlayResult, TrialPlan
-from masking_lab.errors import ProtocolError
-from masking_lab.observer import load_ground_truth, make_participant
+from masking_lab.core.errors import ProtocolError
+from masking_lab.core.stimulus import parse_stimulus
+from masking_lab.core.trial import PlayResult, TrialPlan
 from masking_lab.responders.base import SetInfo, TrialPresentation
 from masking_lab.responders.sim import SimResponder
-from masking_lab.stimulus import parse_stimulus
+from masking_lab.simulation.observer import load_ground_truth, make_participant
 
 EV = parse_stimulus("EV270")
 MV = parse_stimulus("MV120")

@@ -8,8 +8,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from masking_lab.errors import ProtocolError
-from masking_lab.scene import SHAPES, GeometrySpec, PathSpec, Scene, TextureSpec, load_scene
+from masking_lab.core.errors import ProtocolError
+from masking_lab.rendering.scene import (
+    SHAPES,
+    GeometrySpec,
+    PathSpec,
+    Scene,
+    TextureSpec,
+    load_scene,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENES = ROOT / "protocols" / "scenes"

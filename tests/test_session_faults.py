@@ -29,7 +29,7 @@ from runner_support import (
 from masking_lab.device.config import load_device_config
 from masking_lab.device.emulator import FirmwareEmulator
 from masking_lab.device.serial_device import SerialDevice
-from masking_lab.runner import RunOptions, _default_responder, resume_session, run_session
+from masking_lab.session.runner import RunOptions, _default_responder, resume_session, run_session
 
 CAL = {"EV270": -14.0, "MV120": -26.0}
 SEED = 7

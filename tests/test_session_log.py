@@ -6,8 +6,8 @@ import json
 
 import pytest
 
-from masking_lab.errors import LogError
-from masking_lab.session_log import SessionLogWriter, read_log
+from masking_lab.core.errors import LogError
+from masking_lab.formats.session_log import SessionLogWriter, read_log
 
 HEADER = {"session_id": "s1", "participant": "S01"}
 

@@ -10,20 +10,22 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from masking_lab.errors import CalibrationError, LevelError
-from masking_lab.protocol import SetSpec, Timing
-from masking_lab.session_plan import (
+from masking_lab.core.errors import CalibrationError, LevelError
+from masking_lab.core.seeding import (
     STREAM_RESPONDER,
     STREAM_TARGET_INTERVAL,
     draw_target_interval,
+    trial_rng,
+)
+from masking_lab.core.stimulus import parse_stimulus
+from masking_lab.formats.protocol import SetSpec, Timing
+from masking_lab.procedures.staircase import StaircaseSettings
+from masking_lab.session.trials import (
     estimate_time_left_s,
     nominal_seconds_per_trial,
     plan_set,
     plan_trial,
-    trial_rng,
 )
-from masking_lab.staircase import StaircaseSettings
-from masking_lab.stimulus import parse_stimulus
 
 CAL = {"EV270": -14.0, "MV120": -26.0}
 LIMITS = {"EV": 100.0, "MV": 10.0}  # 40 dB re 1 V and 20 dB re 1 V

@@ -1,4 +1,5 @@
-"""The vectorized staircase equals masking_lab.staircase track for track; observers answer as ψ."""
+"""The vectorized staircase equals masking_lab.procedures.staircase track for track; observers
+answer as ψ."""
 
 from __future__ import annotations
 
@@ -11,9 +12,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from masking_lab.errors import StaircaseError
-from masking_lab.psychometric import Psychometric
-from masking_lab.simulate import (
+from masking_lab.core.errors import StaircaseError
+from masking_lab.core.psychometric import Psychometric
+from masking_lab.procedures.staircase import StaircaseSettings, start
+from masking_lab.procedures.staircase_batch import (
     STATUSES,
     Observer,
     outcome_under,
@@ -22,7 +24,6 @@ from masking_lab.simulate import (
     simulate,
     truncate,
 )
-from masking_lab.staircase import StaircaseSettings, start
 
 settings_strategy = st.builds(
     StaircaseSettings,
@@ -49,7 +50,7 @@ responses_strategy = hnp.arrays(
 
 
 def reference(s: StaircaseSettings, answers) -> object:
-    """masking_lab.staircase fed the answers until it finishes or they run out."""
+    """masking_lab.procedures.staircase fed the answers until it finishes or they run out."""
     track = start(s)
     for r in answers:
         if track.finished:

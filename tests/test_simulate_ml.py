@@ -1,5 +1,6 @@
 """Batch maximum-likelihood thresholds: sufficient statistics, agreement with the analysis's
-scalar estimator (masking_lab.estimators) and with scipy, recovery of known thresholds."""
+scalar estimator (masking_lab.procedures.estimators) and with scipy, recovery of known
+thresholds."""
 
 from __future__ import annotations
 
@@ -13,19 +14,19 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 from scipy.optimize import minimize_scalar
 
-from masking_lab.errors import AnalysisError
-from masking_lab.ml_batch import (
+from masking_lab.core.errors import AnalysisError
+from masking_lab.core.psychometric import Psychometric
+from masking_lab.procedures.ml_batch import (
     LevelCounts,
     index_levels,
     level_counts,
     log_likelihood,
     ml_threshold_db,
 )
-from masking_lab.psychometric import Psychometric
-from masking_lab.simulate import Observer, simulate
-from masking_lab.staircase import StaircaseSettings
+from masking_lab.procedures.staircase import StaircaseSettings
+from masking_lab.procedures.staircase_batch import Observer, simulate
 
-estimators = pytest.importorskip("masking_lab.estimators")
+estimators = pytest.importorskip("masking_lab.procedures.estimators")
 
 
 def staircase_tracks(n: int, seed: int, scale_db: float = 1.5):

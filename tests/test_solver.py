@@ -8,9 +8,9 @@ from fractions import Fraction
 import numpy as np
 import pytest
 
-from masking_lab.errors import SolverError
-from masking_lab.masking import MaskingFunction
-from masking_lab.solver import (
+from masking_lab.core.errors import SolverError
+from masking_lab.core.masking import MaskingFunction
+from masking_lab.rendering.solver import (
     MissingMaskingError,
     MutualMasking,
     Reason,

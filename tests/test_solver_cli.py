@@ -9,8 +9,8 @@ import sys
 import pytest
 from params_support import masking_entry
 
-from masking_lab.cli import main
-from masking_lab.masking_params import write_masking_params
+from masking_lab.commands.cli import main
+from masking_lab.formats.masking_params import write_masking_params
 
 DIRECT = ["--mv-masked-by-ev", "1.39,1.09", "--ev-masked-by-mv=-6.22,0.66"]
 
@@ -236,7 +236,16 @@ def test_no_masking_entries_are_used_and_reported(tmp_path, capsys):
 
 def test_cli_entry_point_prints_no_traceback():
     res = subprocess.run(
-        [sys.executable, "-m", "masking_lab.cli", "solve", "--mv-target", "1", "--ev-target", "1"],
+        [
+            sys.executable,
+            "-m",
+            "masking_lab.commands.cli",
+            "solve",
+            "--mv-target",
+            "1",
+            "--ev-target",
+            "1",
+        ],
         capture_output=True,
         text=True,
         timeout=60,

@@ -7,7 +7,7 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 from scipy.optimize import brentq
 
-from masking_lab.solver import MutualMasking, Status, forward, solve
+from masking_lab.rendering.solver import MutualMasking, Status, forward, solve
 
 intercepts = st.floats(-30.0, 30.0, allow_nan=False)
 slopes = st.floats(0.0, 3.0, allow_nan=False)

@@ -9,8 +9,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from masking_lab.errors import StaircaseError
-from masking_lab.staircase import (
+from masking_lab.core.errors import StaircaseError
+from masking_lab.procedures.staircase import (
     StaircaseSettings,
     implied_target_p,
     implied_target_p_for,

@@ -15,7 +15,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from masking_lab.staircase import StaircaseSettings, start
+from masking_lab.procedures.staircase import StaircaseSettings, start
 
 psychopy_data = pytest.importorskip("psychopy.data", reason="PsychoPy is in the [test] extra")
 from psychopy import logging as psychopy_logging  # noqa: E402

@@ -10,14 +10,14 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy import stats as sps
 
-from masking_lab.errors import AnalysisError
-from masking_lab.stats import (
+from masking_lab.analysis.stats import (
     mauchly,
     one_sample_t,
     paired_comparisons,
     rm_anova,
     rm_design,
 )
+from masking_lab.core.errors import AnalysisError
 
 pg = pytest.importorskip("pingouin")
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from masking_lab.stimulus import Stimulus, is_stimulus_name, parse_stimulus
+from masking_lab.core.stimulus import Stimulus, is_stimulus_name, parse_stimulus
 
 
 @pytest.mark.parametrize("name", ["EV270", "MV120", "MV180", "MV120am40", "MV62.5"])

@@ -6,8 +6,8 @@ from pathlib import Path
 
 import pytest
 
-from masking_lab.psychometric import LEVITT_1U3D
-from masking_lab.study import (
+from masking_lab.core.psychometric import LEVITT_1U3D
+from masking_lab.planning.study import (
     StudyError,
     cheapest_matching,
     convergence_study,

@@ -6,16 +6,16 @@ import json
 
 import pytest
 
-from masking_lab.errors import AnalysisError
-from masking_lab.estimators import ml_threshold
-from masking_lab.psychometric import LEVITT_1U3D
-from masking_lab.session_log import SessionLogWriter, read_log
-from masking_lab.thresholds import (
+from masking_lab.analysis.thresholds import (
     EstimatorSettings,
     session_rows,
     shifts_long,
     thresholds_table,
 )
+from masking_lab.core.errors import AnalysisError
+from masking_lab.core.psychometric import LEVITT_1U3D
+from masking_lab.formats.session_log import SessionLogWriter, read_log
+from masking_lab.procedures.estimators import ml_threshold
 
 REVERSALS = [12.0, 4.0, 8.0, 2.0, 6.0, 4.0, 6.0, 2.0, 4.0, 2.0, 6.0]  # last 8 average 4.0
 

@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from masking_lab.cli import main
-from masking_lab.errors import AnalysisError, ProtocolError, SolverError
-from masking_lab.observer import load_ground_truth
-from masking_lab.solver import MissingMaskingError, MutualMasking
-from masking_lab.usertest import (
+from masking_lab.commands.cli import main
+from masking_lab.core.errors import AnalysisError, ProtocolError, SolverError
+from masking_lab.rendering.solver import MissingMaskingError, MutualMasking
+from masking_lab.simulation.observer import load_ground_truth
+from masking_lab.usertest.design import (
     IdentificationObserver,
     UserTestTiming,
     analyze_usertest,

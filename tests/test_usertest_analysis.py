@@ -15,10 +15,10 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from masking_lab.cli import main
-from masking_lab.errors import AnalysisError
-from masking_lab.schemas import schema_errors
-from masking_lab.usertest_analysis import collect_usertest, write_usertest_report
+from masking_lab.commands.cli import main
+from masking_lab.core.errors import AnalysisError
+from masking_lab.formats.schemas import schema_errors
+from masking_lab.usertest.report import collect_usertest, write_usertest_report
 
 GEOMETRIES = ["bump", "hole"]
 TEXTURES = ["smooth", "rough"]

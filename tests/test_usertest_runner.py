@@ -35,8 +35,8 @@ from usertest_support import (
     write_usertest,
 )
 
-from masking_lab.cli import main
-from masking_lab.errors import (
+from masking_lab.commands.cli import main
+from masking_lab.core.errors import (
     CalibrationError,
     LevelError,
     LogError,
@@ -44,29 +44,29 @@ from masking_lab.errors import (
     ProtocolError,
     SolverError,
 )
-from masking_lab.observer import load_ground_truth, make_participant
-from masking_lab.responders.usertest_base import (
+from masking_lab.formats.schemas import schema_errors
+from masking_lab.rendering.solver import MutualMasking
+from masking_lab.simulation.observer import load_ground_truth, make_participant
+from masking_lab.usertest.design import levels_at, load_usertest, render_objects, trial_list
+from masking_lab.usertest.keys_responder import UserTestKeysResponder
+from masking_lab.usertest.responder_base import (
     StreamResult,
     UserTestInfo,
     UserTrialPresentation,
 )
-from masking_lab.responders.usertest_keys import UserTestKeysResponder
-from masking_lab.responders.usertest_sim import (
-    REACH_MM,
-    UserTestSimResponder,
-    played_volts_on_path,
-    true_masking,
-)
-from masking_lab.schemas import schema_errors
-from masking_lab.solver import MutualMasking
-from masking_lab.usertest import levels_at, load_usertest, render_objects, trial_list
-from masking_lab.usertest_runner import (
+from masking_lab.usertest.runner import (
     UserTestOptions,
     baseline_protocol,
     resume_usertest,
     run_usertest,
 )
-from masking_lab.usertest_stream import (
+from masking_lab.usertest.sim_responder import (
+    REACH_MM,
+    UserTestSimResponder,
+    played_volts_on_path,
+    true_masking,
+)
+from masking_lab.usertest.stream import (
     Streamer,
     clip_db_v,
     exceedances,
@@ -521,7 +521,7 @@ def test_interrupt_then_resume_equals_an_uninterrupted_run(lab, tmp_path):
         return options(lab, data, ground_truth=lab["gt_gain"], device_config=lab["rig"])
 
     ref = run_usertest(opts(tmp_path / "ref"), stream=io.StringIO())
-    from masking_lab.usertest_runner import default_responder
+    from masking_lab.usertest.runner import default_responder
 
     class Interrupting:
         def __init__(self, inner):
@@ -615,7 +615,7 @@ def test_resume_refuses_changed_files_edited_logs_and_threshold_logs(lab, tmp_pa
     with pytest.raises(LogError, match="logged trial 1"):
         resume_usertest(done)
 
-    from masking_lab.usertest_runner import is_usertest_log
+    from masking_lab.usertest.runner import is_usertest_log
 
     assert is_usertest_log(log) and not is_usertest_log(tmp_path / "nope.jsonl")
     fake = tmp_path / "threshold.jsonl"

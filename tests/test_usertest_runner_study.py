@@ -31,14 +31,14 @@ from usertest_support import (
     write_usertest,
 )
 
+from masking_lab.core.errors import CalibrationError
 from masking_lab.device.config import load_device_config
 from masking_lab.device.emulator import FirmwareEmulator
 from masking_lab.device.serial_device import SerialDevice
-from masking_lab.errors import CalibrationError
-from masking_lab.observer import load_ground_truth, make_participant
-from masking_lab.runner import RunOptions, run_session
-from masking_lab.schemas import load_schema
-from masking_lab.usertest_runner import (
+from masking_lab.formats.schemas import load_schema
+from masking_lab.session.runner import RunOptions, run_session
+from masking_lab.simulation.observer import load_ground_truth, make_participant
+from masking_lab.usertest.runner import (
     UserTestOptions,
     default_responder,
     resume_usertest,
@@ -132,7 +132,7 @@ def test_simulated_study_logs_validate_and_use_the_emulator(study):
 
 
 def test_compensation_helps_in_the_papers_direction(study, tmp_path, capsys):
-    from masking_lab.cli import main
+    from masking_lab.commands.cli import main
 
     out = tmp_path / "report"
     assert main(["usertest-report", str(study["data"]), "--out", str(out)]) == 0
@@ -184,7 +184,7 @@ def wait_for_trials(folder: Path, n: int, proc, timeout: float = 30.0) -> Path:
 
 def cli(*args: str) -> subprocess.Popen:
     return subprocess.Popen(
-        [sys.executable, "-m", "masking_lab.cli", *args],
+        [sys.executable, "-m", "masking_lab.commands.cli", *args],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
@@ -209,7 +209,7 @@ def test_sigkill_mid_session_then_resume_loses_and_repeats_nothing(lab, referenc
     n_before = len(trials(records(log)))
     assert 5 <= n_before < 24, "the kill came after the session ended; nothing was tested"
     resumed = subprocess.run(
-        [sys.executable, "-m", "masking_lab.cli", "resume", str(log), "--no-progress"],
+        [sys.executable, "-m", "masking_lab.commands.cli", "resume", str(log), "--no-progress"],
         capture_output=True,
         text=True,
         cwd=REPO,
@@ -300,7 +300,7 @@ def test_device_fault_mid_trial_then_resume(lab, reference, tmp_path, fault, kin
 
 def test_the_report_reads_what_the_runner_wrote(study):
     """Logs → records → the pure analysis: nothing is lost between the runner and the report."""
-    from masking_lab.usertest_analysis import collect_usertest
+    from masking_lab.usertest.report import collect_usertest
 
     data = collect_usertest(study["data"])
     assert len(data.records) == 96 and len(data.sessions) == 4
@@ -312,7 +312,7 @@ def test_the_report_reads_what_the_runner_wrote(study):
 
 
 def test_default_responder_refuses_an_unknown_name(lab):
-    from masking_lab.errors import MaskingLabError
+    from masking_lab.core.errors import MaskingLabError
 
     with pytest.raises(MaskingLabError, match="mouse"):
         default_responder("mouse", None)  # type: ignore[arg-type]

@@ -21,15 +21,15 @@ import numpy as np
 import pytest
 from test_psychopy_window import DISPLAY, Script, window_id, x_display, xdotool  # noqa: F401
 
-from masking_lab.clock import RealClock, VirtualClock
-from masking_lab.errors import ProtocolError
-from masking_lab.responders.usertest_base import (
+from masking_lab.core.clock import RealClock, VirtualClock
+from masking_lab.core.errors import ProtocolError
+from masking_lab.usertest.design import UserTestTiming, UserTrial, load_usertest
+from masking_lab.usertest.responder_base import (
     StreamResult,
     UserTestInfo,
     UserTrialPresentation,
 )
-from masking_lab.responders.usertest_psychopy import answer_keys, make_responder
-from masking_lab.usertest import UserTestTiming, UserTrial, load_usertest
+from masking_lab.usertest.window_responder import answer_keys, make_responder
 
 TESTS = Path(__file__).resolve().parent
 GEOMETRIES = ("bump", "hole", "ascending", "descending")
@@ -47,7 +47,7 @@ def played() -> StreamResult:
 
 def answers_and_finger(display: str) -> dict:
     """Start, one finger-tracked trial with injected touches and keys; what was seen."""
-    from masking_lab.responders.usertest_psychopy import UserTestWindowResponder
+    from masking_lab.usertest.window_responder import UserTestWindowResponder
 
     clock = RealClock()
     window = UserTestWindowResponder(DISPLAY, clock, fullscr=False, noise=None)
@@ -107,7 +107,7 @@ def answers_and_finger(display: str) -> dict:
 
 def timeout_without_answer() -> dict:
     """A cue-tracked trial nobody answers, with a response timeout."""
-    from masking_lab.responders.usertest_psychopy import UserTestWindowResponder
+    from masking_lab.usertest.window_responder import UserTestWindowResponder
 
     clock = RealClock()
     window = UserTestWindowResponder(DISPLAY, clock, fullscr=False, noise=None)
@@ -184,7 +184,7 @@ def test_no_answer_after_the_timeout(window_results):
 
 
 def test_the_factory_refuses_a_cue_speed_the_window_does_not_draw():
-    from masking_lab.usertest_runner import UserTestContext
+    from masking_lab.usertest.runner import UserTestContext
 
     design = load_usertest(TESTS.parent / "protocols" / "usertest.yaml")
     slow = dataclasses.replace(design, cue_speed_mm_s=40.0)

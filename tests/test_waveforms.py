@@ -7,9 +7,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from masking_lab import waveforms
-from masking_lab.device.base import TrialPlan
-from masking_lab.stimulus import parse_stimulus
+from masking_lab.core import waveforms
+from masking_lab.core.stimulus import parse_stimulus
+from masking_lab.core.trial import TrialPlan
 
 FS = 20000.0
 

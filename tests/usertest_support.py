@@ -14,8 +14,8 @@ from typing import Any
 import yaml
 from params_support import masking_entry
 
-from masking_lab.masking_params import write_masking_params
-from masking_lab.resources import shipped
+from masking_lab.formats.masking_params import write_masking_params
+from masking_lab.formats.resources import shipped
 
 REPO = Path(__file__).resolve().parents[1]
 SCENES = REPO / "protocols" / "scenes"

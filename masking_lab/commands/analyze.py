@@ -10,7 +10,7 @@ from datetime import UTC, datetime
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:  # the analysis imports pandas; keep `masking-lab --help` fast
-    from masking_lab.analysis import RunSummary
+    from masking_lab.analysis.batch import RunSummary
 
 
 def add_fit_options(p: argparse.ArgumentParser) -> None:
@@ -144,8 +144,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from masking_lab.analysis import AnalysisSettings, progress_printer, run_analyze
-    from masking_lab.errors import AnalysisError
+    from masking_lab.analysis.batch import AnalysisSettings, progress_printer, run_analyze
+    from masking_lab.core.errors import AnalysisError
 
     if args.lapse == "fit":
         lapse = None

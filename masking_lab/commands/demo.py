@@ -31,8 +31,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from masking_lab.core.errors import MaskingLabError
     from masking_lab.demo import DemoSettings, default_jobs, run_demo
-    from masking_lab.errors import MaskingLabError
 
     if args.participants < 2:
         raise MaskingLabError("--participants: the statistics need at least 2 participants")

@@ -25,7 +25,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from masking_lab.analysis import AnalysisSettings, run_fit
+    from masking_lab.analysis.batch import AnalysisSettings, run_fit
 
     settings = AnalysisSettings(
         pooling=args.pooling,

@@ -14,7 +14,7 @@ import sys
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
-    from masking_lab.plan import PlanResult
+    from masking_lab.planning.plan import PlanResult
 
 
 def _positive_int(text: str) -> int:
@@ -182,14 +182,14 @@ def run(args: argparse.Namespace) -> int:
 
     import numpy as np
 
-    from masking_lab import plan as P
-    from masking_lab.errors import AnalysisError, ProtocolError
-    from masking_lab.fileio import write_bytes_atomic, write_text_atomic
-    from masking_lab.observer import load_ground_truth
-    from masking_lab.plan_figures import png_bytes, speed_accuracy
-    from masking_lab.protocol import load_protocol
-    from masking_lab.psychometric import LEVITT_1U3D
-    from masking_lab.simulate import Observer
+    from masking_lab.core.errors import AnalysisError, ProtocolError
+    from masking_lab.core.psychometric import LEVITT_1U3D
+    from masking_lab.formats.fileio import write_bytes_atomic, write_text_atomic
+    from masking_lab.formats.protocol import load_protocol
+    from masking_lab.planning import plan as P
+    from masking_lab.planning.figures import png_bytes, speed_accuracy
+    from masking_lab.procedures.staircase_batch import Observer
+    from masking_lab.simulation.observer import load_ground_truth
 
     protocol = load_protocol(args.protocol)
     if args.ground_truth is not None and not Path(args.ground_truth).is_file():

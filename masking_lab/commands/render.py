@@ -34,9 +34,10 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from masking_lab.errors import SolverError
-    from masking_lab.masking_params import read_masking_params
-    from masking_lab.render import (
+    from masking_lab.core.errors import SolverError
+    from masking_lab.device.rig_limits import max_level_db_sl
+    from masking_lab.formats.masking_params import read_masking_params
+    from masking_lab.rendering.render import (
         measurement_protocol,
         needed_pairs,
         render_scene,
@@ -44,9 +45,8 @@ def run(args: argparse.Namespace) -> int:
         write_measurement_protocol,
         write_rendering,
     )
-    from masking_lab.rig_limits import max_level_db_sl
-    from masking_lab.scene import load_scene
-    from masking_lab.solver import MissingMaskingError, PairProblem, pair_from_params
+    from masking_lab.rendering.scene import load_scene
+    from masking_lab.rendering.solver import MissingMaskingError, PairProblem, pair_from_params
 
     scene = load_scene(args.scene)
     limits = max_level_db_sl(args.device_config)

@@ -51,9 +51,9 @@ def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from masking_lab.commands.run import device_unavailable, print_result
-    from masking_lab.errors import DeviceError
-    from masking_lab.runner import resume_session
-    from masking_lab.usertest_runner import is_usertest_log
+    from masking_lab.core.errors import DeviceError
+    from masking_lab.session.runner import resume_session
+    from masking_lab.usertest.runner import is_usertest_log
 
     if is_usertest_log(args.log):
         return _resume_usertest(args)
@@ -73,12 +73,12 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _resume_usertest(args: argparse.Namespace) -> int:
-    """``resume`` of a user-test log (masking_lab.usertest_runner)."""
+    """``resume`` of a user-test log (masking_lab.usertest.runner)."""
     from pathlib import Path
 
     from masking_lab.commands.run import device_unavailable, print_usertest_result
-    from masking_lab.errors import DeviceError
-    from masking_lab.usertest_runner import resume_usertest
+    from masking_lab.core.errors import DeviceError
+    from masking_lab.usertest.runner import resume_usertest
 
     try:
         result = resume_usertest(

@@ -107,9 +107,9 @@ def print_result(result) -> int:  # type: ignore[no-untyped-def]
 def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from masking_lab.errors import DeviceError
-    from masking_lab.runner import RunOptions, run_session
-    from masking_lab.usertest_runner import is_usertest_protocol
+    from masking_lab.core.errors import DeviceError
+    from masking_lab.session.runner import RunOptions, run_session
+    from masking_lab.usertest.runner import is_usertest_protocol
 
     if is_usertest_protocol(args.protocol):
         return _run_usertest(args)
@@ -138,11 +138,11 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _run_usertest(args: argparse.Namespace) -> int:
-    """``run`` of a user-test protocol: the user-test session (masking_lab.usertest_runner)."""
+    """``run`` of a user-test protocol: the user-test session (masking_lab.usertest.runner)."""
     from pathlib import Path
 
-    from masking_lab.errors import DeviceError, MaskingLabError
-    from masking_lab.usertest_runner import UserTestOptions, run_usertest
+    from masking_lab.core.errors import DeviceError, MaskingLabError
+    from masking_lab.usertest.runner import UserTestOptions, run_usertest
 
     if args.sets:
         raise MaskingLabError("--sets: a user-test protocol has no sets; leave it out")

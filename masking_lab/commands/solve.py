@@ -65,8 +65,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from masking_lab.errors import SolverError
-    from masking_lab.solver import MutualMasking, Status, pair_from_params, solve
+    from masking_lab.core.errors import SolverError
+    from masking_lab.rendering.solver import MutualMasking, Status, pair_from_params, solve
 
     mv_t = _numbers(args.mv_target, "--mv-target")
     ev_t = _numbers(args.ev_target, "--ev-target")
@@ -87,7 +87,7 @@ def run(args: argparse.Namespace) -> int:
         c, d = _pair(args.ev_masked_by_mv, "--ev-masked-by-mv")
         mm = MutualMasking(a, b, c, d, mv=args.mv or "MV", ev=args.ev)
     elif args.params:
-        from masking_lab.masking_params import read_masking_params
+        from masking_lab.formats.masking_params import read_masking_params
 
         params = read_masking_params(args.params)
         mv = args.mv or _only_mv(params, args.ev, args.params)
@@ -99,7 +99,7 @@ def run(args: argparse.Namespace) -> int:
         )
     max_mv, max_ev = args.max_mv_db_sl, args.max_ev_db_sl
     if args.device_config:
-        from masking_lab.rig_limits import max_level_db_sl
+        from masking_lab.device.rig_limits import max_level_db_sl
 
         limits = max_level_db_sl(args.device_config)
         max_mv = limits.get("MV") if max_mv is None else max_mv
@@ -114,7 +114,7 @@ def run(args: argparse.Namespace) -> int:
 
 def as_json(mm: Any, sol: Any) -> dict[str, Any]:
     """The JSON object printed by ``--json`` (equal-length arrays, one entry per target)."""
-    from masking_lab.solver import REASON_TEXT, Reason
+    from masking_lab.rendering.solver import REASON_TEXT, Reason
 
     n = sol.status.size
     solutions = []
@@ -155,7 +155,7 @@ def as_json(mm: Any, sol: Any) -> dict[str, Any]:
 
 def as_table(mm: Any, sol: Any) -> str:
     """A plain-text table, one row per target."""
-    from masking_lab.solver import REASON_TEXT, Reason
+    from masking_lab.rendering.solver import REASON_TEXT, Reason
 
     head = (
         f"{mm.mv} masked by {mm.ev}: max(0, {mm.a_db:g} + {mm.b:g}·e_i);  "
@@ -188,7 +188,7 @@ def as_table(mm: Any, sol: Any) -> str:
 
 
 def _numbers(text: str, flag: str) -> list[float]:
-    from masking_lab.errors import SolverError
+    from masking_lab.core.errors import SolverError
 
     out = []
     for part in str(text).split(","):
@@ -203,7 +203,7 @@ def _numbers(text: str, flag: str) -> list[float]:
 
 
 def _pair(text: str, flag: str) -> tuple[float, float]:
-    from masking_lab.errors import SolverError
+    from masking_lab.core.errors import SolverError
 
     values = _numbers(text, flag)
     if len(values) != 2:
@@ -214,7 +214,7 @@ def _pair(text: str, flag: str) -> tuple[float, float]:
 
 
 def _only_mv(params: dict[str, Any], ev: str, source: str) -> str:
-    from masking_lab.errors import SolverError
+    from masking_lab.core.errors import SolverError
 
     names = sorted(
         {

@@ -25,8 +25,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from masking_lab.usertest import MEASURES
-    from masking_lab.usertest_analysis import write_usertest_report
+    from masking_lab.usertest.design import MEASURES
+    from masking_lab.usertest.report import write_usertest_report
 
     report = write_usertest_report(args.data, args.out, figure=not args.no_figure)
     data, analysis = report.data, report.analysis

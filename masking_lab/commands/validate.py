@@ -24,16 +24,16 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from masking_lab.errors import ProtocolError
-    from masking_lab.protocol import load_protocol
-    from masking_lab.rig_limits import max_level_db_sl
+    from masking_lab.core.errors import ProtocolError
+    from masking_lab.device.rig_limits import max_level_db_sl
+    from masking_lab.formats.protocol import load_protocol
 
     limits = max_level_db_sl(args.device_config)
     bad = 0
     for f in args.files:
         if _is_usertest(f):
             # User-test protocols (kind: usertest) have their own schema and loader.
-            from masking_lab.usertest import load_usertest
+            from masking_lab.usertest.design import load_usertest
 
             try:
                 design = load_usertest(f)

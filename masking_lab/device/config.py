@@ -2,7 +2,7 @@
 
 A config is a YAML file checked against ``data_schema/device_config.schema.json``; the reference
 rig is ``protocols/devices/default.yaml``. :func:`load_device_config` returns an immutable
-:class:`DeviceConfig`; every problem is a :class:`~masking_lab.errors.DeviceConfigError` naming
+:class:`DeviceConfig`; every problem is a :class:`~masking_lab.core.errors.DeviceConfigError` naming
 the file, the key path and its line.
 """
 
@@ -14,10 +14,10 @@ from pathlib import Path
 from typing import Any
 
 from masking_lab.device.base import DeviceLimits
-from masking_lab.errors import DeviceConfigError, ProtocolError
-from masking_lab.protocol import _describe, _safe_yaml, _where
-from masking_lab.resources import shipped
-from masking_lab.schemas import key_path, load_schema, schema_errors
+from masking_lab.core.errors import DeviceConfigError, ProtocolError
+from masking_lab.formats.protocol import _describe, _safe_yaml, _where
+from masking_lab.formats.resources import shipped
+from masking_lab.formats.schemas import key_path, load_schema, schema_errors
 
 DEFAULT_CONFIG = "protocols/devices/default.yaml"
 

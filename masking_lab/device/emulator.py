@@ -12,7 +12,7 @@ Two time modes:
 
 - real time: PLAY is hardware-timed: the emulator waits until each onset and reports when it
   switched the output on (real onset jitter), and renders each trial's buffers with
-  :mod:`masking_lab.waveforms` like a DAC would;
+  :mod:`masking_lab.core.waveforms` like a DAC would;
 - virtual time: PLAY completes at once and reports the planned onsets plus a small seeded
   lateness, so a simulated study runs thousands of trials through the pty in seconds.
 
@@ -34,11 +34,11 @@ from typing import Any
 
 import numpy as np
 
-from masking_lab import waveforms
+from masking_lab.core import waveforms
+from masking_lab.core.stimulus import CHANNELS, Stimulus
 from masking_lab.device import protocol as proto
 from masking_lab.device.base import TrialPlan
 from masking_lab.device.config import DeviceConfig, default_device_config
-from masking_lab.stimulus import CHANNELS, Stimulus
 
 FIRMWARE_VERSION = "emu-1.0.0"
 HARD_MAX_DRIVE_V = 10.0  # the DAC's range: no config can raise a limit above it

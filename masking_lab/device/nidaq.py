@@ -1,7 +1,7 @@
 """Optional NI-DAQmx back-end for rigs wired like the paper's (NI 9264 analog outputs).
 
 Each trial is one hardware-timed finite output task writing the two buffers built by
-:func:`masking_lab.waveforms.trial_buffers` (rows EV, MV); the buffers end on exactly 0 V, so
+:func:`masking_lab.core.waveforms.trial_buffers` (rows EV, MV); the buffers end on exactly 0 V, so
 the outputs rest at 0 V when the task ends. The task's output range is the configured limit, so
 the driver itself refuses anything beyond it. ``nidaqmx`` is imported only when this back-end is
 opened. Not supported: streamed amplitudes (use the serial firmware for rendering).
@@ -19,13 +19,14 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from masking_lab import __version__, waveforms
-from masking_lab.clock import Clock, RealClock
+from masking_lab import __version__
+from masking_lab.core import waveforms
+from masking_lab.core.clock import Clock, RealClock
 from masking_lab.device import safety
 from masking_lab.device.base import DeviceIdentity, PlayResult, TrialPlan
 from masking_lab.device.config import DeviceConfig, default_device_config
-from masking_lab.errors import DeviceError
-from masking_lab.stimulus import CHANNELS, Channel, Stimulus
+from masking_lab.core.errors import DeviceError
+from masking_lab.core.stimulus import CHANNELS, Channel, Stimulus
 
 INSTALL_HINT = (
     "the nidaq back-end needs NI's `nidaqmx` Python package and the NI-DAQmx driver: "

@@ -1,7 +1,7 @@
 """Keeping volts off skin: amplitude checks before anything is sent, and zeroing on exit.
 
 :func:`check_plan` / :func:`check_amplitude` are pure: every back-end calls them before a command
-leaves the host, so an over-limit request raises :class:`~masking_lab.errors.SafetyLimitError`
+leaves the host, so an over-limit request raises :class:`~masking_lab.core.errors.SafetyLimitError`
 and nothing is played. :func:`zero_on_exit` registers an open device so that its outputs are
 zeroed when the program exits normally, on an uncaught exception, or on SIGTERM/SIGHUP. (SIGKILL
 cannot be caught: the firmware watchdog covers it.)
@@ -19,8 +19,8 @@ import weakref
 from collections.abc import Callable
 from typing import Any, Protocol
 
+from masking_lab.core.errors import SafetyLimitError
 from masking_lab.device.base import DeviceLimits, TrialPlan
-from masking_lab.errors import SafetyLimitError
 
 log = logging.getLogger("masking_lab.device")
 

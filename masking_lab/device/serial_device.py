@@ -9,7 +9,7 @@ Every amplitude is checked on the host before it is sent (SafetyLimitError, noth
 fault becomes a DeviceError subclass whose message names the port and says what to do; on a
 fault the host sends a best-effort STOP and records the fault in :attr:`SerialDevice.fault_log`.
 Timeouts are real-time waits on the serial link; the session clock is only read (and, for a
-:class:`~masking_lab.clock.VirtualClock`, advanced to the end of each trial), never slept on.
+:class:`~masking_lab.core.clock.VirtualClock`, advanced to the end of each trial), never slept on.
 """
 
 from __future__ import annotations
@@ -24,12 +24,8 @@ from typing import Any, Literal
 
 import serial
 
-from masking_lab.clock import Clock, RealClock
-from masking_lab.device import protocol as proto
-from masking_lab.device import safety
-from masking_lab.device.base import DeviceIdentity, DeviceLimits, PlayResult, TrialPlan
-from masking_lab.device.config import DeviceConfig, default_device_config
-from masking_lab.errors import (
+from masking_lab.core.clock import Clock, RealClock
+from masking_lab.core.errors import (
     DeviceDisconnectedError,
     DeviceError,
     DeviceFaultError,
@@ -37,7 +33,11 @@ from masking_lab.errors import (
     DeviceTimeoutError,
     SafetyLimitError,
 )
-from masking_lab.stimulus import Channel, Stimulus
+from masking_lab.core.stimulus import Channel, Stimulus
+from masking_lab.device import protocol as proto
+from masking_lab.device import safety
+from masking_lab.device.base import DeviceIdentity, DeviceLimits, PlayResult, TrialPlan
+from masking_lab.device.config import DeviceConfig, default_device_config
 
 log = logging.getLogger("masking_lab.device")
 

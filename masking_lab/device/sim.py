@@ -11,12 +11,12 @@ from __future__ import annotations
 import numpy as np
 
 from masking_lab import __version__
-from masking_lab.clock import Clock, VirtualClock
+from masking_lab.core.clock import Clock, VirtualClock
+from masking_lab.core.errors import DeviceError, SafetyLimitError
+from masking_lab.core.stimulus import CHANNELS, Channel, Stimulus
 from masking_lab.device import safety
 from masking_lab.device.base import DeviceIdentity, PlayResult, TrialPlan
 from masking_lab.device.config import DeviceConfig, default_device_config
-from masking_lab.errors import DeviceError, SafetyLimitError
-from masking_lab.stimulus import CHANNELS, Channel, Stimulus
 
 
 class SimDevice:

@@ -13,8 +13,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Protocol
 
-from masking_lab.device.base import PlayResult, TrialPlan
-from masking_lab.stimulus import Stimulus
+from masking_lab.core.stimulus import Stimulus
+from masking_lab.core.trial import PlayResult, TrialPlan
 
 
 @dataclass(frozen=True)

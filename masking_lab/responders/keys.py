@@ -18,8 +18,8 @@ import termios
 import time
 from collections.abc import Callable, Iterator
 
-from masking_lab.device.base import PlayResult
-from masking_lab.errors import ResponderError
+from masking_lab.core.errors import ResponderError
+from masking_lab.core.trial import PlayResult
 from masking_lab.responders.base import Response, SetInfo, TrialPresentation
 
 INTERRUPT = "\x03"

@@ -5,7 +5,8 @@ opens, so this module imports (and fails with a clear message) without it.
 
 During a trial the device plays in a background thread (the ``play`` callable from the runner)
 while the main thread draws one frame after another: the cue's position comes from the session
-clock (``clock.now() − presentation.start_s``) through :mod:`masking_lab.cue`, so the cue sweeps
+clock (``clock.now() − presentation.start_s``) through :mod:`masking_lab.responders.cue`, so the
+cue sweeps
 lane *k* exactly while the device plays interval *k*. The pointer (a touch panel reports the
 finger as a mouse) is sampled every frame while a lane is swept and logged as
 ``[t_s, x_mm, y_mm]``. After the last interval the participant answers with 1, 2 or 3 (number row
@@ -28,9 +29,12 @@ from typing import Any, cast
 
 import numpy as np
 
-from masking_lab import pink_noise
-from masking_lab.clock import Clock
-from masking_lab.cue import (
+from masking_lab.core.clock import Clock
+from masking_lab.core.errors import ProtocolError, ResponderError
+from masking_lab.core.trial import PlayResult
+from masking_lab.responders import pink_noise
+from masking_lab.responders.base import Response, SetInfo, TrialPresentation
+from masking_lab.responders.cue import (
     CueLayout,
     CueState,
     DisplayGeometry,
@@ -39,9 +43,6 @@ from masking_lab.cue import (
     finger_sample,
     should_record,
 )
-from masking_lab.device.base import PlayResult
-from masking_lab.errors import ProtocolError, ResponderError
-from masking_lab.responders.base import Response, SetInfo, TrialPresentation
 
 log = logging.getLogger(__name__)
 
@@ -160,7 +161,7 @@ def make_responder(context: Any) -> PsychoPyWindowResponder:
 
     Parameters
     ----------
-    context : masking_lab.runner.SessionContext
+    context : masking_lab.session.runner.SessionContext
         Uses ``device_config`` (path, None for the reference rig), ``clock`` and ``seed``.
 
     Raises

@@ -1,6 +1,7 @@
 """A simulated observer that answers 3IFC trials, for dry runs and tests.
 
-The observer is a :class:`~masking_lab.observer.SimulatedParticipant` drawn from a ground-truth
+The observer is a :class:`~masking_lab.simulation.observer.SimulatedParticipant` drawn from a
+ground-truth
 file: p(correct) = ψ(target level − its masked AL) with the 3IFC guess rate and a lapse rate.
 It answers from what the device was asked to play, as a participant would: the target's drive in
 dB re 1 V and the masker's drive converted to dB SL with the participant's *true* unmasked AL of
@@ -19,12 +20,16 @@ from pathlib import Path
 
 import yaml
 
-from masking_lab.device.base import PlayResult
-from masking_lab.errors import ProtocolError
-from masking_lab.levels import volts_to_db_v
-from masking_lab.observer import SimulatedParticipant, load_ground_truth, make_participant
+from masking_lab.core.errors import ProtocolError
+from masking_lab.core.levels import volts_to_db_v
+from masking_lab.core.seeding import STREAM_RESPONDER, trial_rng
+from masking_lab.core.trial import PlayResult
 from masking_lab.responders.base import Response, SetInfo, TrialPresentation
-from masking_lab.session_plan import STREAM_RESPONDER, trial_rng
+from masking_lab.simulation.observer import (
+    SimulatedParticipant,
+    load_ground_truth,
+    make_participant,
+)
 
 # Simulated answer latency after the last interval: 0.4 s plus a gamma with mean 0.6 s.
 _RT_FLOOR_S = 0.4

@@ -1,0 +1,497 @@
+"""Repeated-measures statistics of AL shifts (paper §2.4): pure functions on arrays and tables.
+
+* :func:`rm_anova` — two-way (or one-way) repeated-measures ANOVA on a participants × A × B
+  array, with Mauchly's test of sphericity, the Greenhouse–Geisser ε and corrected p, and
+  partial η², per effect (``frequency``, ``level``, ``frequency:level``).
+* :func:`paired_comparisons` — Bonferroni-corrected paired t-tests between the levels of one
+  factor, on each participant's mean over the other factor (marginal means).
+* :func:`one_sample_t` — two-tailed one-sample t-test of shifts against 0.
+
+Every effect is computed from orthonormal contrasts: for an effect with ``d`` degrees of freedom
+and contrast matrix ``C`` (cells × d), the scores ``Z = Y·C`` give ``SS_effect = n·|mean(Z)|²``
+and ``SS_error = Σ|Z − mean(Z)|²``; the sample covariance ``S`` of ``Z`` gives
+``ε_GG = tr(S)² / (d·tr(S²))`` and Mauchly's ``W = det(S) / (tr(S)/d)^d``. The χ² approximation
+of W and its second-order correction follow R's ``car`` package (used by ``afex``), with ``k``
+the number of conditions of the whole design, so p-values match R and ``pingouin.rm_anova``.
+
+Degenerate inputs raise :class:`~masking_lab.core.errors.AnalysisError` with a message naming the
+problem (one participant, zero variance, a missing cell) instead of returning NaN.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+from numpy.typing import ArrayLike, NDArray
+from scipy import stats
+
+from masking_lab.core.errors import AnalysisError
+
+EFFECT_NAMES = ("frequency", "level", "frequency:level")
+# Relative size under which a sum of squares counts as exactly zero (floating-point noise).
+_ZERO_REL = 1e-12
+
+
+@dataclass(frozen=True)
+class Effect:
+    """One row of a repeated-measures ANOVA table.
+
+    Attributes
+    ----------
+    name : str
+        ``"frequency"``, ``"level"`` or ``"frequency:level"`` (or the names passed in).
+    F : float
+        F ratio.
+    df1, df2 : int
+        Effect and error degrees of freedom (uncorrected).
+    p : float
+        Uncorrected p-value.
+    eps_gg : float
+        Greenhouse–Geisser ε (1 for an effect with one degree of freedom).
+    p_gg : float
+        p-value with both dfs multiplied by ``eps_gg``.
+    np2 : float
+        Partial η² = SS_effect / (SS_effect + SS_error).
+    ss_effect, ss_error : float
+        Sums of squares, dB².
+    mauchly_w, mauchly_chi2, mauchly_p : float or None
+        Mauchly's test; W = 1, p = 1 for one df; None if there are too few participants
+        (n − 1 < df1) for the test to exist.
+    mauchly_df : int
+        Degrees of freedom of Mauchly's χ².
+    note : str or None
+        Why Mauchly's test is missing, if it is.
+    """
+
+    name: str
+    F: float
+    df1: int
+    df2: int
+    p: float
+    eps_gg: float
+    p_gg: float
+    np2: float
+    ss_effect: float
+    ss_error: float
+    mauchly_w: float | None
+    mauchly_chi2: float | None
+    mauchly_df: int
+    mauchly_p: float | None
+    note: str | None = None
+
+
+@dataclass(frozen=True)
+class RMDesign:
+    """A complete participants × A × B array built from a long table.
+
+    Attributes
+    ----------
+    data : ndarray, shape (n, a, b)
+        The dependent variable (e.g. AL shift in dB) per participant and cell.
+    subjects : tuple[str, ...]
+        Participants kept (each has every cell).
+    levels_a, levels_b : tuple
+        Levels of the two factors, sorted.
+    dropped : tuple[tuple[str, str], ...]
+        ``(participant, reason)`` of participants left out for missing cells.
+    """
+
+    data: NDArray[np.float64]
+    subjects: tuple[str, ...]
+    levels_a: tuple
+    levels_b: tuple
+    dropped: tuple[tuple[str, str], ...]
+
+
+@dataclass(frozen=True)
+class PairedTest:
+    """A paired t-test between two levels of a factor.
+
+    Attributes
+    ----------
+    a, b : object
+        The two levels compared (difference is a − b).
+    n : int
+        Participants.
+    mean_diff : float
+        Mean of the paired differences (dB).
+    t : float or None
+        t statistic (None when the differences have zero variance).
+    df : int
+        n − 1.
+    p : float or None
+        Two-tailed uncorrected p.
+    p_bonf : float or None
+        Bonferroni-corrected p: min(1, p × number of comparisons).
+    dz : float or None
+        Cohen's d_z = mean_diff / SD of differences.
+    note : str or None
+        Why t is missing, if it is.
+    """
+
+    a: object
+    b: object
+    n: int
+    mean_diff: float
+    t: float | None
+    df: int
+    p: float | None
+    p_bonf: float | None
+    dz: float | None
+    note: str | None = None
+
+
+@dataclass(frozen=True)
+class OneSampleT:
+    """Two-tailed one-sample t-test of values against ``popmean``.
+
+    Attributes
+    ----------
+    n : int
+        Values.
+    mean, sd, se : float or None
+        Mean, SD (ddof 1) and standard error, in the values' unit (dB); sd/se None for n < 2.
+    t : float or None
+        t statistic; None when it is undefined (n < 2 or zero variance).
+    df : int
+        n − 1.
+    p : float or None
+        Two-tailed p.
+    note : str or None
+        Why the test could not be run, if it could not.
+    """
+
+    n: int
+    mean: float
+    sd: float | None
+    se: float | None
+    t: float | None
+    df: int
+    p: float | None
+    note: str | None = None
+
+
+# --------------------------------------------------------------------------------------------
+# Building the design
+
+
+def rm_design(
+    table: pd.DataFrame, *, subject: str, factor_a: str, factor_b: str, dv: str
+) -> RMDesign:
+    """Pivot a long table to participants × A × B, dropping participants with missing cells.
+
+    Raises
+    ------
+    AnalysisError
+        If a cell has no data from any participant, a participant has two values for one cell,
+        or fewer than two participants have every cell.
+    """
+    for col in (subject, factor_a, factor_b, dv):
+        if col not in table.columns:
+            raise AnalysisError(f"the table has no column {col!r}; columns are {list(table)}")
+    t = table[[subject, factor_a, factor_b, dv]].copy()
+    if not np.isfinite(t[dv].to_numpy(dtype=float)).all():
+        raise AnalysisError(f"column {dv!r} has NaN or infinite values; drop those rows first")
+    dup = t.duplicated([subject, factor_a, factor_b], keep=False)
+    if dup.any():
+        r = t[dup].iloc[0]
+        raise AnalysisError(
+            f"participant {r[subject]} has {int(dup.sum())} values for {factor_a}={r[factor_a]}, "
+            f"{factor_b}={r[factor_b]}; keep one value per participant and cell"
+        )
+    levels_a = tuple(sorted(t[factor_a].unique()))
+    levels_b = tuple(sorted(t[factor_b].unique()))
+    counts = t.groupby([factor_a, factor_b]).size()
+    empty = [
+        f"{factor_a}={a}, {factor_b}={b}"
+        for a, b in itertools.product(levels_a, levels_b)
+        if (a, b) not in counts.index
+    ]
+    if empty:
+        raise AnalysisError(
+            f"no participant has a value for {'; '.join(empty)}: the design has a missing cell, "
+            "so the repeated-measures ANOVA cannot be run; measure that cell or leave its "
+            "factor level out"
+        )
+    wide = t.pivot(index=subject, columns=[factor_a, factor_b], values=dv)
+    wide = wide.reindex(columns=pd.MultiIndex.from_product([levels_a, levels_b]))
+    wide = wide.sort_index()
+    missing = wide.isna()
+    dropped = []
+    for subj, row in missing.iterrows():
+        if row.any():
+            cells = [f"{a}@{b}" for (a, b), m in row.items() if m]
+            dropped.append((str(subj), f"no value for {', '.join(cells)}"))
+    kept = wide[~missing.any(axis=1)]
+    if len(kept) < 2:
+        raise AnalysisError(
+            f"a repeated-measures ANOVA needs at least two participants with every cell; "
+            f"{len(kept)} of {len(wide)} have them"
+            + (f" (left out: {'; '.join(f'{s}: {r}' for s, r in dropped[:5])})" if dropped else "")
+        )
+    data = kept.to_numpy(dtype=float).reshape(len(kept), len(levels_a), len(levels_b))
+    return RMDesign(data, tuple(str(s) for s in kept.index), levels_a, levels_b, tuple(dropped))
+
+
+# --------------------------------------------------------------------------------------------
+# ANOVA
+
+
+def rm_anova(data: ArrayLike, names: Sequence[str] = EFFECT_NAMES) -> list[Effect]:
+    """Two-way repeated-measures ANOVA with sphericity tests and GG correction.
+
+    Parameters
+    ----------
+    data : array_like, shape (n, a, b)
+        Dependent variable per participant (n ≥ 2) and cell (factor A level, factor B level).
+        A factor with one level drops out (its effects are not reported), giving a one-way ANOVA.
+    names : sequence of 3 str
+        Names of the A, B and A×B effects.
+
+    Returns
+    -------
+    list[Effect]
+        A, B, A×B in that order (effects with zero df omitted).
+
+    Raises
+    ------
+    AnalysisError
+        Fewer than two participants, non-finite data, no factor with two levels, or an effect
+        whose error variance is zero (F undefined).
+    """
+    y = np.asarray(data, dtype=float)
+    if y.ndim != 3:
+        raise AnalysisError(f"expected participants × A × B data, got shape {y.shape}")
+    n, a, b = y.shape
+    if n < 2:
+        raise AnalysisError(f"a repeated-measures ANOVA needs at least two participants; got {n}")
+    if not np.isfinite(y).all():
+        raise AnalysisError("the data contain NaN or ±inf; every participant needs every cell")
+    if a < 2 and b < 2:
+        raise AnalysisError("no factor has two or more levels: there is no effect to test")
+    flat = y.reshape(n, a * b)
+    ha, hb = _orthonormal_contrasts(a), _orthonormal_contrasts(b)
+    ua, ub = np.full((a, 1), 1 / math.sqrt(a)), np.full((b, 1), 1 / math.sqrt(b))
+    designs = [
+        (names[0], np.kron(ha, ub)),
+        (names[1], np.kron(ua, hb)),
+        (names[2], np.kron(ha, hb)),
+    ]
+    scale = float(((flat - flat.mean()) ** 2).sum())
+    out = []
+    for name, contrast in designs:
+        d = contrast.shape[1]
+        if d == 0:
+            continue
+        z = flat @ contrast
+        zbar = z.mean(axis=0)
+        ss_eff = float(n * zbar @ zbar)
+        resid = z - zbar
+        ss_err = float((resid**2).sum())
+        if ss_err <= _ZERO_REL * max(scale, 1.0):
+            raise AnalysisError(
+                f"the error variance of the {name} effect is zero: every participant shows the "
+                "same pattern across its levels, so F is undefined; check for copied or "
+                "noise-free data"
+            )
+        df1, df2 = d, d * (n - 1)
+        F = (ss_eff / df1) / (ss_err / df2)
+        p = float(stats.f.sf(F, df1, df2))
+        cov = resid.T @ resid / (n - 1)
+        eps = gg_epsilon(cov)
+        p_gg = float(stats.f.sf(F, df1 * eps, df2 * eps))
+        # k = all a·b conditions in the second-order term, as car/afex in R and pingouin do.
+        w, chi2, mdf, mp, note = mauchly(cov, n - 1, a * b)
+        out.append(
+            Effect(
+                name=name,
+                F=float(F),
+                df1=int(df1),
+                df2=int(df2),
+                p=p,
+                eps_gg=float(eps),
+                p_gg=p_gg,
+                np2=ss_eff / (ss_eff + ss_err),
+                ss_effect=ss_eff,
+                ss_error=ss_err,
+                mauchly_w=w,
+                mauchly_chi2=chi2,
+                mauchly_df=mdf,
+                mauchly_p=mp,
+                note=note,
+            )
+        )
+    return out
+
+
+def gg_epsilon(cov: ArrayLike) -> float:
+    """Greenhouse–Geisser ε from the d × d covariance of orthonormal contrasts (1/d ≤ ε ≤ 1)."""
+    s = np.atleast_2d(np.asarray(cov, dtype=float))
+    d = s.shape[0]
+    if d <= 1:
+        return 1.0
+    tr = float(np.trace(s))
+    tr2 = float(np.trace(s @ s))
+    if tr2 <= 0:
+        raise AnalysisError("the contrast covariance is zero; ε is undefined (zero variance)")
+    return min(1.0, tr * tr / (d * tr2))
+
+
+def mauchly(
+    cov: ArrayLike, df_resid: int, k: int
+) -> tuple[float | None, float | None, int, float | None, str | None]:
+    """Mauchly's test of sphericity.
+
+    Parameters
+    ----------
+    cov : array_like, shape (d, d)
+        Sample covariance of the orthonormal contrast scores of one effect.
+    df_resid : int
+        Its degrees of freedom (n − 1 participants).
+    k : int
+        Number of repeated-measures conditions (used only in the second-order term; R's ``car``
+        passes every condition of the design, a one-way test passes the factor's levels).
+
+    Returns
+    -------
+    W, chi2, df, p, note
+        W = det(S)/(tr(S)/d)^d; χ² = −(df_resid − (2d² + d + 2)/(6d))·ln W on d(d+1)/2 − 1 df,
+        p with the second-order correction of Anderson (2003) as in R's ``mauchly.test``.
+        For d = 1: W = 1, p = 1. When ``df_resid < d`` the covariance is singular and the test
+        does not exist: W, χ², p are None and ``note`` says so.
+    """
+    s = np.atleast_2d(np.asarray(cov, dtype=float))
+    d = s.shape[0]
+    mdf = d * (d + 1) // 2 - 1
+    if d <= 1:
+        return 1.0, 0.0, 0, 1.0, None
+    if df_resid < d:
+        return (
+            None,
+            None,
+            mdf,
+            None,
+            f"Mauchly's test needs more participants than the effect's {d} df "
+            f"(have {df_resid + 1}); sphericity untested, use the GG-corrected p",
+        )
+    sign, logdet = np.linalg.slogdet(s)
+    tr = float(np.trace(s))
+    if sign <= 0 or tr <= 0:
+        return (
+            0.0,
+            None,
+            mdf,
+            None,
+            "the contrast covariance is singular (W = 0); sphericity cannot be tested, use the "
+            "GG-corrected p",
+        )
+    log_w = float(logdet) - d * math.log(tr / d)
+    rho = 1.0 - (2 * d * d + d + 2) / (6.0 * d * df_resid)
+    chi2 = -df_resid * rho * log_w
+    w2 = (
+        (d + 2)
+        * (d - 1)
+        * (d - 2)
+        * (2 * d**3 + 6 * d * d + 3 * k + 2)
+        / (288.0 * (df_resid * d * rho) ** 2)
+    )
+    p1 = float(stats.chi2.sf(chi2, mdf))
+    p2 = float(stats.chi2.sf(chi2, mdf + 4))
+    p = min(1.0, max(0.0, p1 + w2 * (p2 - p1)))
+    return math.exp(log_w), float(chi2), mdf, p, None
+
+
+def _orthonormal_contrasts(k: int) -> NDArray[np.float64]:
+    """k × (k − 1) orthonormal contrasts (normalised Helmert), orthogonal to the unit vector."""
+    if k < 2:
+        return np.zeros((k, 0))
+    h = np.zeros((k, k - 1))
+    for j in range(1, k):
+        h[:j, j - 1] = 1.0
+        h[j, j - 1] = -float(j)
+        h[:, j - 1] /= math.sqrt(j * (j + 1))
+    return h
+
+
+# --------------------------------------------------------------------------------------------
+# t-tests
+
+
+def paired_comparisons(marginal: ArrayLike, labels: Sequence[object]) -> list[PairedTest]:
+    """Bonferroni-corrected paired t-tests between every pair of levels.
+
+    Parameters
+    ----------
+    marginal : array_like, shape (n, k)
+        Each participant's mean (dB) at each of the k levels (averaged over the other factor).
+    labels : sequence
+        The k level labels, in column order.
+
+    Returns
+    -------
+    list[PairedTest]
+        One per pair (i < j in column order); p_bonf = min(1, p × k(k−1)/2).
+
+    Raises
+    ------
+    AnalysisError
+        With fewer than two participants or two levels.
+    """
+    m = np.asarray(marginal, dtype=float)
+    if m.ndim != 2 or m.shape[1] != len(labels):
+        raise AnalysisError("marginal must be participants × levels, one column per label")
+    n, k = m.shape
+    if n < 2:
+        raise AnalysisError(f"paired comparisons need at least two participants; got {n}")
+    if k < 2:
+        raise AnalysisError("paired comparisons need at least two levels to compare")
+    n_tests = k * (k - 1) // 2
+    out = []
+    for i, j in itertools.combinations(range(k), 2):
+        diff = m[:, i] - m[:, j]
+        res = one_sample_t(diff)
+        p_bonf = None if res.p is None else min(1.0, res.p * n_tests)
+        dz = None if not res.sd else res.mean / res.sd
+        note = None if res.note is None else f"differences {labels[i]} − {labels[j]}: {res.note}"
+        out.append(
+            PairedTest(labels[i], labels[j], n, res.mean, res.t, res.df, res.p, p_bonf, dz, note)
+        )
+    return out
+
+
+def one_sample_t(values: ArrayLike, popmean: float = 0.0) -> OneSampleT:
+    """Two-tailed one-sample t-test of ``values`` (dB) against ``popmean`` (dB).
+
+    Undefined cases (fewer than two values, zero variance) return a result with ``t`` and ``p``
+    None and a ``note``; they never raise or return NaN.
+    """
+    v = np.asarray(values, dtype=float).ravel()
+    if not np.isfinite(v).all():
+        raise AnalysisError("one-sample t-test: values contain NaN or ±inf")
+    n = v.size
+    if n == 0:
+        raise AnalysisError("one-sample t-test: no values")
+    mean = float(v.mean())
+    if n < 2:
+        return OneSampleT(n, mean, None, None, None, 0, None, "one value only: no test")
+    sd = float(v.std(ddof=1))
+    se = sd / math.sqrt(n)
+    if sd <= 1e-12 * max(1.0, abs(mean)):
+        return OneSampleT(
+            n,
+            mean,
+            0.0,
+            0.0,
+            None,
+            n - 1,
+            None,
+            f"all {n} values equal ({mean:.4g}): zero variance, t undefined",
+        )
+    t = (mean - popmean) / se
+    p = float(2.0 * stats.t.sf(abs(t), n - 1))
+    return OneSampleT(n, mean, sd, se, float(t), n - 1, p)

@@ -1,0 +1,62 @@
+"""The ``masking-lab`` command line.
+
+Each sub-command lives in ``masking_lab/commands/<name>.py`` and exposes
+``register(subparsers)``; heavy imports happen inside the command's handler so that
+``masking-lab --help`` stays fast and works without optional extras.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+from masking_lab import __version__
+from masking_lab.core.errors import MaskingLabError
+
+# Order is the order shown by --help.
+COMMANDS = (
+    "validate",
+    "run",
+    "resume",
+    "emulate",
+    "analyze",
+    "fit",
+    "usertest-report",
+    "solve",
+    "render",
+    "plan",
+    "demo",
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="masking-lab",
+        description="Tactile masking psychophysics after Ryu et al. (2020): run 3IFC threshold "
+        "sessions, analyse them, fit masking functions and render masking-compensated scenes.",
+    )
+    parser.add_argument("--version", action="version", version=f"masking-lab {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for name in COMMANDS:
+        # A command with a hyphen lives in a module with an underscore (usertest-report).
+        module = importlib.import_module(f"masking_lab.commands.{name.replace('-', '_')}")
+        module.register(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.handler(args) or 0)
+    except MaskingLabError as exc:
+        print(f"masking-lab {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"masking-lab {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

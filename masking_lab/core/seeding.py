@@ -1,0 +1,49 @@
+"""Per-trial random streams: the same (session seed, set, trial, stream), the same draws.
+
+A resumed session must draw exactly what an uninterrupted one would, so every random choice of
+a trial comes from its own generator keyed by stable hashes, never from a shared or global one.
+"""
+
+from __future__ import annotations
+
+import hashlib
+
+import numpy as np
+
+__all__ = ["STREAM_RESPONDER", "STREAM_TARGET_INTERVAL", "draw_target_interval", "trial_rng"]
+
+# Streams of per-trial randomness; each has its own generator so that adding one never shifts
+# another (a resumed session must draw the same target intervals and simulated answers).
+STREAM_TARGET_INTERVAL = "target_interval"
+STREAM_RESPONDER = "responder"
+
+
+def trial_rng(seed: int, set_id: str, trial_index: int, stream: str) -> np.random.Generator:
+    """A generator for one (session seed, set, trial, stream): the same inputs, the same draws.
+
+    Parameters
+    ----------
+    seed : int
+        The session seed (≥ 0, logged in the header).
+    set_id : str
+        Set identifier.
+    trial_index : int
+        0-based trial index within the set.
+    stream : str
+        What the draws are for (``STREAM_TARGET_INTERVAL``, ``STREAM_RESPONDER``).
+    """
+    if seed < 0 or trial_index < 0:
+        raise ValueError(f"seed and trial_index must be ≥ 0, got {seed}, {trial_index}")
+    key = [int(seed), _stable_key(set_id), int(trial_index), _stable_key(stream)]
+    return np.random.default_rng(np.random.SeedSequence(key))
+
+
+def draw_target_interval(seed: int, set_id: str, trial_index: int, n_intervals: int = 3) -> int:
+    """The interval (1 … ``n_intervals``) that carries the target in this trial."""
+    rng = trial_rng(seed, set_id, trial_index, STREAM_TARGET_INTERVAL)
+    return int(rng.integers(1, n_intervals + 1))
+
+
+def _stable_key(text: str) -> int:
+    # Python's hash() is salted per process; a resumed session needs the same number.
+    return int.from_bytes(hashlib.sha256(text.encode("utf-8")).digest()[:8], "little")

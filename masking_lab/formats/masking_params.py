@@ -1,0 +1,244 @@
+"""``masking_params.json``: the exported masking functions (schema ``data_schema/
+masking_params.schema.json``).
+
+Other tools read it with :func:`load_masking_params`, which validates the file and returns one
+:class:`MaskingParamsEntry` per ``(target, masker)`` stimulus pair. Writing is deterministic
+(fixed key order, floats rounded to 9 significant digits, ``\\n`` line ends) and atomic
+(temp file, fsync, rename).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from masking_lab.core.errors import AnalysisError, ProtocolError
+from masking_lab.core.masking import MaskingFunction
+from masking_lab.formats.fileio import write_text_atomic
+from masking_lab.formats.schemas import key_path, schema_errors
+
+SCHEMA = "masking_params"
+
+
+class MaskingParamsError(ProtocolError):
+    """A masking_params.json file is unreadable or does not follow its schema."""
+
+
+@dataclass(frozen=True)
+class MaskingParamsEntry:
+    """One exported masking function (fields as in the schema).
+
+    Attributes
+    ----------
+    target, masker : str
+        Stimulus names: the masked stimulus and the masker.
+    status : {"fitted", "no_masking", "insufficient_data"}
+        Only ``"fitted"`` and ``"no_masking"`` carry a usable ramp.
+    intercept_db : float or None
+        Ramp intercept a, dB.
+    slope : float or None
+        Ramp slope b, dB of shift per dB SL of masker.
+    intercept_se_db, slope_se : float or None
+        Standard errors.
+    intercept_ci_db, slope_ci : tuple or None
+        Confidence intervals.
+    fitted_range_db_sl : tuple[float, float]
+        Masker levels fitted, dB SL; outside it the ramp is an extrapolation.
+    knee_db_sl : float or None
+        −a/b, dB SL.
+    adj_r2 : float or None
+        Adjusted R² of the fit.
+    n_points : int
+        Points fitted (cell means).
+    masker_frequencies_hz : tuple[float, ...]
+        MV carrier frequencies of the pooled pairs.
+    pooled_pairs : tuple[str, ...]
+        ``"target|masker"`` of every pair sharing these parameters.
+    message : str or None
+        Caveat or reason for the status.
+    extra : dict
+        Optional keys (experiment, uncertainty, ci_level, n_participants).
+    """
+
+    target: str
+    masker: str
+    status: str
+    intercept_db: float | None
+    slope: float | None
+    intercept_se_db: float | None
+    slope_se: float | None
+    intercept_ci_db: tuple[float, float] | None
+    slope_ci: tuple[float, float] | None
+    fitted_range_db_sl: tuple[float, float]
+    knee_db_sl: float | None
+    adj_r2: float | None
+    n_points: int
+    masker_frequencies_hz: tuple[float, ...]
+    pooled_pairs: tuple[str, ...]
+    message: str | None
+    extra: dict[str, Any]
+
+    @property
+    def usable(self) -> bool:
+        """True if the entry carries a ramp (fitted, or no masking over the fitted range)."""
+        return self.status in ("fitted", "no_masking")
+
+    def masking_function(self) -> MaskingFunction:
+        """The ramp as a :class:`~masking_lab.core.masking.MaskingFunction`.
+
+        Raises
+        ------
+        AnalysisError
+            If the entry has no parameters (``insufficient_data``).
+        """
+        if not self.usable or self.intercept_db is None or self.slope is None:
+            raise AnalysisError(
+                f"{self.target} masked by {self.masker} has no fitted ramp (status "
+                f"{self.status}: {self.message}); measure more masker levels and fit again"
+            )
+        return MaskingFunction(self.target, self.masker, self.intercept_db, self.slope)
+
+
+def validate_masking_params(doc: Any, source: str = "masking_params.json") -> None:
+    """Check a parsed document against the schema and the one-entry-per-pair rule.
+
+    Raises
+    ------
+    MaskingParamsError
+        Naming the key path of the first problem.
+    """
+    errors = schema_errors(doc, SCHEMA)
+    if errors:
+        err = errors[0]
+        more = f" (and {len(errors) - 1} more problems)" if len(errors) > 1 else ""
+        raise MaskingParamsError(
+            source,
+            key_path(err),
+            f"{err.message}{more}; regenerate the file with `masking-lab analyze` or "
+            "`masking-lab fit`",
+        )
+    seen: dict[tuple[str, str], int] = {}
+    for i, f in enumerate(doc["functions"]):
+        key = (f["target"], f["masker"])
+        if key in seen:
+            raise MaskingParamsError(
+                source,
+                f"functions[{i}]",
+                f"{key[0]} masked by {key[1]} appears twice (also functions[{seen[key]}]); "
+                "keep one entry per (target, masker) pair",
+            )
+        seen[key] = i
+        pair = f"{key[0]}|{key[1]}"
+        if pair not in f["pooled_pairs"]:
+            raise MaskingParamsError(
+                source, f"functions[{i}].pooled_pairs", f"must list the entry's own pair {pair}"
+            )
+
+
+def masking_params_json(doc: dict[str, Any]) -> str:
+    """Deterministic JSON text of a document (validated first)."""
+    validate_masking_params(doc, "<document to write>")
+    return json.dumps(_rounded(doc), indent=2, ensure_ascii=False, allow_nan=False) + "\n"
+
+
+def write_masking_params(path: str | Path, doc: dict[str, Any]) -> Path:
+    """Validate and write ``doc`` atomically (temp file, fsync, rename)."""
+    return write_text_atomic(path, masking_params_json(doc))
+
+
+def read_masking_params(path: str | Path) -> dict[str, Any]:
+    """Read and validate a masking_params.json file.
+
+    Raises
+    ------
+    MaskingParamsError
+        If the file cannot be read, is not JSON, or breaks the schema.
+    """
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise MaskingParamsError(
+            str(p), "", f"cannot read the file ({exc.strerror or exc})"
+        ) from exc
+    try:
+        doc = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise MaskingParamsError(
+            str(p), f"line {exc.lineno}", f"not valid JSON ({exc.msg}); is the file truncated?"
+        ) from exc
+    validate_masking_params(doc, str(p))
+    return doc
+
+
+def load_masking_params(path: str | Path) -> dict[tuple[str, str], MaskingParamsEntry]:
+    """Entries of a masking_params.json keyed by ``(target, masker)``.
+
+    Raises
+    ------
+    MaskingParamsError
+        If the file is unreadable or invalid (see :func:`read_masking_params`).
+    """
+    doc = read_masking_params(path)
+    out: dict[tuple[str, str], MaskingParamsEntry] = {}
+    required = {
+        "target",
+        "masker",
+        "status",
+        "intercept_db",
+        "slope",
+        "intercept_se_db",
+        "slope_se",
+        "intercept_ci_db",
+        "slope_ci",
+        "fitted_range_db_sl",
+        "knee_db_sl",
+        "adj_r2",
+        "n_points",
+        "masker_frequencies_hz",
+        "pooled_pairs",
+        "message",
+    }
+    for f in doc["functions"]:
+        entry = MaskingParamsEntry(
+            target=f["target"],
+            masker=f["masker"],
+            status=f["status"],
+            intercept_db=f["intercept_db"],
+            slope=f["slope"],
+            intercept_se_db=f["intercept_se_db"],
+            slope_se=f["slope_se"],
+            intercept_ci_db=_pair(f["intercept_ci_db"]),
+            slope_ci=_pair(f["slope_ci"]),
+            fitted_range_db_sl=_pair(f["fitted_range_db_sl"]),  # type: ignore[arg-type]
+            knee_db_sl=f["knee_db_sl"],
+            adj_r2=f["adj_r2"],
+            n_points=int(f["n_points"]),
+            masker_frequencies_hz=tuple(float(v) for v in f["masker_frequencies_hz"]),
+            pooled_pairs=tuple(f["pooled_pairs"]),
+            message=f["message"],
+            extra={k: v for k, v in f.items() if k not in required},
+        )
+        out[(entry.target, entry.masker)] = entry
+    return out
+
+
+def _pair(v: Any) -> tuple[float, float] | None:
+    return None if v is None else (float(v[0]), float(v[1]))
+
+
+def _rounded(obj: Any) -> Any:
+    """Floats to 9 significant digits: stable bytes across platforms' last-bit differences."""
+    if isinstance(obj, float):
+        if not math.isfinite(obj):
+            raise AnalysisError(f"refusing to export the non-finite number {obj!r}")
+        r = float(f"{obj:.9g}")
+        return 0.0 if r == 0 else r
+    if isinstance(obj, dict):
+        return {k: _rounded(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_rounded(v) for v in obj]
+    return obj

@@ -1,0 +1,430 @@
+"""Threshold-session protocols: YAML files checked against ``data_schema/protocol.schema.json``.
+
+:func:`load_protocol` reads a file safely (no object construction), validates it against the
+schema and against rules the schema cannot express (duplicate keys or sets, stimulus names, more
+reversals averaged than run, masker levels above the rig's limits), and returns an immutable
+:class:`Protocol`. Every problem is a :class:`~masking_lab.core.errors.ProtocolError` naming the
+file,
+the key path and the YAML line, and saying what to do.
+"""
+
+from __future__ import annotations
+
+import difflib
+import hashlib
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import yaml
+
+from masking_lab.core.errors import ProtocolError, StaircaseError
+from masking_lab.core.stimulus import Stimulus, parse_stimulus
+from masking_lab.formats.schemas import key_path, load_schema, schema_errors
+from masking_lab.procedures.staircase import StaircaseSettings
+
+Kind = Literal["baseline", "masked"]
+
+
+@dataclass(frozen=True)
+class Timing:
+    """Trial timing, all in s (paper: 1.8 s intervals)."""
+
+    stimulus_s: float = 1.8
+    gap_s: float = 0.6
+    lead_in_s: float = 1.2
+    inter_trial_s: float = 0.5
+    response_timeout_s: float | None = None
+    rest_between_sets_s: float = 0.0
+
+    @property
+    def trial_s(self) -> float:
+        """Duration of the three presentations with their lead-in and gaps, s."""
+        return self.lead_in_s + 3 * self.stimulus_s + 2 * self.gap_s
+
+
+@dataclass(frozen=True)
+class SetSpec:
+    """One set: a staircase for ``target`` with ``masker`` at ``masker_level_db_sl``.
+
+    Attributes
+    ----------
+    id : str
+        Unique within the protocol.
+    target : Stimulus
+        Stimulus whose AL is measured.
+    masker : Stimulus or None
+        Masker played in all three intervals (None in baseline sets).
+    masker_level_db_sl : float or None
+        Masker level in dB SL of the masker (None in baseline sets).
+    staircase : StaircaseSettings
+        The staircase for this set (start level in the protocol's level unit).
+    """
+
+    id: str
+    target: Stimulus
+    masker: Stimulus | None
+    masker_level_db_sl: float | None
+    staircase: StaircaseSettings
+
+
+@dataclass(frozen=True)
+class Protocol:
+    """A validated protocol.
+
+    Attributes
+    ----------
+    path : str
+        File it came from.
+    sha256 : str
+        Hash of the file's bytes (logged with every session).
+    experiment : str
+        Experiment id.
+    kind : {"baseline", "masked"}
+        Baseline sets run in dB re 1 V; masked sets in dB SL.
+    sets : tuple[SetSpec, ...]
+        In file order.
+    timing : Timing
+        Trial timing.
+    randomize_order : bool
+        Shuffle sets per participant from the session seed.
+    content : dict
+        The parsed YAML (logged, so a log is self-contained).
+    """
+
+    path: str
+    sha256: str
+    experiment: str
+    kind: Kind
+    sets: tuple[SetSpec, ...]
+    timing: Timing
+    randomize_order: bool = True
+    description: str = ""
+    content: Mapping[str, Any] = field(default_factory=dict, compare=False, repr=False)
+
+    @property
+    def level_unit(self) -> Literal["db_sl", "db_v"]:
+        """Unit of staircase levels: ``db_v`` for baseline, ``db_sl`` for masked protocols."""
+        return "db_v" if self.kind == "baseline" else "db_sl"
+
+    def set_by_id(self, set_id: str) -> SetSpec:
+        """The set with this id (KeyError with the known ids otherwise)."""
+        for s in self.sets:
+            if s.id == set_id:
+                return s
+        raise KeyError(f"no set {set_id!r} in {self.path}; sets are {[s.id for s in self.sets]}")
+
+    def set_order(self, seed: int) -> list[str]:
+        """Set ids in presentation order for a session with this ``seed`` (pure)."""
+        ids = [s.id for s in self.sets]
+        if not self.randomize_order:
+            return ids
+        perm = np.random.default_rng(np.random.SeedSequence([int(seed), 0x5E75])).permutation(
+            len(ids)
+        )
+        return [ids[i] for i in perm]
+
+    def stimuli(self) -> set[str]:
+        """Names of every stimulus the protocol plays."""
+        out = {s.target.name for s in self.sets}
+        out |= {s.masker.name for s in self.sets if s.masker is not None}
+        return out
+
+
+# --------------------------------------------------------------------------------------------
+# Loading
+
+
+def load_protocol(
+    path: str | Path, *, max_level_db_sl: Mapping[str, float] | None = None
+) -> Protocol:
+    """Read, validate and build a protocol.
+
+    Parameters
+    ----------
+    path : str or Path
+        YAML file.
+    max_level_db_sl : mapping of channel → dB SL, optional
+        Highest sensation level the rig may present per channel (``"EV"``, ``"MV"``); masker
+        levels above it are refused.
+
+    Raises
+    ------
+    ProtocolError
+        Naming the file, key path and line of the first problem(s).
+    """
+    p = Path(path)
+    try:
+        raw = p.read_bytes()
+    except OSError as exc:
+        raise ProtocolError(str(p), "", f"cannot read the file ({exc.strerror or exc})") from exc
+    return parse_protocol(raw, str(p), max_level_db_sl=max_level_db_sl)
+
+
+def parse_protocol(
+    raw: bytes, source: str, *, max_level_db_sl: Mapping[str, float] | None = None
+) -> Protocol:
+    """:func:`load_protocol` on bytes already read; ``source`` names them in messages."""
+    text = raw.decode("utf-8", errors="replace")
+    data, lines = _safe_yaml(text, source)
+    if not isinstance(data, dict):
+        raise ProtocolError(
+            source, "line 1", "a protocol is a YAML mapping (key: value lines) at the top level"
+        )
+    problems = list(_schema_problems(data, lines))
+    if problems:
+        raise ProtocolError(source, problems[0][0], _join(problems))
+    protocol, problems = _build(data, source, hashlib.sha256(raw).hexdigest(), lines)
+    if max_level_db_sl is not None and protocol is not None:
+        problems += list(_limit_problems(protocol, data, lines, max_level_db_sl))
+    if problems or protocol is None:
+        raise ProtocolError(source, problems[0][0], _join(problems))
+    return protocol
+
+
+def _join(problems: list[tuple[str, str]]) -> str:
+    first = problems[0][1]
+    if len(problems) == 1:
+        return first
+    more = "; ".join(f"{where}: {msg}" for where, msg in problems[1:6])
+    extra = f" (and {len(problems) - 6} more)" if len(problems) > 6 else ""
+    return f"{first}\n  also: {more}{extra}"
+
+
+def _safe_yaml(text: str, source: str) -> tuple[Any, dict[str, int]]:
+    """Parse YAML with the safe loader; return the data and a key-path → line map."""
+    try:
+        node = yaml.compose(text, Loader=yaml.SafeLoader)
+        data = yaml.safe_load(text)
+    except yaml.MarkedYAMLError as exc:
+        mark = exc.problem_mark or exc.context_mark
+        where = f"line {mark.line + 1}, column {mark.column + 1}" if mark else ""
+        what = exc.problem or str(exc)
+        if "could not determine a constructor" in str(exc):
+            what = f"{what}: tags that build Python objects are not allowed in a protocol"
+        raise ProtocolError(source, where, f"malformed YAML: {what}; fix the syntax there") from exc
+    except yaml.YAMLError as exc:
+        raise ProtocolError(source, "", f"malformed YAML: {exc}") from exc
+    lines: dict[str, int] = {}
+    dupes: list[tuple[str, int]] = []
+    if node is not None:
+        _walk(node, "", lines, dupes)
+    if dupes:
+        path, line = dupes[0]
+        raise ProtocolError(
+            source,
+            f"{path} (line {line})",
+            "this key appears twice in the same mapping; YAML would silently keep the last one. "
+            "Delete or rename one of them",
+        )
+    return data, lines
+
+
+def _walk(node: yaml.Node, path: str, lines: dict[str, int], dupes: list[tuple[str, int]]) -> None:
+    lines.setdefault(path or "(top level)", node.start_mark.line + 1)
+    if isinstance(node, yaml.MappingNode):
+        seen: set[str] = set()
+        for key_node, value_node in node.value:
+            key = str(key_node.value)
+            child = f"{path}.{key}" if path else key
+            if key in seen and key != "<<":
+                dupes.append((child, key_node.start_mark.line + 1))
+            seen.add(key)
+            lines[child] = key_node.start_mark.line + 1
+            _walk(value_node, child, lines, dupes)
+    elif isinstance(node, yaml.SequenceNode):
+        for i, item in enumerate(node.value):
+            _walk(item, f"{path}[{i}]", lines, dupes)
+
+
+def _where(path: str, lines: Mapping[str, int]) -> str:
+    probe = path
+    while probe:
+        if probe in lines:
+            return f"{path} (line {lines[probe]})"
+        probe = probe.rsplit(".", 1)[0] if "." in probe else probe.rsplit("[", 1)[0]
+        if probe == path:
+            break
+    return path
+
+
+def _schema_problems(data: Any, lines: Mapping[str, int]) -> Iterator[tuple[str, str]]:
+    schema = load_schema("protocol")
+    for err in schema_errors(data, "protocol"):
+        path = key_path(err)
+        if err.validator == "additionalProperties":
+            parent = err.schema.get("properties", {})
+            extras = [k for k in err.instance if k not in parent]
+            for key in extras:
+                child = f"{path}.{key}" if path != "(top level)" else str(key)
+                hint = difflib.get_close_matches(str(key), list(parent), n=1)
+                tip = f"did you mean {hint[0]!r}?" if hint else f"known keys: {', '.join(parent)}"
+                yield _where(child, lines), f"unknown key {key!r}; {tip}"
+            continue
+        if err.validator == "required":
+            missing = err.message.split("'")[1] if "'" in err.message else err.message
+            yield _where(path, lines), f"missing required key {missing!r}"
+            continue
+        if (
+            err.validator == "const"
+            and err.absolute_path
+            and err.absolute_path[-1] == "schema_version"
+        ):
+            yield _where(path, lines), f"schema_version must be 1, got {err.instance!r}"
+            continue
+        desc = _describe(err, schema)
+        yield _where(path, lines), desc
+
+
+def _describe(err: Any, schema: Mapping[str, Any]) -> str:
+    v, inst = err.validator, err.instance
+    if v == "type":
+        want = err.validator_value
+        want = " or ".join(want) if isinstance(want, list) else want
+        return f"must be of type {want}, got {type(inst).__name__} {inst!r}"
+    if v in ("minimum", "exclusiveMinimum"):
+        op = "≥" if v == "minimum" else ">"
+        return f"must be {op} {err.validator_value}, got {inst!r}"
+    if v == "enum":
+        return f"must be one of {err.validator_value}, got {inst!r}"
+    if v == "pattern":
+        if "EV|MV" in str(err.validator_value):
+            return (
+                f"{inst!r} is not a stimulus name: write <EV|MV><carrier Hz>[am<envelope Hz>], "
+                "e.g. EV270, MV120, MV120am40"
+            )
+        return f"{inst!r} may only contain letters, digits, '_', '-' and '.'"
+    if v == "minItems":
+        return f"needs at least {err.validator_value} item(s)"
+    if v == "oneOf" and isinstance(inst, str):
+        return (
+            f"{inst!r} is not a stimulus name: write <EV|MV><carrier Hz>[am<envelope Hz>], "
+            "or null for no masker"
+        )
+    return err.message
+
+
+_STAIRCASE_KEYS = {f.name for f in fields(StaircaseSettings)}
+
+
+def _build(
+    data: Mapping[str, Any], source: str, sha256: str, lines: Mapping[str, int]
+) -> tuple[Protocol | None, list[tuple[str, str]]]:
+    problems: list[tuple[str, str]] = []
+    kind: Kind = data["kind"]
+    sc_data = dict(data["staircase"])
+    if "step_sizes_db" in sc_data:
+        sc_data["step_sizes_db"] = tuple(sc_data["step_sizes_db"])
+    base_sc: StaircaseSettings | None = None
+    try:
+        base_sc = StaircaseSettings(**{k: v for k, v in sc_data.items() if k in _STAIRCASE_KEYS})
+    except StaircaseError as exc:
+        key = str(exc).split(":")[0].replace("staircase setting ", "").split("[")[0]
+        problems.append((_where(f"staircase.{key}", lines), str(exc).split(": ", 1)[1]))
+    timing = Timing(**data.get("timing", {}))
+    default_target = data.get("target")
+    sets: list[SetSpec] = []
+    seen_ids: dict[str, int] = {}
+    seen_conditions: dict[tuple[Any, ...], str] = {}
+    for i, s in enumerate(data["sets"]):
+        here = f"sets[{i}]"
+        sid = s["id"]
+        if sid in seen_ids:
+            problems.append(
+                (
+                    _where(f"{here}.id", lines),
+                    f"duplicate set id {sid!r} (also sets[{seen_ids[sid]}])",
+                )
+            )
+        seen_ids.setdefault(sid, i)
+        target_name = s.get("target", default_target)
+        if target_name is None:
+            problems.append(
+                (
+                    _where(here, lines),
+                    "no target stimulus: give `target:` in the set or at top level",
+                )
+            )
+            continue
+        masker_name = s.get("masker")
+        level = s.get("masker_level_db_sl")
+        if kind == "baseline" and (masker_name is not None or level is not None):
+            problems.append(
+                (
+                    _where(here, lines),
+                    "a baseline protocol measures unmasked ALs: remove masker and "
+                    "masker_level_db_sl, or set kind: masked",
+                )
+            )
+        if kind == "masked" and (masker_name is None or level is None):
+            problems.append(
+                (
+                    _where(here, lines),
+                    "a masked set needs both `masker` (a stimulus name) and `masker_level_db_sl`",
+                )
+            )
+        condition = (target_name, masker_name, level)
+        if condition in seen_conditions:
+            problems.append(
+                (
+                    _where(here, lines),
+                    f"duplicate set: same target, masker and masker level as set "
+                    f"{seen_conditions[condition]!r}; remove one",
+                )
+            )
+        seen_conditions.setdefault(condition, sid)
+        if base_sc is None:
+            continue
+        sc = base_sc
+        if "start_level_db" in s:
+            try:
+                sc = StaircaseSettings(
+                    **{**sc.__dict__, "start_level_db": float(s["start_level_db"])}
+                )
+            except StaircaseError as exc:
+                problems.append((_where(f"{here}.start_level_db", lines), str(exc)))
+                continue
+        sets.append(
+            SetSpec(
+                id=sid,
+                target=parse_stimulus(target_name),
+                masker=parse_stimulus(masker_name) if masker_name is not None else None,
+                masker_level_db_sl=float(level) if level is not None else None,
+                staircase=sc,
+            )
+        )
+    if problems:
+        return None, problems
+    protocol = Protocol(
+        path=source,
+        sha256=sha256,
+        experiment=data["experiment"],
+        kind=kind,
+        sets=tuple(sets),
+        timing=timing,
+        randomize_order=bool(data.get("order", {}).get("randomize", True)),
+        description=str(data.get("description", "")).strip(),
+        content=data,
+    )
+    return protocol, []
+
+
+def _limit_problems(
+    protocol: Protocol,
+    data: Mapping[str, Any],
+    lines: Mapping[str, int],
+    max_level_db_sl: Mapping[str, float],
+) -> Iterator[tuple[str, str]]:
+    for i, s in enumerate(protocol.sets):
+        if s.masker is None or s.masker_level_db_sl is None:
+            continue
+        limit = max_level_db_sl.get(s.masker.channel)
+        if limit is not None and s.masker_level_db_sl > limit:
+            yield (
+                _where(f"sets[{i}].masker_level_db_sl", lines),
+                f"masker {s.masker.name} at {s.masker_level_db_sl:g} dB SL is above the device "
+                f"limit for {s.masker.channel} ({limit:g} dB SL); lower it or use a rig config "
+                "whose limit allows it",
+            )

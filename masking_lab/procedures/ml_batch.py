@@ -1,0 +1,623 @@
+"""Maximum-likelihood thresholds for thousands of staircase tracks at once.
+
+The model and its conventions are those of :func:`masking_lab.procedures.estimators.ml_threshold`
+(the
+analysis's estimator): the forced-choice logistic ``p(x) = γ + (1 − γ − λ)·F((x − α)/s)`` fitted
+to every trial of a track, with γ and λ fixed, the scale ``s`` fitted within bounds (or fixed
+with ``fit_scale=False``), the threshold searched within one level-span beyond the levels visited,
+and the threshold reported at p(correct) = ``p_target`` (0.794 by default). A fit fails (NaN) on
+the same grounds: too few trials, all answers correct or all wrong, a threshold on the edge of the
+search range, a flat function (scale at its upper bound).
+
+:mod:`masking_lab.procedures.staircase_batch` produces tracks by the thousand; fitting them one at
+a time with a
+scalar optimiser would dominate ``masking-lab plan``'s run time. Here each track is first reduced
+to its distinct levels with trial and correct counts (a staircase visits a dozen or two levels),
+and all tracks are fitted together: for a fixed scale, a coarse grid over the threshold followed
+by safeguarded Newton steps in the bracket around the best grid point; with a fitted scale,
+three starts (that fit, a shallower one, and a near-step function), each climbed by projected
+Newton steps on (threshold, log scale), the best kept. Pure numpy.
+
+Agreement with the scalar estimator (tests/test_simulate_ml.py): the same maximum wherever the
+likelihood has a well-defined peak. When a track fits best with a near-step function (about one
+track in eight of a 50-trial staircase), the likelihood is almost flat between two visited levels
+and the two optimisers may stop at different points of that plateau (differences up to a few
+tenths of a dB, at likelihoods equal to 1e-6); the threshold is then only known to that precision.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from masking_lab.core.errors import AnalysisError
+from masking_lab.core.psychometric import GUESS_3IFC, LEVITT_1U3D
+
+_GRID_POINTS = 25
+_NEWTON_ITERATIONS = 16  # the bisection fallback alone would shrink the bracket 65536-fold
+_SCORING_ITERATIONS = 40
+_STEP_TOLERANCE = 1e-8  # dB in t and nepers in ln s: far below any threshold's precision
+_GAIN_TOLERANCE = 1e-7  # log-likelihood units; a step gaining less ends the climb
+_HALVINGS = 12
+_SHALLOW_FACTOR = 4.0  # the shallow start's scale, × the given scale
+_GOLDEN_ITERATIONS = 30  # shrinks a gap between levels 0.618^30 ≈ 5e-7-fold
+
+
+@dataclass(frozen=True)
+class LevelCounts:
+    """Trials per distinct level of each track (zero-padded to the longest row).
+
+    Attributes
+    ----------
+    level_db : ndarray, shape (R, U)
+        Distinct levels visited by each track, dB (ascending; padding repeats the last level).
+    n_trials : ndarray, shape (R, U)
+        Trials at each level.
+    n_correct : ndarray, shape (R, U)
+        Correct answers at each level.
+    """
+
+    level_db: NDArray[np.float64]
+    n_trials: NDArray[np.float64]
+    n_correct: NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class MLFit:
+    """Per-track maximum-likelihood fits.
+
+    Attributes
+    ----------
+    threshold_db : ndarray, shape (R,)
+        Level where the fitted p(correct) = ``p_target``, dB; NaN where the fit fails (too few
+        trials, all answers correct or all wrong, threshold on the edge of the search range,
+        flat function).
+    location_db : ndarray, shape (R,)
+        Fitted logistic midpoint α, dB.
+    scale_db : ndarray, shape (R,)
+        Logistic scale used (fixed) or fitted, dB.
+    log_likelihood : ndarray, shape (R,)
+        Log-likelihood at the fit (natural log).
+    """
+
+    threshold_db: NDArray[np.float64]
+    location_db: NDArray[np.float64]
+    scale_db: NDArray[np.float64]
+    log_likelihood: NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class LevelIndex:
+    """Each trial's place among its track's distinct levels, computed once per set of tracks.
+
+    :meth:`counts` then gives the counts for any prefix of every track (a shorter stop rule, a
+    trial cap) without sorting again.
+
+    Attributes
+    ----------
+    level_db : ndarray, shape (R, U)
+        Distinct levels of each track, ascending, dB (padding repeats the row's last level).
+    trial_level : ndarray of int, shape (R, T)
+        Column of ``level_db`` holding each trial's level (−1: no trial).
+    correct : ndarray of bool, shape (R, T)
+        Answers.
+    """
+
+    level_db: NDArray[np.float64]
+    trial_level: NDArray[np.int64]
+    correct: NDArray[np.bool_]
+
+    def counts(
+        self, n_trials: ArrayLike | None = None, rows: ArrayLike | None = None
+    ) -> LevelCounts:
+        """Counts over the first ``n_trials[i]`` trials of each track (all trials if None).
+
+        Parameters
+        ----------
+        n_trials : array of int, shape (R,), optional
+            Trials of each track to count.
+        rows : array of int, optional
+            Only these tracks (the result has one row per entry).
+        """
+        group = self.trial_level
+        correct = self.correct
+        level = self.level_db
+        use = group >= 0
+        if n_trials is not None:
+            use = use & (np.arange(group.shape[1])[None, :] < np.asarray(n_trials)[:, None])
+        if rows is not None:
+            idx = np.asarray(rows, dtype=np.intp)
+            group, correct, level, use = group[idx], correct[idx], level[idx], use[idx]
+        n_rows, n_groups = level.shape
+        flat = (np.arange(n_rows)[:, None] * n_groups + group)[use]
+        size = n_rows * n_groups
+        n = np.bincount(flat, minlength=size).astype(float).reshape(n_rows, n_groups)
+        k = np.bincount(flat, weights=correct[use], minlength=size).reshape(n_rows, n_groups)
+        return LevelCounts(level, n, k)
+
+
+def index_levels(levels_db: ArrayLike, correct: ArrayLike) -> LevelIndex:
+    """Find each track's distinct levels (see :class:`LevelIndex`).
+
+    Parameters
+    ----------
+    levels_db : array, shape (R, T)
+        Trial levels in dB; NaN marks no trial (past a track's end).
+    correct : array of bool, shape (R, T)
+        Answers.
+
+    Raises
+    ------
+    AnalysisError
+        If the arrays are not matching 2-D arrays.
+    """
+    lv = np.asarray(levels_db, dtype=float)
+    ok = np.asarray(correct, dtype=bool)
+    if lv.ndim != 2 or lv.shape != ok.shape:
+        raise AnalysisError(
+            f"levels and answers must be matching 2-D (tracks × trials) arrays, got "
+            f"{lv.shape} and {ok.shape}"
+        )
+    n_rows = lv.shape[0]
+    keyed = np.where(np.isnan(lv), np.inf, lv)
+    order = np.argsort(keyed, axis=1, kind="stable")
+    x = np.take_along_axis(keyed, order, axis=1)
+    valid = np.isfinite(x)
+    new = np.ones_like(valid)
+    new[:, 1:] = x[:, 1:] != x[:, :-1]
+    group = np.cumsum(new, axis=1) - 1
+    n_groups = int(group[valid].max()) + 1 if valid.any() else 1
+    level = np.full((n_rows, n_groups), np.nan)
+    rows = np.broadcast_to(np.arange(n_rows)[:, None], x.shape)
+    level[rows[valid], group[valid]] = x[valid]
+    # Padding repeats each row's last level so that it is a harmless finite number.
+    seen = np.where(np.isnan(level), 0, np.arange(n_groups))
+    level = np.take_along_axis(level, np.maximum.accumulate(seen, axis=1), axis=1)
+    level = np.where(np.isnan(level), 0.0, level)  # rows without any trial
+    trial_level = np.full(lv.shape, -1, dtype=np.int64)
+    np.put_along_axis(trial_level, order, np.where(valid, group, -1), axis=1)
+    return LevelIndex(level, trial_level, ok)
+
+
+def level_counts(levels_db: ArrayLike, correct: ArrayLike) -> LevelCounts:
+    """Reduce tracks to counts per distinct level (the likelihood's sufficient statistics).
+
+    Parameters
+    ----------
+    levels_db : array, shape (R, T)
+        Trial levels in dB; NaN marks no trial (past a track's end).
+    correct : array of bool, shape (R, T)
+        Answers.
+    """
+    return index_levels(levels_db, correct).counts()
+
+
+def _logistic_parts(
+    counts: LevelCounts, threshold_db: NDArray[np.float64], scale_db: NDArray[np.float64], c: float
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """y = (x − t)/s, F(y + c) and 1 − F(y + c) without cancellation or overflow (one exp).
+
+    ``c`` = logit of the rise fraction at ``p_target``, so that p(t) = p_target.
+    """
+    y = (counts.level_db - threshold_db[:, None]) / scale_db[:, None]
+    z = y + c
+    e = np.exp(-np.abs(z))
+    small = e / (1.0 + e)
+    big = 1.0 / (1.0 + e)
+    pos = z >= 0
+    return y, np.where(pos, big, small), np.where(pos, small, big)
+
+
+@dataclass(frozen=True)
+class _Model:
+    guess: float
+    lapse: float
+    c: float  # logit((p_target − γ)/(1 − γ − λ)): threshold = α + s·c
+
+    @property
+    def rise(self) -> float:
+        return 1.0 - self.guess - self.lapse
+
+    def log_likelihood(
+        self, counts: LevelCounts, threshold_db: NDArray[np.float64], scale_db: NDArray[np.float64]
+    ) -> NDArray[np.float64]:
+        _, f, g = _logistic_parts(counts, threshold_db, scale_db, self.c)
+        tiny = np.finfo(float).tiny
+        p = np.maximum(self.guess + self.rise * f, tiny)
+        q = np.maximum(self.lapse + self.rise * g, tiny)  # 1 − p without cancellation
+        ll = counts.n_correct * np.log(p) + (counts.n_trials - counts.n_correct) * np.log(q)
+        return ll.sum(axis=1)
+
+    def derivatives(
+        self, counts: LevelCounts, threshold_db: NDArray[np.float64], scale_db: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], ...]:
+        """Gradient and Hessian of the log-likelihood in (t, u = ln s), per track.
+
+        Returns (g_t, g_u, H_tt, H_tu, H_uu, I_tt, I_tu, I_uu): gradient, observed Hessian and
+        expected (Fisher) information, each of shape (R,).
+        """
+        y, f, g = _logistic_parts(counts, threshold_db, scale_db, self.c)
+        tiny = np.finfo(float).tiny
+        p = np.maximum(self.guess + self.rise * f, tiny)
+        q = np.maximum(self.lapse + self.rise * g, tiny)
+        h = self.rise * f * g  # dp/dz
+        h2 = h * (g - f)  # d²p/dz²
+        s = scale_db[:, None]
+        k = counts.n_correct
+        m = counts.n_trials - k
+        w = k / p - m / q
+        curv = -(k / p**2 + m / q**2)
+        info = counts.n_trials / (p * q)
+        dt = -h / s
+        du = -h * y
+        dtt = h2 / s**2
+        dtu = (h2 * y + h) / s
+        duu = h2 * y**2 + h * y
+        return (
+            (w * dt).sum(axis=1),
+            (w * du).sum(axis=1),
+            (w * dtt + curv * dt * dt).sum(axis=1),
+            (w * dtu + curv * dt * du).sum(axis=1),
+            (w * duu + curv * du * du).sum(axis=1),
+            (info * dt * dt).sum(axis=1),
+            (info * dt * du).sum(axis=1),
+            (info * du * du).sum(axis=1),
+        )
+
+
+def log_likelihood(
+    counts: LevelCounts,
+    threshold_db: ArrayLike,
+    scale_db: float,
+    *,
+    guess: float = GUESS_3IFC,
+    lapse: float = 0.02,
+    p_target: float = LEVITT_1U3D,
+) -> NDArray[np.float64]:
+    """Binomial log-likelihood (natural log) of each track for a threshold and scale.
+
+    Parameters
+    ----------
+    counts : LevelCounts
+        From :func:`level_counts`.
+    threshold_db : array, shape (R,)
+        Level where p(correct) = ``p_target``, per track, dB.
+    scale_db : float
+        Logistic scale s, dB.
+    guess, lapse, p_target : float
+        γ, λ and the p defining the threshold.
+    """
+    model = _model(guess, lapse, p_target)
+    t = np.asarray(threshold_db, dtype=float).reshape(-1)
+    return model.log_likelihood(counts, t, np.full(t.shape, float(scale_db)))
+
+
+def ml_threshold_db(
+    levels_db: ArrayLike,
+    correct: ArrayLike,
+    *,
+    scale_db: float = 1.5,
+    lapse: float = 0.02,
+    guess: float = GUESS_3IFC,
+    p_target: float = LEVITT_1U3D,
+    fit_scale: bool = True,
+    scale_bounds_db: tuple[float, float] = (0.1, 20.0),
+    min_trials: int = 10,
+) -> MLFit:
+    """Maximum-likelihood threshold of every track (see the module docstring).
+
+    Parameters
+    ----------
+    levels_db : array, shape (R, T)
+        Trial levels in dB (NaN = no trial).
+    correct : array of bool, shape (R, T)
+        Answers.
+    scale_db : float
+        Logistic scale s in dB: fixed (``fit_scale=False``) or where the search starts.
+    lapse : float
+        Lapse rate λ (fixed).
+    guess : float
+        Guess rate γ (1/3 for 3IFC).
+    p_target : float
+        p(correct) at which the threshold is read off the fitted function.
+    fit_scale : bool
+        Fit the scale within ``scale_bounds_db`` (as the analysis does) or keep ``scale_db``.
+    scale_bounds_db : (float, float)
+        Range of a fitted scale, dB; a fit at the upper bound is a flat function and fails.
+    min_trials : int
+        Tracks with fewer trials fail.
+
+    Raises
+    ------
+    AnalysisError
+        If the model parameters are impossible.
+    """
+    return ml_threshold_from_counts(
+        level_counts(levels_db, correct),
+        scale_db=scale_db,
+        lapse=lapse,
+        guess=guess,
+        p_target=p_target,
+        fit_scale=fit_scale,
+        scale_bounds_db=scale_bounds_db,
+        min_trials=min_trials,
+    )
+
+
+def ml_threshold_from_counts(
+    counts: LevelCounts,
+    *,
+    scale_db: float = 1.5,
+    lapse: float = 0.02,
+    guess: float = GUESS_3IFC,
+    p_target: float = LEVITT_1U3D,
+    fit_scale: bool = True,
+    scale_bounds_db: tuple[float, float] = (0.1, 20.0),
+    min_trials: int = 10,
+) -> MLFit:
+    """:func:`ml_threshold_db` on counts from :func:`level_counts` or :meth:`LevelIndex.counts`."""
+    model = _model(guess, lapse, p_target)
+    s_lo, s_hi = (float(v) for v in scale_bounds_db)
+    if not (0 < s_lo < s_hi and np.isfinite(s_hi)):
+        raise AnalysisError(f"scale_bounds_db must be 0 < low < high dB, got {scale_bounds_db}")
+    if not (np.isfinite(scale_db) and s_lo <= scale_db <= s_hi):
+        raise AnalysisError(f"scale_db must lie within {scale_bounds_db} dB, got {scale_db}")
+
+    n_rows = counts.level_db.shape[0]
+    has = counts.n_trials > 0
+    n_total = counts.n_trials.sum(axis=1)
+    k_total = counts.n_correct.sum(axis=1)
+    lo = np.where(has, counts.level_db, np.inf).min(axis=1)
+    hi = np.where(has, counts.level_db, -np.inf).max(axis=1)
+    usable = (n_total >= min_trials) & (k_total > 0) & (k_total < n_total)
+    rows = np.flatnonzero(usable)
+    out = MLFit(
+        threshold_db=np.full(n_rows, np.nan),
+        location_db=np.full(n_rows, np.nan),
+        scale_db=np.full(n_rows, np.nan),
+        log_likelihood=np.full(n_rows, np.nan),
+    )
+    if rows.size == 0:
+        return out
+    span = np.maximum(hi[rows] - lo[rows], 1.0)
+    t_lo, t_hi = lo[rows] - span, hi[rows] + span
+    t = np.empty(rows.size)
+    s = np.empty(rows.size)
+    ll = np.empty(rows.size)
+    # Rows are padded to the longest track's number of levels; most visit half as many. Fitting
+    # rows in groups of similar width, trimmed, halves the arithmetic.
+    width = has[rows].shape[1] - np.argmax(has[rows][:, ::-1], axis=1)
+    edges = np.unique(np.percentile(width, [33, 66, 100], method="higher").astype(int))
+    lower = 0
+    for edge in edges:
+        group = np.flatnonzero((width > lower) & (width <= edge))
+        lower = edge
+        if group.size == 0:
+            continue
+        r = rows[group]
+        part = LevelCounts(
+            counts.level_db[r, :edge], counts.n_trials[r, :edge], counts.n_correct[r, :edge]
+        )
+        t[group], s[group], ll[group] = _fit_rows(
+            part, model, t_lo[group], t_hi[group], float(scale_db), fit_scale, s_lo, s_hi
+        )
+
+    tol = 1e-3 * span
+    ok = (t > t_lo + tol) & (t < t_hi - tol)
+    if fit_scale:
+        ok &= np.log(s) < np.log(s_hi) - 1e-6
+    out.threshold_db[rows] = np.where(ok, t, np.nan)
+    out.location_db[rows] = t - s * model.c
+    out.scale_db[rows] = s
+    out.log_likelihood[rows] = ll
+    return out
+
+
+def _fit_rows(
+    sub: LevelCounts,
+    model: _Model,
+    t_lo: NDArray[np.float64],
+    t_hi: NDArray[np.float64],
+    scale_db: float,
+    fit_scale: bool,
+    s_lo: float,
+    s_hi: float,
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Threshold, scale and log-likelihood of each (usable) track."""
+    n = t_lo.size
+    t, ll = _fit_threshold(sub, np.full(n, scale_db), model, t_lo, t_hi)
+    s = np.full(n, scale_db)
+    if not fit_scale:
+        return t, s, ll
+    # Three starts, each climbed in (t, ln s), the best kept: the fit above, a shallow one, and
+    # a near-step function (staircase data often fit best with one; its likelihood in t is then
+    # a row of plateaus between visited levels that a smooth start does not reach).
+    shallow = min(_SHALLOW_FACTOR * scale_db, 0.5 * (scale_db + s_hi))
+    t_c, ll_c = _fit_threshold(sub, np.full(n, shallow), model, t_lo, t_hi)
+    t_b, ll_b = _steep_start(sub, s_lo, model)
+    # The three climbs run as one stacked problem (one pass of numpy calls, not three).
+    stacked = LevelCounts(
+        np.tile(sub.level_db, (3, 1)), np.tile(sub.n_trials, (3, 1)), np.tile(sub.n_correct, (3, 1))
+    )
+    t3, s3, ll3 = _maximise_2d(
+        stacked,
+        np.concatenate([t, t_c, t_b]),
+        np.concatenate([s, np.full(n, shallow), np.full(n, s_lo)]),
+        np.concatenate([ll, ll_c, ll_b]),
+        model,
+        np.tile(t_lo, 3),
+        np.tile(t_hi, 3),
+        s_lo,
+        s_hi,
+    )
+    pick = np.argmax(np.where(np.isfinite(ll3), ll3, -np.inf).reshape(3, n), axis=0)
+    take = pick * n + np.arange(n)
+    return t3[take], s3[take], ll3[take]
+
+
+def _model(guess: float, lapse: float, p_target: float) -> _Model:
+    if not (0 <= guess < 1 and 0 <= lapse < 1 - guess):
+        raise AnalysisError(f"need 0 ≤ guess < 1 and 0 ≤ lapse < 1 − guess, got {guess}, {lapse}")
+    if not guess < p_target < 1 - lapse:
+        raise AnalysisError(
+            f"p_target={p_target} must lie between guess={guess} and 1 − lapse={1 - lapse}"
+        )
+    q = (p_target - guess) / (1.0 - guess - lapse)
+    return _Model(guess, lapse, float(np.log(q / (1.0 - q))))
+
+
+def _fit_threshold(
+    counts: LevelCounts,
+    scale_db: NDArray[np.float64],
+    model: _Model,
+    t_lo: NDArray[np.float64],
+    t_hi: NDArray[np.float64],
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Best threshold per track for fixed scales: a grid, then safeguarded Newton steps.
+
+    The grid's best point and its neighbours bracket the maximum; Newton steps that would leave
+    the bracket (or climb a convex stretch) are replaced by bisection, and the score's sign
+    shrinks the bracket every iteration.
+    """
+    spacing = (t_hi - t_lo) / (_GRID_POINTS - 1)
+    grid_ll = np.empty((t_lo.size, _GRID_POINTS))
+    for j in range(_GRID_POINTS):
+        grid_ll[:, j] = model.log_likelihood(counts, t_lo + j * spacing, scale_db)
+    j_best = np.argmax(grid_ll, axis=1)
+    a = t_lo + np.maximum(j_best - 1, 0) * spacing
+    b = t_lo + np.minimum(j_best + 1, _GRID_POINTS - 1) * spacing
+    t = t_lo + j_best * spacing
+    active = np.arange(t.size)
+    for _ in range(_NEWTON_ITERATIONS):
+        if active.size == 0:
+            break
+        part = LevelCounts(
+            counts.level_db[active], counts.n_trials[active], counts.n_correct[active]
+        )
+        ta = t[active]
+        score, _, curvature, *_ = model.derivatives(part, ta, scale_db[active])
+        a[active] = np.where(score > 0, ta, a[active])
+        b[active] = np.where(score < 0, ta, b[active])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            newton = ta - score / curvature
+        ok = (curvature < 0) & (newton >= a[active]) & (newton <= b[active])
+        new_t = np.where(score == 0, ta, np.where(ok, newton, 0.5 * (a[active] + b[active])))
+        t[active] = new_t
+        active = active[np.abs(new_t - ta) > 1e-10 * np.maximum(1.0, np.abs(new_t))]
+    ll = model.log_likelihood(counts, t, scale_db)
+    grid_best = grid_ll[np.arange(j_best.size), j_best]
+    worse = ll < grid_best  # never return less than the grid found (guards odd likelihoods)
+    t = np.where(worse, t_lo + j_best * spacing, t)
+    return t, np.where(worse, grid_best, ll)
+
+
+def _steep_start(
+    counts: LevelCounts, scale_db: float, model: _Model
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Best threshold for a near-step function (scale ``scale_db``).
+
+    The likelihood is then nearly flat between consecutive visited levels and changes steeply
+    near each: take the best gap (tried at its midpoint), then golden-section search inside it.
+    """
+    level = np.where(counts.n_trials > 0, counts.level_db, np.nan)
+    n_rows = level.shape[0]
+    s = np.full(n_rows, scale_db)
+    best_j = np.zeros(n_rows, dtype=np.intp)
+    best_ll = np.full(n_rows, -np.inf)
+    for j in range(level.shape[1] - 1):
+        mid = 0.5 * (level[:, j] + level[:, j + 1])
+        has = ~np.isnan(mid)
+        if not has.any():
+            break
+        ll = np.where(has, model.log_likelihood(counts, np.where(has, mid, 0.0), s), -np.inf)
+        better = ll > best_ll
+        best_j[better], best_ll[better] = j, ll[better]
+    found = np.isfinite(best_ll)
+    rows = np.arange(n_rows)
+    a = np.where(found, level[rows, best_j], 0.0)
+    b = np.where(found, level[rows, np.minimum(best_j + 1, level.shape[1] - 1)], 0.0)
+    ratio = (np.sqrt(5.0) - 1.0) / 2.0
+    x1, x2 = b - ratio * (b - a), a + ratio * (b - a)
+    f1, f2 = model.log_likelihood(counts, x1, s), model.log_likelihood(counts, x2, s)
+    for _ in range(_GOLDEN_ITERATIONS):
+        left = f1 >= f2  # the maximum lies in [a, x2]
+        a, b = np.where(left, a, x1), np.where(left, x2, b)
+        new_x = np.where(left, b - ratio * (b - a), a + ratio * (b - a))
+        f_new = model.log_likelihood(counts, new_x, s)
+        x1, x2, f1, f2 = (
+            np.where(left, new_x, x2),
+            np.where(left, x1, new_x),
+            np.where(left, f_new, f2),
+            np.where(left, f1, f_new),
+        )
+    t = np.where(f1 >= f2, x1, x2)
+    ll = np.maximum(f1, f2)
+    return np.where(found, t, np.nan), np.where(found, ll, -np.inf)
+
+
+def _maximise_2d(
+    counts: LevelCounts,
+    t: NDArray[np.float64],
+    s: NDArray[np.float64],
+    ll: NDArray[np.float64],
+    model: _Model,
+    t_lo: NDArray[np.float64],
+    t_hi: NDArray[np.float64],
+    s_lo: float,
+    s_hi: float,
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Maximise over (threshold, ln scale) within the bounds: projected Newton, step halving.
+
+    Newton steps where the observed Hessian is negative definite, Fisher-scoring steps
+    elsewhere (the expected information is positive semi-definite, so they point uphill). When
+    the scale sits on a bound and the step pushes outward, only the threshold moves. Halving
+    keeps the likelihood from ever decreasing.
+    """
+    t, u, ll = t.copy(), np.log(s), ll.copy()
+    u_lo, u_hi = float(np.log(s_lo)), float(np.log(s_hi))
+    active = np.flatnonzero(np.isfinite(t))
+    for _ in range(_SCORING_ITERATIONS):
+        if active.size == 0:
+            break
+        sub = LevelCounts(
+            counts.level_db[active], counts.n_trials[active], counts.n_correct[active]
+        )
+        ta, ua, la = t[active], u[active], ll[active]
+        g_t, g_u, h_tt, h_tu, h_uu, i_tt, i_tu, i_uu = model.derivatives(sub, ta, np.exp(ua))
+        newton_ok = (h_tt < 0) & (h_tt * h_uu - h_tu**2 > 0)
+        a_tt = np.where(newton_ok, -h_tt, i_tt)
+        a_tu = np.where(newton_ok, -h_tu, i_tu)
+        a_uu = np.where(newton_ok, -h_uu, i_uu)
+        ridge = 1e-12 * (a_tt + a_uu) + 1e-300
+        det = (a_tt + ridge) * (a_uu + ridge) - a_tu**2
+        step_t = ((a_uu + ridge) * g_t - a_tu * g_u) / det
+        step_u = ((a_tt + ridge) * g_u - a_tu * g_t) / det
+        # Active set: a scale on its bound with the step pushing outward stays there.
+        pinned = ((ua <= u_lo) & (step_u < 0)) | ((ua >= u_hi) & (step_u > 0))
+        t_only = np.where(h_tt < 0, -h_tt, i_tt) + 1e-300
+        step_t = np.where(pinned, g_t / t_only, step_t)
+        step_u = np.where(pinned, 0.0, np.clip(step_u, -1.0, 1.0))  # ≤ a factor e per step
+        factor = np.ones(active.size)
+        accepted = np.zeros(active.size, dtype=bool)
+        new_t, new_u, new_l = ta.copy(), ua.copy(), la.copy()
+        t_lo_a, t_hi_a = t_lo[active], t_hi[active]
+        for _ in range(_HALVINGS):
+            todo = np.flatnonzero(~accepted)
+            if todo.size == 0:
+                break
+            cand_t = np.clip(ta[todo] + factor[todo] * step_t[todo], t_lo_a[todo], t_hi_a[todo])
+            cand_u = np.clip(ua[todo] + factor[todo] * step_u[todo], u_lo, u_hi)
+            part = LevelCounts(sub.level_db[todo], sub.n_trials[todo], sub.n_correct[todo])
+            cand_l = model.log_likelihood(part, cand_t, np.exp(cand_u))
+            good = cand_l >= la[todo]
+            hit = todo[good]
+            new_t[hit], new_u[hit], new_l[hit] = cand_t[good], cand_u[good], cand_l[good]
+            accepted[hit] = True
+            factor[todo[~good]] *= 0.5
+        moved = np.maximum(np.abs(new_t - ta), np.abs(new_u - ua))
+        t[active], u[active], ll[active] = new_t, new_u, new_l
+        gained = new_l - la
+        active = active[accepted & (moved > _STEP_TOLERANCE) & (gained > _GAIN_TOLERANCE)]
+    return t, np.exp(u), ll

@@ -1,0 +1,145 @@
+"""Simulated observers: the ground truth that dry runs, the simulator and the demo respond from.
+
+A population is described by a :class:`GroundTruth` (population unmasked ALs, masking ramps,
+psychometric scale and lapse, between-participant spread). :func:`make_participant` draws one
+reproducible :class:`SimulatedParticipant` from it; the participant answers a 3IFC trial with
+p(correct) = ψ(target level − masked AL), ψ from :mod:`masking_lab.core.psychometric`.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from masking_lab.core.errors import ProtocolError
+from masking_lab.core.masking import MaskingFunction
+from masking_lab.core.psychometric import GUESS_3IFC, Psychometric
+from masking_lab.formats.resources import shipped
+
+
+@dataclass(frozen=True)
+class GroundTruth:
+    """A simulated population.
+
+    Attributes
+    ----------
+    unmasked_al_db_v : Mapping[str, float]
+        Population mean unmasked AL per stimulus name, dB re 1 V.
+    masking : tuple[MaskingFunction, ...]
+        True masking ramps (masker level in dB SL → AL shift in dB).
+    participant_sd_db : float
+        Between-participant SD of unmasked ALs, dB.
+    shift_sd_db : float
+        Between-participant SD of an additive offset on every AL shift, dB (applied above the knee).
+    scale_db : float
+        Psychometric logistic scale, dB.
+    lapse : float
+        Lapse rate.
+    guess : float
+        Guess rate (1/3 for 3IFC).
+    """
+
+    unmasked_al_db_v: Mapping[str, float]
+    masking: tuple[MaskingFunction, ...]
+    participant_sd_db: float = 2.0
+    shift_sd_db: float = 1.0
+    scale_db: float = 1.5
+    lapse: float = 0.02
+    guess: float = GUESS_3IFC
+
+    def masking_function(self, target: str, masker: str) -> MaskingFunction | None:
+        """The true ramp for ``target`` masked by ``masker``, or None if they do not interact."""
+        for fn in self.masking:
+            if fn.target == target and fn.masker == masker:
+                return fn
+        return None
+
+
+@dataclass(frozen=True)
+class SimulatedParticipant:
+    """One simulated participant drawn from a :class:`GroundTruth`."""
+
+    participant: str
+    truth: GroundTruth
+    unmasked_al_db_v: Mapping[str, float]
+    shift_offset_db: float = 0.0
+    rng_seed: int = 0
+    _psy: Psychometric = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        psy = Psychometric(0.0, self.truth.scale_db, self.truth.guess, self.truth.lapse)
+        object.__setattr__(self, "_psy", psy)
+
+    def masked_al_db_v(self, target: str, masker: str | None, masker_level_db_sl: float) -> float:
+        """True AL of ``target`` in dB re 1 V with ``masker`` at ``masker_level_db_sl`` dB SL."""
+        al = self.unmasked_al_db_v[target]
+        if masker is None or masker_level_db_sl == -np.inf:
+            return al
+        fn = self.truth.masking_function(target, masker)
+        if fn is None:
+            return al
+        shift = float(fn.shift_db(masker_level_db_sl))
+        if shift > 0:
+            shift = max(0.0, shift + self.shift_offset_db)
+        return al + shift
+
+    def p_correct(
+        self, target: str, level_db_v: float, masker: str | None, masker_level_db_sl: float
+    ) -> float:
+        """p(correct) in a 3IFC trial with the target at ``level_db_v`` dB re 1 V."""
+        al = self.masked_al_db_v(target, masker, masker_level_db_sl)
+        return float(self._psy.p_correct(level_db_v - al))
+
+
+def make_participant(truth: GroundTruth, participant: str, seed: int = 0) -> SimulatedParticipant:
+    """Draw a reproducible participant: same ``truth``, ``participant`` and ``seed`` → same ALs."""
+    digest = hashlib.sha256(f"{participant}|{seed}".encode()).digest()
+    rng_seed = int.from_bytes(digest[:8], "little")
+    rng = np.random.default_rng(rng_seed)
+    als = {
+        name: float(mean + rng.normal(0.0, truth.participant_sd_db))
+        for name, mean in sorted(truth.unmasked_al_db_v.items())
+    }
+    offset = float(rng.normal(0.0, truth.shift_sd_db))
+    return SimulatedParticipant(participant, truth, als, offset, rng_seed)
+
+
+def ground_truth_from_dict(data: Mapping[str, Any], source: str = "<ground truth>") -> GroundTruth:
+    """Build a :class:`GroundTruth` from a parsed ground-truth mapping (see ground_truth.yaml)."""
+    try:
+        masking = tuple(
+            MaskingFunction(m["target"], m["masker"], float(m["intercept_db"]), float(m["slope"]))
+            for m in data["masking"]
+        )
+        psy = data.get("psychometric", {})
+        return GroundTruth(
+            unmasked_al_db_v={k: float(v) for k, v in data["unmasked_al_db_v"].items()},
+            masking=masking,
+            participant_sd_db=float(data.get("participant_sd_db", 2.0)),
+            shift_sd_db=float(data.get("shift_sd_db", 1.0)),
+            scale_db=float(psy.get("scale_db", 1.5)),
+            lapse=float(psy.get("lapse", 0.02)),
+            guess=float(psy.get("guess", GUESS_3IFC)),
+        )
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ProtocolError(source, "", f"not a valid ground-truth file ({exc!r})") from exc
+
+
+def load_ground_truth(path: str | Path | None = None) -> GroundTruth:
+    """Load a ground-truth YAML/JSON file, or the embedded default (paper Table 2 ramps)."""
+    if path is None:
+        text = shipped("protocols", "simulation/ground_truth.yaml").read_text(encoding="utf-8")
+        return ground_truth_from_dict(
+            yaml.safe_load(text), "protocols/simulation/ground_truth.yaml (embedded)"
+        )
+    p = Path(path)
+    text = p.read_text(encoding="utf-8")
+    data = json.loads(text) if p.suffix == ".json" else yaml.safe_load(text)
+    return ground_truth_from_dict(data, str(p))
