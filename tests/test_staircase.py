@@ -15,7 +15,6 @@ from masking_lab.procedures.staircase import (
     implied_target_p,
     implied_target_p_for,
     replay,
-    reversal_mean,
     start,
 )
 
@@ -146,12 +145,6 @@ def test_implied_targets_levitt_and_garcia_perez():
     )
     # 2-up 1-down tracks the lower side: 1 − sqrt(0.5)
     assert implied_target_p_for(2, 1) == pytest.approx(1 - math.sqrt(0.5), abs=1e-9)
-
-
-def test_reversal_mean_needs_enough_reversals():
-    assert reversal_mean([1, 2, 3, 4], 2) == 3.5
-    with pytest.raises(StaircaseError, match="at least 5"):
-        reversal_mean([1, 2], 5)
 
 
 # ---------------------------------------------------------------- property tests

@@ -27,11 +27,13 @@ and reversal levels equal ``psychopy.data.StairHandler(stepType='lin')`` given t
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable
 from dataclasses import dataclass, field, replace
 from typing import Literal
 
 from masking_lab.core.errors import StaircaseError
+from masking_lab.procedures.base import ThresholdEstimate
+from masking_lab.procedures.base import replay as _replay
 
 Direction = Literal["start", "up", "down"]
 Status = Literal["running", "completed", "ceiling", "floor", "trial_cap"]
@@ -132,6 +134,15 @@ class StaircaseSettings:
         """Up step in dB after ``n_reversals_so_far`` reversals."""
         return self.step_sizes_db[min(n_reversals_so_far, len(self.step_sizes_db) - 1)]
 
+    @property
+    def kind(self) -> str:
+        """The protocol's name for this procedure: ``"staircase"``."""
+        return "staircase"
+
+    def start(self) -> Staircase:
+        """A fresh track at :attr:`start_level_db` (see :func:`start`)."""
+        return start(self)
+
 
 @dataclass(frozen=True)
 class Staircase:
@@ -200,6 +211,23 @@ class Staircase:
         k = self.settings.n_reversals_averaged
         last = self.reversal_levels_db[-k:]
         return math.fsum(last) / len(last)
+
+    def next_level(self) -> float:
+        """The level of the next trial, dB (the :class:`~masking_lab.procedures.base.Procedure`
+        name for :attr:`level_db`)."""
+        return self.level_db
+
+    def estimate(self) -> ThresholdEstimate:
+        """The AL as a :class:`~masking_lab.procedures.base.ThresholdEstimate` (see :attr:`al_db`).
+
+        Examples
+        --------
+        >>> start(StaircaseSettings(start_level_db=0.0)).estimate().level_db is None
+        True
+        """
+        return ThresholdEstimate(
+            level_db=self.al_db, sd_db=None, method="reversal_mean", status=self.status
+        )
 
     def update(self, correct: bool) -> Staircase:
         """Return the staircase after one trial at :attr:`level_db` answered ``correct``.
@@ -312,21 +340,16 @@ def start(settings: StaircaseSettings) -> Staircase:
 
 
 def replay(settings: StaircaseSettings, responses: Iterable[bool]) -> Staircase:
-    """Rebuild a staircase from its responses (the resume path).
+    """Rebuild a staircase from its responses (the resume path; see
+    :func:`masking_lab.procedures.base.replay`).
 
     Raises
     ------
     StaircaseError
         If there are more responses than the track accepts (it finished earlier).
     """
-    state = start(settings)
-    for i, correct in enumerate(responses):
-        if state.finished:
-            raise StaircaseError(
-                f"response {i} comes after the staircase finished ({state.status}); "
-                "the responses do not belong to these settings"
-            )
-        state = state.update(correct)
+    state = _replay(settings, responses)
+    assert isinstance(state, Staircase)
     return state
 
 
@@ -385,16 +408,3 @@ def _step_rates(n_up: int, n_down: int, p: float) -> tuple[float, float]:
     b[-1] = 1.0
     pi = np.linalg.lstsq(A, b, rcond=None)[0]
     return float(pi @ up_from), float(pi @ down_from)
-
-
-def reversal_mean(levels: Sequence[float], k: int) -> float:
-    """Mean of the last ``k`` reversal levels in dB (the paper's AL estimator).
-
-    Raises
-    ------
-    StaircaseError
-        If fewer than ``k`` reversal levels are given or ``k`` < 1.
-    """
-    if k < 1 or len(levels) < k:
-        raise StaircaseError(f"need at least {k} reversals to average, have {len(levels)}")
-    return math.fsum(levels[-k:]) / k

@@ -91,29 +91,6 @@ class SetPlan:
         return float(level_db_v) - self.unmasked_al_db_v
 
 
-def device_max_level_db(
-    target: Stimulus, max_drive_v: Mapping[str, float], unmasked_al_db_v: float | None
-) -> float:
-    """Highest target level the device can drive, in the set's level unit.
-
-    Parameters
-    ----------
-    target : Stimulus
-        The target stimulus (its channel selects the limit).
-    max_drive_v : mapping of channel → V
-        The device's peak-drive limits.
-    unmasked_al_db_v : float or None
-        Target's unmasked AL in dB re 1 V for a dB SL staircase; None for a dB re 1 V one.
-
-    Raises
-    ------
-    LevelError
-        If the device reports no (or a non-positive) limit for the target's channel.
-    """
-    limit_db_v = volts_to_db_v(_channel_limit_v(target, max_drive_v))
-    return limit_db_v if unmasked_al_db_v is None else limit_db_v - unmasked_al_db_v
-
-
 def plan_set(
     spec: SetSpec,
     level_unit: LevelUnit,
