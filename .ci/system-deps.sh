@@ -8,6 +8,9 @@
 #   xdotool               types keys and moves the pointer inside Xvfb like a participant would
 #   libasound2 ...        ALSA/PortAudio/JACK shared libraries so psychopy.sound imports (CI has no
 #                         sound card: the window then warns and runs without pink noise)
+#   gcc-arm-none-eabi ... the device firmware (firmware/): ARM cross-compiler + newlib, QEMU to
+#                         run the STM32 image, make + gcc for the host build; the conformance
+#                         tests fail under CI when these are missing
 set -euo pipefail
 
 packages=(
@@ -16,6 +19,7 @@ packages=(
     libxxf86vm1 libxi6 libxrandr2 libxinerama1 libxcursor1 libxext6 libxrender1 libxkbcommon0
     libfontconfig1 libfreetype6 fonts-dejavu-core
     libasound2 libportaudio2 libjack-jackd2-0 libsndfile1
+    gcc-arm-none-eabi libnewlib-arm-none-eabi qemu-system-arm make gcc
 )
 
 missing=()

@@ -35,8 +35,28 @@ class StaircaseError(MaskingLabError, ValueError):
     """Invalid staircase settings or a response given to a finished staircase."""
 
 
+class ProcedureError(StaircaseError):
+    """Invalid settings of an adaptive procedure other than the staircase (QUEST+, ...), or a
+    response given to a finished track. A :class:`StaircaseError`, so code that handles any
+    procedure's errors catches both."""
+
+
 class DeviceError(MaskingLabError):
     """The device failed: unplugged, timed out, sent garbage, or refused a command."""
+
+
+class DeviceTimeModeError(DeviceError):
+    """The device runs in the other time mode (virtual or real) than the session clock.
+
+    Attributes
+    ----------
+    device_virtual : bool
+        True if the device reported virtual time (HELLO ``vt=1``).
+    """
+
+    def __init__(self, message: str, *, device_virtual: bool) -> None:
+        super().__init__(message)
+        self.device_virtual = device_virtual
 
 
 class SafetyLimitError(DeviceError):

@@ -14,7 +14,11 @@ Two time modes:
   switched the output on (real onset jitter), and renders each trial's buffers with
   :mod:`masking_lab.core.waveforms` like a DAC would;
 - virtual time: PLAY completes at once and reports the planned onsets plus a small seeded
-  lateness, so a simulated study runs thousands of trials through the pty in seconds.
+  lateness (the documented xorshift32 generator, integer µs, identical to the C firmware's),
+  so a simulated study runs thousands of trials through the pty in seconds.
+
+It also models the interlock input (:meth:`FirmwareEmulator.set_interlock`) and answers the
+read-only ``DIAG`` command, like ``firmware/`` does.
 
 The host side of the same protocol is :mod:`masking_lab.device.serial_device`.
 """
@@ -27,61 +31,34 @@ import select
 import threading
 import time
 import tty
-from dataclasses import dataclass, field
 from pathlib import Path
 from types import MappingProxyType
 from typing import Any
 
-import numpy as np
-
 from masking_lab.core import waveforms
-from masking_lab.core.stimulus import CHANNELS, Stimulus
+from masking_lab.core.stimulus import CHANNELS
 from masking_lab.device import protocol as proto
-from masking_lab.device.base import TrialPlan
 from masking_lab.device.config import DeviceConfig, default_device_config
+from masking_lab.device.emulator_state import (
+    INTERLOCK_TEXT,
+    OnsetLateness,
+    OutputSnapshot,
+    PlayState,
+    channel,
+    check_frequency,
+    interlock_text,
+    plan_from,
+    to_us,
+    virtual_play,
+)
 
 FIRMWARE_VERSION = "emu-1.0.0"
 HARD_MAX_DRIVE_V = 10.0  # the DAC's range: no config can raise a limit above it
 BOOT_BANNER = b"\r\nML bootloader v0.3 ... starting application\r\n"
+__all__ = ["FirmwareEmulator", "OutputSnapshot"]
+
 FAULT_KINDS = ("garbage", "bad_crc", "mute", "unplug_on_play")
 _OUT_CAP = 1 << 16  # bytes queued for a host that is not reading before output is dropped
-
-
-@dataclass(frozen=True)
-class OutputSnapshot:
-    """What the emulated outputs are doing right now (thread-safe copy).
-
-    Attributes
-    ----------
-    amplitude_v : Mapping[str, float]
-        Peak drive currently output per channel, V (0 = silent).
-    playing : bool
-        True while a PLAY is scheduled or in progress.
-    last_sample_v : Mapping[str, float]
-        Final sample of the last rendered trial buffer per channel, V (real-time mode).
-    connected : bool
-        False after the port was closed (unplugged or emulator closed).
-    """
-
-    amplitude_v: MappingProxyType[str, float]
-    playing: bool
-    last_sample_v: MappingProxyType[str, float]
-    connected: bool
-
-    @property
-    def zero(self) -> bool:
-        """True when both outputs are at 0 V and nothing is scheduled."""
-        return not self.playing and all(v == 0.0 for v in self.amplitude_v.values())
-
-
-@dataclass
-class _Play:
-    seq: int
-    start: float  # device time of the trial start, s
-    plan: TrialPlan
-    planned: list[float]  # device-time onsets, s
-    steps: list[tuple[float, str, int]] = field(default_factory=list)  # (device t, on|off, k)
-    actual: list[float] = field(default_factory=list)
 
 
 class FirmwareEmulator:
@@ -100,11 +77,13 @@ class FirmwareEmulator:
         Imitate a board that resets when opened: for this long after start (and after
         :meth:`reset`) input is discarded, then a bootloader banner is sent.
     seed : int
-        Seed of the simulated onset lateness (virtual time).
+        Seed of the simulated onset lateness (virtual time; see :class:`OnsetLateness`).
     render_buffers : bool, optional
         Build each trial's sample buffers (default: in real-time mode only).
     log_path : str or Path, optional
         Also append the emulator's event log to this file (fsynced per line).
+    interlock_open : bool
+        Start with the interlock input open (HV enable off, E-stop pressed or wristband off).
     """
 
     def __init__(
@@ -117,6 +96,7 @@ class FirmwareEmulator:
         seed: int = 0,
         render_buffers: bool | None = None,
         log_path: str | Path | None = None,
+        interlock_open: bool = False,
     ) -> None:
         self.config = config or default_device_config()
         self.virtual_time = bool(virtual_time)
@@ -126,17 +106,19 @@ class FirmwareEmulator:
         self.limits = {
             ch: min(HARD_MAX_DRIVE_V, self.config.limits.max_drive_v[ch]) for ch in CHANNELS
         }
-        self._rng = np.random.default_rng(seed)
+        self._lateness = OnsetLateness(seed, round(self.config.emulator.onset_jitter_s * 1e6))
+        self._interlock_open = bool(interlock_open)
         self._lock = threading.Lock()
         self._log: list[str] = []
         self._log_file = open(log_path, "a", encoding="utf-8") if log_path else None  # noqa: SIM115
         self._t0 = time.perf_counter()
-        self._vt = 0.0
+        self._vt_us = 0  # virtual device clock, integer µs like the C firmware
         self._amp = dict.fromkeys(CHANNELS, 0.0)
         self._stream: dict[str, tuple[float, float | None]] = {}
         self._last_sample = dict.fromkeys(CHANNELS, 0.0)
-        self._play: _Play | None = None
+        self._play: PlayState | None = None
         self._faults: dict[str, int] = {}
+        self._wd_trips = 0
         self._event_no = 0
         self.commands_received = 0  # valid commands handled (tests: "nothing was sent")
         self._rx = bytearray()
@@ -183,7 +165,24 @@ class FirmwareEmulator:
                 self._play is not None,
                 MappingProxyType(dict(self._last_sample)),
                 self._connected,
+                self._interlock_open,
             )
+
+    def set_interlock(self, open: bool) -> None:
+        """Open (True) or close the interlock input; opening zeroes both outputs at once.
+
+        Each change is reported to the host as ``!n INTERLOCK state=open|closed``; while open,
+        PLAY, SETUP and AMP get ``ERR INTERLOCK``.
+        """
+        with self._lock:
+            if bool(open) == self._interlock_open:
+                return
+            self._interlock_open = bool(open)
+            state = interlock_text(open)
+            if open:
+                self._zero("interlock open", aborted_why="INTERLOCK")
+            self._note(f"INTERLOCK {state}")
+            self._send_event("INTERLOCK", {"state": state})
 
     def log_lines(self) -> list[str]:
         """The emulator's event log so far: ``"<device s> <EVENT> details"`` lines."""
@@ -339,6 +338,7 @@ class FirmwareEmulator:
             if self._armed() and self.watchdog_s > 0 and now - self._last_rx > self.watchdog_s:
                 quiet_ms = round((now - self._last_rx) * 1000)
                 self._note(f"WATCHDOG host quiet for {quiet_ms} ms: outputs zeroed")
+                self._wd_trips += 1
                 self._zero("watchdog", aborted_why="WATCHDOG")
                 self._send_event("WATCHDOG", {"quiet_ms": quiet_ms})
 
@@ -370,20 +370,12 @@ class FirmwareEmulator:
         self._zero("HELLO (new host session)")
         emu = self.config.emulator
         self._note(f"HELLO from host #{frame.seq}")
-        self._ok(
-            frame.seq,
-            {
-                "proto": proto.PROTOCOL_VERSION,
-                "fw": FIRMWARE_VERSION,
-                "model": emu.model.replace(" ", "_"),
-                "sn": emu.serial_number.replace(" ", "_"),
-                "max_ev": self.limits["EV"],
-                "max_mv": self.limits["MV"],
-                "wd_ms": round(self.watchdog_s * 1000),
-                "fs": self.config.waveform.sample_rate_hz,
-                "vt": int(self.virtual_time),
-            },
-        )
+        fields = {"proto": proto.PROTOCOL_VERSION, "fw": FIRMWARE_VERSION}
+        fields.update(model=emu.model.replace(" ", "_"), sn=emu.serial_number.replace(" ", "_"))
+        fields.update(max_ev=self.limits["EV"], max_mv=self.limits["MV"])
+        fields.update(wd_ms=round(self.watchdog_s * 1000), fs=self.config.waveform.sample_rate_hz)
+        fields.update(vt=int(self.virtual_time), il=interlock_text(self._interlock_open))
+        self._ok(frame.seq, fields)
 
     def _cmd_time(self, frame: proto.Frame) -> None:
         self._ok(frame.seq, {"t": self._device_now()})
@@ -391,15 +383,29 @@ class FirmwareEmulator:
     def _cmd_ping(self, frame: proto.Frame) -> None:
         self._ok(frame.seq, {"t": self._device_now()})
 
+    def _cmd_diag(self, frame: proto.Frame) -> None:
+        fields = {"ev": self._amp["EV"], "mv": self._amp["MV"], "playing": int(bool(self._play))}
+        fields.update(il=interlock_text(self._interlock_open), dac_ev=self._last_sample["EV"])
+        fields.update(dac_mv=self._last_sample["MV"], wd=self._wd_trips, t=self._device_now())
+        self._ok(frame.seq, fields)
+
+    def _interlocked(self, frame: proto.Frame) -> bool:
+        if not self._interlock_open:
+            return False
+        self._err(frame.seq, "INTERLOCK", INTERLOCK_TEXT)
+        return True
+
     def _cmd_stop(self, frame: proto.Frame) -> None:
         self._zero("STOP", aborted_why="STOP")
         self._note(f"STOP #{frame.seq}: outputs zeroed")
         self._ok(frame.seq)
 
     def _cmd_setup(self, frame: proto.Frame) -> None:
-        ch = self._channel(frame, "ch")
+        if self._interlocked(frame):
+            return
+        ch = channel(frame, "ch")
         carrier, env, amp = frame.number("car"), frame.number("env"), frame.number("amp")
-        self._check_frequency(carrier, env)
+        check_frequency(carrier, env, self.config.waveform.sample_rate_hz)
         if self._play is not None:
             self._err(frame.seq, "BUSY", "SETUP while a trial is playing")
             return
@@ -410,7 +416,9 @@ class FirmwareEmulator:
         self._ok(frame.seq)
 
     def _cmd_amp(self, frame: proto.Frame) -> None:
-        ch = self._channel(frame, "ch")
+        if self._interlocked(frame):
+            return
+        ch = channel(frame, "ch")
         amp = frame.number("amp")
         if self._play is not None:
             self._err(frame.seq, "BUSY", "AMP while a trial is playing")
@@ -424,10 +432,12 @@ class FirmwareEmulator:
         self._ok(frame.seq)
 
     def _cmd_play(self, frame: proto.Frame) -> None:
+        if self._interlocked(frame):
+            return
         if self._play is not None:
             self._err(frame.seq, "BUSY", "PLAY while a trial is playing")
             return
-        plan = self._plan_from(frame)
+        plan = plan_from(frame, self.config.waveform.sample_rate_hz)
         amps = {ch: 0.0 for ch in CHANNELS}
         amps[plan.target.channel] += plan.target_amplitude_v
         if plan.masker is not None:
@@ -439,28 +449,28 @@ class FirmwareEmulator:
         self._stream.clear()
         self._amp = dict.fromkeys(CHANNELS, 0.0)
         at = frame.number("at")
+        if self.virtual_time:  # integer µs, so the onsets match the C firmware to the digit
+            start_us = max(to_us(at), self._vt_us)
+            self._ok(frame.seq, {"start": start_us / 1e6})
+            onsets_us, end_us = virtual_play(plan, start_us, self._lateness)
+            self._vt_us = max(self._vt_us, end_us)
+            if self._take_fault("unplug_on_play"):
+                self._unplug_locked("unplug injected during PLAY")
+                return
+            play = PlayState(frame.seq, start_us / 1e6, plan, [], actual=[])
+            play.actual = [t / 1e6 for t in onsets_us]
+            self._send_done(play, end_us / 1e6)
+            return
         now = self._device_now()
         start = max(at, now)
         planned = plan.planned_onsets_s(start)
-        play = _Play(frame.seq, start, plan, planned)
+        play = PlayState(frame.seq, start, plan, planned)
         if self.render_buffers:
             bufs = waveforms.trial_buffers(
                 plan, self.config.waveform.sample_rate_hz, ramp_s=self.config.waveform.ramp_s
             )
             self._last_sample = {ch: float(bufs.channel(ch)[-1]) for ch in CHANNELS}
         self._ok(frame.seq, {"start": start})
-        if self.virtual_time:
-            sd = self.config.emulator.onset_jitter_s
-            late = (
-                np.abs(self._rng.normal(0.0, sd, len(planned))) if sd > 0 else [0.0] * len(planned)
-            )
-            play.actual = [t + float(d) for t, d in zip(planned, late, strict=False)]
-            self._vt = max(self._vt, start + plan.duration_s)
-            if self._take_fault("unplug_on_play"):
-                self._unplug_locked("unplug injected during PLAY")
-                return
-            self._send_done(play, start + plan.duration_s)
-            return
         for k, onset in enumerate(planned):
             play.steps.append((onset, "on", k))
             play.steps.append((onset + plan.stimulus_s, "off", k))
@@ -486,61 +496,13 @@ class FirmwareEmulator:
                 self._play = None
                 self._send_done(play, self._device_now())
 
-    def _send_done(self, play: _Play, end: float) -> None:
+    def _send_done(self, play: PlayState, end: float) -> None:
         plan = play.plan
-        self._send_event(
-            "DONE",
-            {
-                "seq": play.seq,
-                "on": play.actual,
-                "end": end,
-                "tamp": plan.target_amplitude_v,
-                "mamp": plan.masker_amplitude_v,
-            },
-        )
+        fields = {"seq": play.seq, "on": play.actual, "end": end}
+        fields.update(tamp=plan.target_amplitude_v, mamp=plan.masker_amplitude_v)
+        self._send_event("DONE", fields)
 
     # ---------------------------------------------------------------- helpers (lock held)
-
-    def _plan_from(self, frame: proto.Frame) -> TrialPlan:
-        target = Stimulus(
-            self._channel(frame, "tch"), frame.number("tcar"), frame.number("tenv") or None
-        )
-        self._check_frequency(target.carrier_hz, target.envelope_hz)
-        masker = None
-        if frame.fields.get("mch", "-") != "-":
-            masker = Stimulus(
-                self._channel(frame, "mch"), frame.number("mcar"), frame.number("menv") or None
-            )
-            self._check_frequency(masker.carrier_hz, masker.envelope_hz)
-        n = int(frame.number("n"))
-        ti = int(frame.number("ti"))
-        if not 1 <= ti <= n or n > 9:
-            raise ValueError(f"ti={ti} n={n}: need 1 <= ti <= n <= 9")
-        plan = TrialPlan(
-            target=target,
-            target_amplitude_v=frame.number("tamp"),
-            target_interval=ti,
-            masker=masker,
-            masker_amplitude_v=frame.number("mamp") if masker is not None else 0.0,
-            stimulus_s=frame.number("stim"),
-            gap_s=frame.number("gap"),
-            lead_in_s=frame.number("lead"),
-            n_intervals=n,
-        )
-        if plan.stimulus_s <= 0 or plan.gap_s < 0 or plan.lead_in_s < 0 or plan.duration_s > 60:
-            raise ValueError("durations must be stim > 0, gap >= 0, lead >= 0, trial <= 60 s")
-        return plan
-
-    def _channel(self, frame: proto.Frame, key: str) -> str:
-        ch = frame.fields.get(key)
-        if ch not in CHANNELS:
-            raise ValueError(f"{key}={ch!r} is not EV or MV")
-        return ch
-
-    def _check_frequency(self, carrier: float, env: float | None) -> None:
-        nyquist = self.config.waveform.sample_rate_hz / 2
-        if not 0 < carrier < nyquist or (env is not None and not 0 <= env < nyquist):
-            raise ValueError(f"frequencies must be in (0, {nyquist:g}) Hz")
 
     def _within_limit(self, seq: int, ch: str, amp: float) -> bool:
         if 0 <= amp <= self.limits[ch]:
@@ -553,7 +515,7 @@ class FirmwareEmulator:
         return self._play is not None or any(v > 0 for v in self._amp.values())
 
     def _device_now(self) -> float:
-        return self._vt if self.virtual_time else time.perf_counter() - self._t0
+        return self._vt_us / 1e6 if self.virtual_time else time.perf_counter() - self._t0
 
     def _zero(self, why: str, aborted_why: str | None = None) -> None:
         if self._play is not None and aborted_why is not None:

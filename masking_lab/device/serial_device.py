@@ -28,20 +28,20 @@ from masking_lab.core.clock import Clock, RealClock
 from masking_lab.core.errors import (
     DeviceDisconnectedError,
     DeviceError,
-    DeviceFaultError,
     DeviceProtocolError,
+    DeviceTimeModeError,
     DeviceTimeoutError,
     SafetyLimitError,
 )
 from masking_lab.core.stimulus import Channel, Stimulus
 from masking_lab.device import protocol as proto
-from masking_lab.device import safety
+from masking_lab.device import safety, serial_faults
 from masking_lab.device.base import DeviceIdentity, DeviceLimits, PlayResult, TrialPlan
 from masking_lab.device.config import DeviceConfig, default_device_config
 
 log = logging.getLogger("masking_lab.device")
 
-RESUME_HINT = "then `masking-lab resume LOG` to continue the session"
+RESUME_HINT = serial_faults.RESUME_HINT
 _AMP_TOLERANCE_V = 2e-6  # amplitudes travel with 6 decimals
 
 
@@ -359,10 +359,13 @@ class SerialDevice:
         if virtual != self.clock.virtual:
             mode = "virtual" if virtual else "real"
             want = "a virtual clock (simulation)" if virtual else "a real clock"
-            raise DeviceError(
+            raise DeviceTimeModeError(
                 f"device on {self.port} runs in {mode} time and needs {want}; start the emulator "
-                f"{'without' if virtual else 'with'} --virtual-time, or switch the session clock"
+                f"{'without' if virtual else 'with'} --virtual-time, or switch the session clock",
+                device_virtual=virtual,
             )
+        if hello.fields.get("il") == "open":
+            raise serial_faults.interlock_error(self.port, "at HELLO (session not started)")
         self.watchdog_s = wd_ms / 1000.0
         limits = safety.stricter_limits(self.config.limits, DeviceLimits(fw_limits))
         return DeviceIdentity(
@@ -438,59 +441,18 @@ class SerialDevice:
             return
         if events == "ignore":
             return
-        if frame.name == "WATCHDOG":
-            exc: DeviceError = DeviceFaultError(
-                f"device on {self.port} watchdog tripped: the host was quiet for "
-                f"{frame.fields.get('quiet_ms', '?')} ms while an output was on, so the firmware "
-                f"zeroed both outputs. Keep the host responsive (or call keepalive()); "
-                f"{RESUME_HINT}"
-            )
-        elif frame.name == "FAULT":
-            exc = DeviceFaultError(
-                f"device on {self.port} received a corrupted command (FAULT "
-                f"{frame.fields.get('code', '?')}) and zeroed both outputs: check the cable and "
-                f"for electrical noise near it; {RESUME_HINT}"
-            )
-        elif frame.name == "BOOT":
-            exc = DeviceFaultError(
-                f"device on {self.port} rebooted (power dip or reset); its outputs are zero and "
-                f"its clock restarted: check the power supply, {RESUME_HINT}"
-            )
-        else:
-            return  # an event from a newer firmware: harmless to ignore
-        exc.kind = {"WATCHDOG": "watchdog", "FAULT": "device_fault", "BOOT": "rebooted"}[frame.name]  # type: ignore[attr-defined]  # the runner logs it as the fault's kind
+        exc = serial_faults.event_error(self.port, frame)
+        if exc is None:
+            return
         self._record(exc)
         if events == "raise":
             raise exc
 
     def _abort_error(self, seq: int, frame: proto.Frame) -> DeviceError:
-        """The error for a trial the firmware aborted; a watchdog abort reads like the trip.
-
-        The firmware aborts the playing trial before it reports the trip itself, so which of
-        the two events the host sees first is a race: both must give the same fault.
-        """
-        why = frame.fields.get("why", "?")
-        if why == "WATCHDOG":
-            exc: DeviceError = DeviceFaultError(
-                f"device on {self.port} watchdog tripped during trial PLAY #{seq}: the host was "
-                "quiet too long while an output was on, so the firmware zeroed both outputs. "
-                f"Keep the host responsive; {RESUME_HINT}"
-            )
-            exc.kind = "watchdog"  # type: ignore[attr-defined]  # logged as the fault's kind
-            return exc
-        return DeviceFaultError(
-            f"device on {self.port} aborted trial PLAY #{seq} ({why}); outputs zeroed. "
-            f"Check the rig, {RESUME_HINT}"
-        )
+        return serial_faults.abort_error(self.port, seq, frame)
 
     def _refusal(self, name: str, frame: proto.Frame) -> DeviceError:
-        text = f"device on {self.port} refused {name} #{frame.seq}: {frame.code} {frame.text}"
-        if frame.code == "LIMIT":
-            return SafetyLimitError(
-                f"{text}; the firmware's limit is stricter than the host's and it zeroed both "
-                "outputs: lower the level or align channels.*.max_drive_v with the firmware"
-            )
-        return DeviceError(f"{text}; both outputs were zeroed")
+        return serial_faults.refusal_error(self.port, name, frame)
 
     def _read_frame(
         self, deadline: float, what: str, *, wait_s: float = 0.0, quiet: bool = False

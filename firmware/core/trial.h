@@ -1,0 +1,48 @@
+/* One three-interval (n-interval) trial: its plan, schedule and samples. */
+#ifndef ML_TRIAL_H
+#define ML_TRIAL_H
+
+#include <stdbool.h>
+#include <stdint.h>
+
+#include "synth.h"
+
+#define TRIAL_MAX_INTERVALS 9
+#define TRIAL_MAX_DURATION_US (60LL * 1000000LL)
+
+enum { CH_EV = 0, CH_MV = 1, CH_COUNT = 2 };
+
+typedef struct {
+    int ch;               /* CH_EV / CH_MV; -1 = no masker */
+    int64_t carrier_uhz;
+    int64_t envelope_uhz; /* 0 = none */
+    int64_t amp_uv;
+} part_t;
+
+typedef struct {
+    uint16_t seq;                  /* of the PLAY */
+    part_t target, masker;
+    int ti, n;                     /* target interval 1..n, number of intervals */
+    int64_t stim_us, gap_us, lead_us;
+    int64_t start_us;              /* device time of the trial start */
+    int64_t planned_us[TRIAL_MAX_INTERVALS];
+    int64_t actual_us[TRIAL_MAX_INTERVALS];
+    int step;                      /* next step: 2k = onset of interval k, 2k+1 = its offset */
+    tone_t target_tone, masker_tone;
+} trial_t;
+
+int64_t trial_duration_us(const trial_t *t);
+
+/* Planned onsets from start_us: start + lead + k*(stim + gap). */
+void trial_schedule(trial_t *t, int64_t start_us);
+
+/* Device time of step `step` (onset or offset). */
+int64_t trial_step_time(const trial_t *t, int step);
+
+/* Prepare the tones for rendering (scans each tone once to find its peak). */
+void trial_prepare_tones(trial_t *t, uint32_t fs_hz, uint32_t ramp_us);
+
+/* Drive of both channels (V) at device time t_us; tones add when they share a channel. */
+void trial_render(const trial_t *t, int64_t t_us, uint32_t fs_hz, float out[CH_COUNT]);
+
+#endif

@@ -1,0 +1,249 @@
+"""One conformance suite for every implementation of docs/device-protocol.md.
+
+The same tests run against the Python emulator, the C firmware built for the host and the
+STM32 image under QEMU (netduinoplus2), raw frames first and then through ``SerialDevice``.
+Timing is checked on device-reported times, never host wall time (QEMU runs on ``-icount``).
+"""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+from firmware_support import TARGETS, Link, rig_config, start
+
+from masking_lab.core.clock import RealClock
+from masking_lab.core.errors import DeviceFaultError, SafetyLimitError
+from masking_lab.core.stimulus import Stimulus
+from masking_lab.device import protocol as proto
+from masking_lab.device.base import TrialPlan
+from masking_lab.device.serial_device import SerialDevice
+
+PLAY = {
+    "tch": "EV",
+    "tcar": 270.0,
+    "tenv": 0.0,
+    "tamp": 0.5,
+    "ti": 2,
+    "mch": "MV",
+    "mcar": 120.0,
+    "menv": 0.0,
+    "mamp": 0.3,
+    "stim": 0.05,
+    "gap": 0.03,
+    "lead": 0.02,
+    "n": 3,
+}
+# how late a scheduler-timed onset may be reported (device clock), s
+LATE_S = {"emulator": 0.02, "host": 0.02, "qemu": 0.05}
+
+
+@pytest.fixture(params=TARGETS)
+def device(request):
+    dev = start(request.param)
+    yield dev
+    dev.close()
+
+
+@pytest.fixture
+def link(device):
+    ln = Link(device.port)
+    yield ln
+    ln.close()
+
+
+def assert_zero(link: Link) -> proto.Frame:
+    diag = link.call("DIAG")
+    assert diag.ok, diag
+    assert (diag.number("ev"), diag.number("mv"), diag.fields["playing"]) == (0, 0, "0"), diag
+    assert (diag.number("dac_ev"), diag.number("dac_mv")) == (0, 0), diag
+    return diag
+
+
+def test_handshake_reports_identity_limits_and_modes(device, link):
+    hello = link.call("HELLO")
+    assert hello.ok
+    f = hello.fields
+    assert set(f) >= {"proto", "fw", "model", "sn", "max_ev", "max_mv", "wd_ms", "fs", "vt", "il"}
+    assert f["proto"] == "1" and f["vt"] == "0" and f["il"] == "closed"
+    assert hello.number("max_ev") > 0 and hello.number("max_mv") > 0
+    assert hello.number("wd_ms") > 0 and hello.number("fs") >= 1000
+    assert link.call("TIME").number("t") >= 0
+    assert_zero(link)
+
+
+def test_device_refuses_over_limit_and_zeroes(device, link):
+    hello = link.call("HELLO")
+    max_ev, max_mv = hello.number("max_ev"), hello.number("max_mv")
+    assert link.call("SETUP", ch="MV", car=120.0, env=0.0, amp=0.2).ok
+    err = link.call("SETUP", ch="EV", car=270.0, env=0.0, amp=max_ev + 0.5)
+    assert (err.name, err.code) == ("ERR", "LIMIT") and "limit" in err.text
+    assert_zero(link)  # the MV stream stopped too: every ERR zeroes both outputs
+    # the drives of target and masker on one channel add up
+    half = max_mv / 2 + 0.1
+    err = link.call("PLAY", at=0, **dict(PLAY, tch="MV", tamp=half, mamp=half))
+    assert err.code == "LIMIT"
+    assert link.call("PLAY", at=0, **dict(PLAY, tamp=-0.1)).code == "LIMIT"
+    assert_zero(link)
+
+
+@pytest.mark.parametrize(
+    ("name", "fields", "code"),
+    [
+        ("FOO", {}, "UNKNOWN"),
+        ("SETUP", {"ch": "XX", "car": 270, "env": 0, "amp": 0.1}, "ARGS"),
+        ("SETUP", {"ch": "EV", "car": 50000, "env": 0, "amp": 0.1}, "ARGS"),
+        ("AMP", {"ch": "EV", "amp": 0.1}, "STATE"),
+        ("PLAY", dict(PLAY, ti=4, at=0), "ARGS"),
+        ("PLAY", dict(PLAY, stim=0, at=0), "ARGS"),
+    ],
+)
+def test_bad_commands_get_the_same_error_codes(device, link, name, fields, code):
+    reply = link.call(name, **fields)
+    assert (reply.name, reply.code) == ("ERR", code)
+    assert_zero(link)
+
+
+def test_play_reports_onsets_on_the_device_clock(device, link):
+    t = link.call("TIME").number("t")
+    at = t + 0.1
+    seq = link.send("PLAY", at=at, **PLAY)
+    assert link.reply(seq).number("start") == pytest.approx(at, abs=1e-6)
+    done = link.event("DONE", timeout=10, keepalive=True)
+    assert done.number("seq") == seq
+    planned = [at + 0.02 + k * 0.08 for k in range(3)]  # at + lead + k·(stim + gap)
+    for actual, plan in zip(done.numbers("on"), planned, strict=True):
+        assert 0 <= actual - plan < LATE_S[device.name], (done.numbers("on"), planned)
+    assert done.number("end") >= at + 0.02 + 3 * 0.05 + 2 * 0.03 - 1e-6
+    assert (done.number("tamp"), done.number("mamp")) == (0.5, 0.3)
+    assert_zero(link)  # a trial rests on 0 V when it ends
+
+
+def test_stop_mid_trial_aborts_and_zeroes(device, link):
+    t = link.call("TIME").number("t")
+    seq = link.send("PLAY", at=t, **dict(PLAY, stim=3.0, lead=0.0))
+    assert link.reply(seq).ok
+    deadline = time.monotonic() + 5
+    while link.call("DIAG").number("mv") != 0.3:  # the masker plays in interval 1
+        assert time.monotonic() < deadline
+    assert link.call("STOP").ok
+    aborted = link.event("ABORTED")
+    assert (aborted.number("seq"), aborted.fields["why"]) == (seq, "STOP")
+    assert_zero(link)
+
+
+@pytest.mark.parametrize("garbage", [b"noise\n", b"1 PING*0000\n", b"x" * 300 + b"\n"])
+def test_garbage_and_bad_checksums_fault_and_zero(device, link, garbage):
+    assert link.call("SETUP", ch="EV", car=270.0, env=0.0, amp=0.4).ok
+    assert link.call("DIAG").number("ev") == 0.4
+    link.ser.write(garbage)
+    assert link.event("FAULT").fields["code"] == "FRAME"
+    assert_zero(link)
+
+
+def test_streaming_setup_then_amp(device, link):
+    assert link.call("SETUP", ch="MV", car=120.0, env=0.0, amp=0.25).ok
+    assert link.call("AMP", ch="MV", amp=0.5).ok
+    diag = link.call("DIAG")
+    assert (diag.number("ev"), diag.number("mv")) == (0, 0.5)
+    assert link.call("STOP").ok
+    assert_zero(link)
+
+
+def test_interlock_open_refuses_output_and_is_reported(device, link):
+    assert link.call("SETUP", ch="EV", car=270.0, env=0.0, amp=0.4).ok
+    device.set_interlock(True)
+    assert link.event("INTERLOCK").fields["state"] == "open"
+    diag = assert_zero(link)
+    assert diag.fields["il"] == "open"
+    for name, fields in [
+        ("PLAY", dict(PLAY, at=0)),
+        ("SETUP", {"ch": "EV", "car": 270.0, "env": 0.0, "amp": 0.1}),
+        ("AMP", {"ch": "EV", "amp": 0.1}),
+    ]:
+        reply = link.call(name, **fields)
+        assert (reply.name, reply.code) == ("ERR", "INTERLOCK"), reply
+        assert "wristband" in reply.text
+    assert link.call("HELLO").fields["il"] == "open"
+    device.set_interlock(False)
+    assert link.event("INTERLOCK").fields["state"] == "closed"
+    assert link.call("SETUP", ch="EV", car=270.0, env=0.0, amp=0.1).ok
+
+
+def test_watchdog_zeroes_when_the_host_goes_quiet(device, link):
+    wd_ms = link.call("HELLO").number("wd_ms")
+    sent = time.monotonic()
+    assert link.call("SETUP", ch="EV", car=270.0, env=0.0, amp=0.4).ok
+    trip = link.event("WATCHDOG", timeout=wd_ms / 1000 * 4 + 2)
+    waited_ms = (time.monotonic() - sent) * 1000
+    quiet_ms = trip.number("quiet_ms")
+    # the device counts from the last valid command; it trips after one period, promptly
+    assert wd_ms <= quiet_ms <= wd_ms + 30, trip
+    print(
+        f"\n{device.name}: watchdog {wd_ms:g} ms, tripped at quiet_ms={quiet_ms:g} "
+        f"(host saw the event {waited_ms:.0f} ms after the command)"
+    )
+    diag = assert_zero(link)
+    assert diag.number("wd") == 1
+
+
+# ------------------------------------------------------------------ through SerialDevice
+
+
+@pytest.fixture
+def serial_device(device):
+    dev = SerialDevice(device.port, rig_config(), RealClock(), backend="serial")
+    yield dev
+    dev.close()
+
+
+def _plan(amp_v: float = 0.5) -> TrialPlan:
+    return TrialPlan(
+        target=Stimulus("EV", 270.0),
+        target_amplitude_v=amp_v,
+        target_interval=2,
+        masker=Stimulus("MV", 120.0),
+        masker_amplitude_v=0.3,
+        stimulus_s=0.05,
+        gap_s=0.03,
+        lead_in_s=0.02,
+    )
+
+
+def test_serial_device_plays_trials_and_streams(device, serial_device):
+    dev = serial_device
+    assert dev.identity.limits.max_drive_v["EV"] <= 2.5
+    start = dev.clock.now() + 0.1
+    result = dev.play_trial(_plan(), start)
+    for actual, plan in zip(result.actual_onsets_s, result.planned_onsets_s, strict=True):
+        assert abs(actual - plan) < LATE_S[device.name] + 0.01  # offset estimate included
+    assert (result.played_target_v, result.played_masker_v) == (0.5, 0.3)
+    dev.set_amplitude("MV", Stimulus("MV", 120.0), 0.2)
+    dev.set_amplitude("MV", Stimulus("MV", 120.0), 0.4)
+    assert dev._command("DIAG").number("mv") == 0.4
+    dev.stop()
+    assert dev._command("DIAG").number("mv") == 0
+
+
+def test_serial_device_refuses_over_limit_before_sending(device, serial_device):
+    limit = serial_device.identity.limits.max_drive_v["EV"]
+    with pytest.raises(SafetyLimitError):
+        serial_device.play_trial(_plan(limit + 0.1), serial_device.clock.now())
+    with pytest.raises(SafetyLimitError):
+        serial_device.set_amplitude("EV", Stimulus("EV", 270.0), limit * 2)
+    assert serial_device._command("DIAG").fields["playing"] == "0"
+
+
+def test_serial_device_reports_an_open_interlock(device):
+    device.set_interlock(True)
+    time.sleep(0.1)
+    with pytest.raises(DeviceFaultError, match=r"HV amplifier is enabled.*wristband") as info:
+        SerialDevice(device.port, rig_config(), RealClock())
+    assert info.value.kind == "interlock"
+    device.set_interlock(False)
+    time.sleep(0.1)
+    with SerialDevice(device.port, rig_config(), RealClock()) as dev:
+        device.set_interlock(True)
+        with pytest.raises(DeviceFaultError) as info:
+            dev.play_trial(_plan(), dev.clock.now() + 0.05)
+        assert info.value.kind == "interlock"
