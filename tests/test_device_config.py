@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import pytest
 
 from masking_lab.core.errors import DeviceConfigError, ProtocolError
@@ -72,7 +74,8 @@ BAD = {
     "missing_limit": (
         ("  MV: {max_drive_v: 8}", "  MV: {}"),
         "channels.MV (line 5)",
-        "missing required key 'max_drive_v'",
+        "missing required key 'max_drive_v' (peak V at the board output); or give "
+        "amplifier.max_input_v",
     ),
     "missing_channel": (("  MV: {max_drive_v: 8}\n", ""), "channels (line 3)", "'MV'"),
     "above_dac_range": (
@@ -102,9 +105,72 @@ BAD = {
         "must not exceed serial.boot_timeout_s",
     ),
     "same_ao_line": (
-        (GOOD, GOOD + "nidaq: {ao_channels: {EV: ao0, MV: ao0}}\n"),
-        "nidaq.ao_channels",
-        "different outputs",
+        (GOOD, GOOD + "nidaq: {channels: {EV: cDAQ1Mod1/ao0, MV: cDAQ1Mod1/ao0}}\n"),
+        "nidaq.channels (line 13)",
+        "its own analog output",
+    ),
+    "old_ao_channels_key": (
+        (GOOD, GOOD + "nidaq: {device: cDAQ1Mod1, ao_channels: {EV: ao0, MV: ao1}}\n"),
+        "nidaq.ao_channels (line 13)",
+        "replaced by nidaq.channels",
+    ),
+    "line_without_device": (
+        (GOOD, GOOD + "nidaq: {channels: {EV: ao0, MV: cDAQ1Mod2/ao0}}\n"),
+        "nidaq.channels.EV (line 13)",
+        "write DEVICE/aoN",
+    ),
+    "nan_limit": (
+        ("max_drive_v: 2.5", "max_drive_v: .nan"),
+        "channels.EV.max_drive_v (line 4)",
+        "not a finite number",
+    ),
+    "infinite_gain": (
+        (
+            GOOD,
+            GOOD.replace(
+                "MV: {max_drive_v: 8}", "MV: {max_drive_v: 8, amplifier: {model: X, gain_db: .inf}}"
+            ),
+        ),
+        "channels.MV.amplifier.gain_db (line 5)",
+        "not a finite number",
+    ),
+    "limit_above_amplifier_input": (
+        (
+            "MV: {max_drive_v: 8}",
+            "MV: {max_drive_v: 8, amplifier: {model: TI DRV8662, max_input_v: 1.8}}",
+        ),
+        "channels.MV.max_drive_v (line 5)",
+        "8 V at the input of the TI DRV8662 exceeds its max_input_v of 1.8 V; lower max_drive_v "
+        "to at most 1.8 V",
+    ),
+    "limit_above_amplifier_input_through_attenuator": (
+        (
+            "MV: {max_drive_v: 8}",
+            "MV: {max_drive_v: 8, amplifier: {model: A, max_input_v: 1.8},"
+            " attenuator: {model: divider, ratio: 0.5}}",
+        ),
+        "channels.MV.max_drive_v (line 5)",
+        "attenuator ratio 0.5 = 4 V at the input of the A exceeds its max_input_v of 1.8 V; "
+        "lower max_drive_v to at most 3.6 V",
+    ),
+    "attenuator_gain_above_one": (
+        ("MV: {max_drive_v: 8}", "MV: {max_drive_v: 8, attenuator: {model: amp, ratio: 2}}"),
+        "channels.MV.attenuator.ratio (line 5)",
+        "ratio 2 is not in (0, 1]",
+    ),
+    "no_limit_and_no_amplifier_input": (
+        ("MV: {max_drive_v: 8}", "MV: {amplifier: {model: A}}"),
+        "channels.MV (line 5)",
+        "missing required key 'max_drive_v'",
+    ),
+    "same_carrier_measured_twice": (
+        (
+            "MV: {max_drive_v: 8}",
+            "MV: {max_drive_v: 8, measured_gain: [{frequency_hz: 120, v_out_per_v_in: 50},"
+            " {frequency_hz: 120, v_out_per_v_in: 51}]}",
+        ),
+        "channels.MV.measured_gain[1].frequency_hz (line 5)",
+        "120 Hz is measured twice",
     ),
     "bad_yaml": (("name: test-rig", "name: [unclosed"), "line", "malformed YAML"),
     "python_tag": (
@@ -133,3 +199,89 @@ def test_malformed_config_names_file_key_and_line(tmp_path, case):
 def test_unreadable_file(tmp_path):
     with pytest.raises(DeviceConfigError, match="cannot read the device config"):
         load_device_config(tmp_path / "missing.yaml")
+
+
+RIG = """\
+schema_version: 1
+name: rig-with-record
+channels:
+  EV:
+    max_drive_v: 2.0
+    amplifier: {model: HV amp, gain_db: 40}
+    transducer: touch panel
+    measured_gain:
+      - {frequency_hz: 270, v_out_per_v_in: 98.5}
+  MV:
+    amplifier: {model: TI DRV8662, gain_db: 40.7, max_input_v: 1.8, setting: GAIN1=1 GAIN0=1}
+    attenuator: {model: 2:1 divider, ratio: 0.5}
+    transducer: 4 piezo actuators
+    measured_gain:
+      - {frequency_hz: 270, v_out_per_v_in: 40.0}
+      - {frequency_hz: 120, v_out_per_v_in: 52.0}
+"""
+
+
+def test_reference_rig_limits_match_the_papers_parts():
+    cfg = load_device_config()
+    # TI DRV8662: every gain setting reaches its full output from a 1.8 V peak input.
+    assert cfg.limits.max_drive_v["MV"] == 1.8
+    mv = cfg.rig["MV"]
+    assert mv.amplifier is not None and mv.amplifier.model == "Texas Instruments DRV8662"
+    assert (mv.amplifier.gain_db, mv.amplifier.max_input_v) == (40.7, 1.8)
+    assert "SQV 3/500" in cfg.rig["EV"].amplifier.model
+    assert cfg.nidaq.channels == {"EV": "cDAQ1Mod1/ao0", "MV": "cDAQ1Mod2/ao0"}
+    assert cfg.nidaq.watchdog_s > 0
+
+
+def test_attenuator_scales_the_derived_board_limit(tmp_path):
+    cfg = load_device_config(write(tmp_path, RIG))
+    # No max_drive_v for MV: 1.8 V at the driver input through a 0.5 divider is 3.6 V out.
+    assert cfg.limits.max_drive_v == {"EV": 2.0, "MV": 3.6}
+
+
+def test_derived_limit_never_exceeds_the_board_range(tmp_path):
+    text = RIG.replace("ratio: 0.5", "ratio: 0.1")
+    assert load_device_config(write(tmp_path, text)).limits.max_drive_v["MV"] == 10.0
+
+
+def test_rig_record_is_plain_json_with_every_field(tmp_path):
+    record = load_device_config(write(tmp_path, RIG)).rig_record()
+    assert json.loads(json.dumps(record)) == record
+    assert record["name"] == "rig-with-record" and record["config"].endswith("rig.yaml")
+    ev, mv = record["channels"]["EV"], record["channels"]["MV"]
+    assert ev == {
+        "max_drive_v": 2.0,
+        "amplifier": {
+            "model": "HV amp",
+            "gain_db": 40.0,
+            "gain_v_per_v": 100.0,
+            "max_input_v": None,
+            "setting": "",
+        },
+        "attenuator": None,
+        "transducer": "touch panel",
+        "measured_gain": [{"frequency_hz": 270.0, "v_out_per_v_in": 98.5}],
+    }
+    assert mv["max_drive_v"] == 3.6
+    assert mv["attenuator"] == {"model": "2:1 divider", "ratio": 0.5}
+    assert mv["amplifier"]["gain_v_per_v"] == pytest.approx(108.39, abs=0.01)
+    assert mv["amplifier"]["setting"] == "GAIN1=1 GAIN0=1"
+    # Sorted by carrier frequency.
+    assert [p["frequency_hz"] for p in mv["measured_gain"]] == [120.0, 270.0]
+
+
+def test_rig_record_without_rig_fields_still_has_every_key(tmp_path):
+    cfg = load_device_config(
+        write(
+            tmp_path,
+            "schema_version: 1\nchannels:\n  EV: {max_drive_v: 1}\n  MV: {max_drive_v: 1}\n",
+        )
+    )
+    channel = cfg.rig_record()["channels"]["EV"]
+    assert channel == {
+        "max_drive_v": 1.0,
+        "amplifier": None,
+        "attenuator": None,
+        "transducer": "",
+        "measured_gain": [],
+    }

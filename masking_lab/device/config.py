@@ -8,18 +8,20 @@ the file, the key path and its line.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+import math
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from masking_lab.device.base import DeviceLimits
 from masking_lab.core.errors import DeviceConfigError, ProtocolError
+from masking_lab.device.base import DeviceLimits
 from masking_lab.formats.protocol import _describe, _safe_yaml, _where
 from masking_lab.formats.resources import shipped
 from masking_lab.formats.schemas import key_path, load_schema, schema_errors
 
 DEFAULT_CONFIG = "protocols/devices/default.yaml"
+BOARD_MAX_V = 10.0  # the NI 9264 and the firmware boards put out at most ±10 V
 
 
 @dataclass(frozen=True)
@@ -63,10 +65,26 @@ class WaveformSettings:
 
 @dataclass(frozen=True)
 class NidaqSettings:
-    """NI-DAQmx wiring: device name and the analog output line of each channel."""
+    """NI-DAQmx wiring and hardware safe state.
 
-    device: str = "cDAQ1Mod1"
-    ao_channels: Mapping[str, str] = field(default_factory=lambda: {"EV": "ao0", "MV": "ao1"})
+    Attributes
+    ----------
+    channels : Mapping[str, str]
+        Physical channel of each output, ``{"EV": "cDAQ1Mod1/ao0", "MV": "cDAQ1Mod2/ao0"}``
+        (the paper's rig used two NI 9264 modules, one per channel).
+    watchdog_s : float
+        Timeout of the chassis watchdog that sets both outputs to 0 V if the host stops
+        resetting it, s (0 disables it).
+    watchdog_device : str or None
+        Device that owns the watchdog timer; None means the CompactDAQ chassis of the EV module
+        (or the EV module itself outside a chassis).
+    """
+
+    channels: Mapping[str, str] = field(
+        default_factory=lambda: {"EV": "cDAQ1Mod1/ao0", "MV": "cDAQ1Mod2/ao0"}
+    )
+    watchdog_s: float = 1.0
+    watchdog_device: str | None = None
 
 
 @dataclass(frozen=True)
@@ -89,6 +107,68 @@ class DisplaySettings:
 
 
 @dataclass(frozen=True)
+class Amplifier:
+    """The amplifier between the board output and the transducer of one channel.
+
+    Attributes
+    ----------
+    model : str
+        Maker and model, e.g. ``"Texas Instruments DRV8662"``.
+    gain_db : float or None
+        Nominal voltage gain, dB (20·log10 of V out per V in); None if not known.
+    max_input_v : float or None
+        Largest peak input voltage the amplifier takes at this gain, V; when given, the channel's
+        ``max_drive_v`` × attenuator ratio may not exceed it.
+    setting : str
+        How the gain is set on the board (jumpers, pins, knob), free text.
+    """
+
+    model: str
+    gain_db: float | None = None
+    max_input_v: float | None = None
+    setting: str = ""
+
+
+@dataclass(frozen=True)
+class Attenuator:
+    """A passive attenuator between the board output and the amplifier input.
+
+    Attributes
+    ----------
+    model : str
+        What it is, e.g. ``"10:1 resistive divider"``.
+    ratio : float
+        Volts at the amplifier input per volt at the board output, in (0, 1].
+    """
+
+    model: str
+    ratio: float
+
+
+@dataclass(frozen=True)
+class ChannelRig:
+    """What one channel's output drives, for the session log.
+
+    Attributes
+    ----------
+    amplifier : Amplifier or None
+        The amplifier, if recorded.
+    transducer : str
+        The actuator or panel the amplifier drives (maker, model, how many).
+    attenuator : Attenuator or None
+        Optional attenuator before the amplifier input.
+    measured_gain : Mapping[float, float]
+        Carrier frequency, Hz → measured peak volts at the transducer per peak volt at the board
+        output (attenuator and amplifier included), V/V.
+    """
+
+    amplifier: Amplifier | None = None
+    transducer: str = ""
+    attenuator: Attenuator | None = None
+    measured_gain: Mapping[float, float] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
 class DeviceConfig:
     """A validated device config.
 
@@ -106,6 +186,8 @@ class DeviceConfig:
         Section settings (defaults where the file omits a section).
     display : DisplaySettings or None
         Participant monitor, if configured.
+    rig : Mapping[str, ChannelRig]
+        Amplifier, attenuator, transducer and measured gain per channel (``"EV"``, ``"MV"``).
     """
 
     path: str
@@ -117,6 +199,59 @@ class DeviceConfig:
     nidaq: NidaqSettings = field(default_factory=NidaqSettings)
     emulator: EmulatorSettings = field(default_factory=EmulatorSettings)
     display: DisplaySettings | None = None
+    rig: Mapping[str, ChannelRig] = field(default_factory=dict)
+
+    def rig_record(self) -> dict[str, Any]:
+        """The rig as a plain JSON-able mapping, for the session log header.
+
+        Returns
+        -------
+        dict
+            ``{"name", "config", "channels": {"EV": {...}, "MV": {...}}}``; each channel has
+            ``max_drive_v`` (peak V at the board output), ``amplifier`` (``model``, ``gain_db``,
+            ``gain_v_per_v``, ``max_input_v``, ``setting``) or None, ``attenuator`` (``model``,
+            ``ratio``) or None, ``transducer`` and ``measured_gain`` (a list of
+            ``{"frequency_hz", "v_out_per_v_in"}`` sorted by frequency; empty if not measured).
+
+        Examples
+        --------
+        >>> cfg = default_device_config()
+        >>> record = cfg.rig_record()
+        >>> record["channels"]["MV"]["amplifier"]["model"]
+        'Texas Instruments DRV8662'
+        >>> import json; _ = json.dumps(record)  # plain data, ready for the log header
+        """
+        return {
+            "name": self.name,
+            "config": self.path,
+            "channels": {
+                ch: _channel_record(self.rig.get(ch, ChannelRig()), self.limits.max_drive_v[ch])
+                for ch in ("EV", "MV")
+            },
+        }
+
+
+def _channel_record(rig: ChannelRig, max_drive_v: float) -> dict[str, Any]:
+    amp = rig.amplifier
+    return {
+        "max_drive_v": float(max_drive_v),
+        "amplifier": None
+        if amp is None
+        else {
+            "model": amp.model,
+            "gain_db": amp.gain_db,
+            "gain_v_per_v": None if amp.gain_db is None else round(10 ** (amp.gain_db / 20), 4),
+            "max_input_v": amp.max_input_v,
+            "setting": amp.setting,
+        },
+        "attenuator": None
+        if rig.attenuator is None
+        else {"model": rig.attenuator.model, "ratio": rig.attenuator.ratio},
+        "transducer": rig.transducer,
+        "measured_gain": [
+            {"frequency_hz": f, "v_out_per_v_in": g} for f, g in sorted(rig.measured_gain.items())
+        ],
+    }
 
 
 def load_device_config(path: str | Path | None = None) -> DeviceConfig:
@@ -151,12 +286,20 @@ def parse_device_config(text: str, source: str) -> DeviceConfig:
         raise DeviceConfigError(
             source, "line 1", "a device config is a YAML mapping (key: value lines) at the top"
         )
+    # YAML reads .nan and .inf as floats, and JSON Schema bounds let NaN through (every
+    # comparison with it is false): refuse them before anything reads a limit.
+    for path, value in _non_finite(data, ""):
+        raise DeviceConfigError(
+            source,
+            _where(path, lines),
+            f"{value!r} is not a finite number; write a plain number (e.g. 1.8)",
+        )
     problems = list(_schema_problems(data, lines))
     if problems:
         where, message = problems[0]
         more = "; ".join(f"{w}: {m}" for w, m in problems[1:4])
         raise DeviceConfigError(source, where, message + (f"\n  also: {more}" if more else ""))
-    return _build(data, source)
+    return _build(data, source, lines)
 
 
 def default_device_config() -> DeviceConfig:
@@ -164,7 +307,18 @@ def default_device_config() -> DeviceConfig:
     return load_device_config(None)
 
 
-def _schema_problems(data: Any, lines: Mapping[str, int]):
+def _non_finite(value: Any, path: str) -> Iterator[tuple[str, float]]:
+    if isinstance(value, float) and not math.isfinite(value):
+        yield path or "(top level)", value
+    elif isinstance(value, Mapping):
+        for key, item in value.items():
+            yield from _non_finite(item, f"{path}.{key}" if path else str(key))
+    elif isinstance(value, list):
+        for i, item in enumerate(value):
+            yield from _non_finite(item, f"{path}[{i}]")
+
+
+def _schema_problems(data: Any, lines: Mapping[str, int]) -> Iterator[tuple[str, str]]:
     schema = load_schema("device_config")
     for err in schema_errors(data, "device_config"):
         path = key_path(err)
@@ -172,6 +326,15 @@ def _schema_problems(data: Any, lines: Mapping[str, int]):
             known = list(err.schema.get("properties", {}))
             for key in [k for k in err.instance if k not in known]:
                 child = f"{path}.{key}" if path != "(top level)" else str(key)
+                if path == "nidaq" and key in ("device", "ao_channels"):
+                    yield (
+                        _where(child, lines),
+                        (
+                            f"nidaq.{key} was replaced by nidaq.channels, one physical channel per "
+                            "output, e.g. channels: {EV: cDAQ1Mod1/ao0, MV: cDAQ1Mod2/ao0}"
+                        ),
+                    )
+                    continue
                 yield _where(child, lines), f"unknown key {key!r}; known keys: {', '.join(known)}"
             continue
         if err.validator == "required":
@@ -192,12 +355,29 @@ def _schema_problems(data: Any, lines: Mapping[str, int]):
                 "back-end can produce; lower it to what your amplifier input is rated for",
             )
             continue
+        if path.endswith("attenuator.ratio") and err.validator in ("maximum", "exclusiveMinimum"):
+            yield (
+                _where(path, lines),
+                f"ratio {err.instance!r} is not in (0, 1]: it is the volts at the amplifier input "
+                "per volt at the board output; a stage that amplifies belongs under amplifier",
+            )
+            continue
+        if err.validator == "pattern" and path.startswith("nidaq.channels"):
+            yield (
+                _where(path, lines),
+                f"{err.instance!r} is not an analog output: write DEVICE/aoN as NI MAX names it, "
+                "e.g. cDAQ1Mod1/ao0",
+            )
+            continue
         yield _where(path, lines), _describe(err, schema)
 
 
-def _build(data: Mapping[str, Any], source: str) -> DeviceConfig:
+def _build(data: Mapping[str, Any], source: str, lines: Mapping[str, int]) -> DeviceConfig:
     channels = data["channels"]
-    limits = DeviceLimits({ch: float(channels[ch]["max_drive_v"]) for ch in ("EV", "MV")})
+    rig = {ch: _channel_rig(channels[ch], f"channels.{ch}", source, lines) for ch in ("EV", "MV")}
+    limits = DeviceLimits(
+        {ch: _max_drive_v(channels[ch], rig[ch], f"channels.{ch}", source, lines) for ch in rig}
+    )
     db_sl = {
         ch: float(spec["max_level_db_sl"])
         for ch, spec in channels.items()
@@ -207,16 +387,19 @@ def _build(data: Mapping[str, Any], source: str) -> DeviceConfig:
     if 0 < serial.boot_timeout_s < serial.hello_retry_s:
         raise DeviceConfigError(
             source,
-            "serial.hello_retry_s",
+            _where("serial.hello_retry_s", lines),
             "must not exceed serial.boot_timeout_s (the host would give up before one retry)",
         )
     waveform = WaveformSettings(**{k: float(v) for k, v in data.get("waveform", {}).items()})
     nidaq_data = dict(data.get("nidaq", {}))
-    if "ao_channels" in nidaq_data:
-        nidaq_data["ao_channels"] = dict(nidaq_data["ao_channels"])
-        if nidaq_data["ao_channels"]["EV"] == nidaq_data["ao_channels"]["MV"]:
+    if "channels" in nidaq_data:
+        nidaq_data["channels"] = dict(nidaq_data["channels"])
+        ev, mv = (nidaq_data["channels"][ch] for ch in ("EV", "MV"))
+        if ev.strip().lower() == mv.strip().lower():
             raise DeviceConfigError(
-                source, "nidaq.ao_channels", "EV and MV must be wired to different outputs"
+                source,
+                _where("nidaq.channels", lines),
+                f"EV and MV are both wired to {ev!r}; give each channel its own analog output",
             )
     display = DisplaySettings(**data["display"]) if data.get("display") else None
     return DeviceConfig(
@@ -229,4 +412,67 @@ def _build(data: Mapping[str, Any], source: str) -> DeviceConfig:
         nidaq=NidaqSettings(**nidaq_data),
         emulator=EmulatorSettings(**data.get("emulator", {})),
         display=display,
+        rig=rig,
     )
+
+
+def _channel_rig(
+    spec: Mapping[str, Any], path: str, source: str, lines: Mapping[str, int]
+) -> ChannelRig:
+    amp = spec.get("amplifier")
+    att = spec.get("attenuator")
+    gains: dict[float, float] = {}
+    for i, point in enumerate(spec.get("measured_gain", [])):
+        freq = float(point["frequency_hz"])
+        if freq in gains:
+            raise DeviceConfigError(
+                source,
+                _where(f"{path}.measured_gain[{i}].frequency_hz", lines),
+                f"{freq:g} Hz is measured twice; keep one value per carrier frequency",
+            )
+        gains[freq] = float(point["v_out_per_v_in"])
+    return ChannelRig(
+        amplifier=None
+        if amp is None
+        else Amplifier(
+            model=str(amp["model"]),
+            gain_db=None if amp.get("gain_db") is None else float(amp["gain_db"]),
+            max_input_v=None if amp.get("max_input_v") is None else float(amp["max_input_v"]),
+            setting=str(amp.get("setting", "")),
+        ),
+        transducer=str(spec.get("transducer", "")),
+        attenuator=None if att is None else Attenuator(str(att["model"]), float(att["ratio"])),
+        measured_gain=gains,
+    )
+
+
+def _max_drive_v(
+    spec: Mapping[str, Any], rig: ChannelRig, path: str, source: str, lines: Mapping[str, int]
+) -> float:
+    """The channel's board-output limit, V: given, or derived from the amplifier's input limit.
+
+    An attenuator of ratio r lets the board put out 1/r times the amplifier's input limit; the
+    result never exceeds the ±10 V of the analog outputs.
+    """
+    ratio = rig.attenuator.ratio if rig.attenuator is not None else 1.0
+    amp_max = rig.amplifier.max_input_v if rig.amplifier is not None else None
+    if "max_drive_v" not in spec:
+        if amp_max is None:
+            raise DeviceConfigError(
+                source,
+                _where(path, lines),
+                "missing required key 'max_drive_v' (peak V at the board output); or give "
+                "amplifier.max_input_v to derive it",
+            )
+        return min(amp_max / ratio, BOARD_MAX_V)
+    limit = float(spec["max_drive_v"])
+    # A relative tolerance keeps 1.8 V through a 0.5 divider (3.6 V) from failing on rounding.
+    if amp_max is not None and limit * ratio > amp_max * (1 + 1e-9):
+        through = f" × attenuator ratio {ratio:g} = {limit * ratio:g} V" if ratio != 1.0 else ""
+        raise DeviceConfigError(
+            source,
+            _where(f"{path}.max_drive_v", lines),
+            f"{limit:g} V{through} at the input of the {rig.amplifier.model} exceeds its "
+            f"max_input_v of {amp_max:g} V; lower max_drive_v to at most {amp_max / ratio:.4g} V",
+        )
+    return limit

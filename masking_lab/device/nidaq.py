@@ -6,14 +6,21 @@ the outputs rest at 0 V when the task ends. The task's output range is the confi
 the driver itself refuses anything beyond it. ``nidaqmx`` is imported only when this back-end is
 opened. Not supported: streamed amplitudes (use the serial firmware for rendering).
 
-The NI 9264 holds its last value when a task is aborted: on errors, STOP, close, normal exit
-and SIGTERM the host writes 0 V to both lines; a SIGKILL mid-trial cannot be caught here (the
-serial firmware's watchdog exists for that; see docs/devices.md).
+The task is committed before its timed start and the sample rate the driver chose is read back
+and used to synthesize the buffers. The running task is kept, so STOP, SIGTERM and Ctrl-C abort
+it (stop, close) and then write 0 V: the NI 9264 holds its last value when a task is aborted.
+Where the chassis has a watchdog, it is armed with 0 V expiration states, so the hardware zeroes
+the outputs if the process dies (SIGKILL) and nothing resets the timer any more. The helpers that
+talk to the driver are in :mod:`masking_lab.device.nidaq_tasks`; tests drive this module through
+a recording stand-in of the ``nidaqmx`` package (``tests/nidaqmx_standin``), not NI's driver.
 """
 
 from __future__ import annotations
 
 import contextlib
+import logging
+import threading
+import time
 from typing import Any
 
 import numpy as np
@@ -22,32 +29,98 @@ from numpy.typing import NDArray
 from masking_lab import __version__
 from masking_lab.core import waveforms
 from masking_lab.core.clock import Clock, RealClock
+from masking_lab.core.errors import DeviceError
+from masking_lab.core.stimulus import CHANNELS, Channel, Stimulus
 from masking_lab.device import safety
 from masking_lab.device.base import DeviceIdentity, PlayResult, TrialPlan
 from masking_lab.device.config import DeviceConfig, default_device_config
-from masking_lab.core.errors import DeviceError
-from masking_lab.core.stimulus import CHANNELS, Channel, Stimulus
-
-INSTALL_HINT = (
-    "the nidaq back-end needs NI's `nidaqmx` Python package and the NI-DAQmx driver: "
-    "pip install 'masking-lab[nidaq]' and install NI-DAQmx from ni.com, or choose another "
-    "device (--device serial:PORT, emulator or sim)"
+from masking_lab.device.nidaq_tasks import (
+    INSTALL_HINT,
+    HardwareInfo,
+    Watchdog,
+    as_device_error,
+    driver_errors,
+    first_line,
+    probe_hardware,
+    watchdog_device,
 )
 
+log = logging.getLogger("masking_lab.device")
 
-def build_output_buffer(plan: TrialPlan, config: DeviceConfig) -> NDArray[np.float64]:
+POLL_S = 0.005  # how often a playing trial checks for completion; keeps STOP/Ctrl-C prompt
+RATE_TOLERANCE = 1e-6  # relative: a coerced rate beyond this would shift every carrier
+
+
+def build_output_buffer(
+    plan: TrialPlan, config: DeviceConfig, sample_rate_hz: float | None = None
+) -> NDArray[np.float64]:
     """The (2, n) array of volts a trial writes, rows EV then MV, after the limit check.
+
+    Parameters
+    ----------
+    plan : TrialPlan
+        Stimuli, peak amplitudes (V) and timing (s).
+    config : DeviceConfig
+        Limits and ramp.
+    sample_rate_hz : float, optional
+        Rate the buffer is synthesized at, Hz: the rate the driver chose; the config's
+        ``waveform.sample_rate_hz`` if None.
 
     Raises
     ------
     SafetyLimitError
         If an amplitude of ``plan`` exceeds ``config.limits``; no buffer is built.
+
+    Examples
+    --------
+    >>> from masking_lab.core.stimulus import parse_stimulus
+    >>> cfg = default_device_config()
+    >>> plan = TrialPlan(parse_stimulus("EV270"), 0.5, 2, stimulus_s=0.1, gap_s=0.05)
+    >>> build_output_buffer(plan, cfg).shape  # 1.0 s at 20 kS/s and the closing 0 V sample
+    (2, 20001)
     """
     safety.check_plan(plan, config.limits)
-    bufs = waveforms.trial_buffers(
-        plan, config.waveform.sample_rate_hz, ramp_s=config.waveform.ramp_s
-    )
+    fs = config.waveform.sample_rate_hz if sample_rate_hz is None else sample_rate_hz
+    bufs = waveforms.trial_buffers(plan, fs, ramp_s=config.waveform.ramp_s)
     return bufs.stacked()
+
+
+def resolve_lines(config: DeviceConfig, device_name: str | None = None) -> dict[str, str]:
+    """Physical channel of each output: the config's, or from ``--device nidaq:SPEC``.
+
+    Parameters
+    ----------
+    config : DeviceConfig
+        Its ``nidaq.channels`` are used when ``device_name`` is None.
+    device_name : str, optional
+        ``"EV_LINE,MV_LINE"`` (e.g. ``cDAQ1Mod1/ao0,cDAQ1Mod2/ao0``), or a single device name
+        meaning one module with EV on ``ao0`` and MV on ``ao1``.
+
+    Raises
+    ------
+    DeviceError
+        If the spec names the same line twice or is not a device or a pair of lines.
+
+    Examples
+    --------
+    >>> cfg = default_device_config()
+    >>> resolve_lines(cfg)
+    {'EV': 'cDAQ1Mod1/ao0', 'MV': 'cDAQ1Mod2/ao0'}
+    >>> resolve_lines(cfg, "Dev1")
+    {'EV': 'Dev1/ao0', 'MV': 'Dev1/ao1'}
+    """
+    if not device_name:
+        return {ch: config.nidaq.channels[ch] for ch in CHANNELS}
+    parts = [p.strip() for p in device_name.split(",")]
+    if len(parts) == 1 and "/" not in parts[0]:
+        return {"EV": f"{parts[0]}/ao0", "MV": f"{parts[0]}/ao1"}
+    if len(parts) == 2 and all("/" in p for p in parts) and parts[0] != parts[1]:
+        return dict(zip(CHANNELS, parts, strict=True))
+    raise DeviceError(
+        f"--device nidaq:{device_name} is not a device or two different lines: write "
+        "nidaq:DEVICE (EV on ao0, MV on ao1) or nidaq:EV_LINE,MV_LINE, e.g. "
+        "nidaq:cDAQ1Mod1/ao0,cDAQ1Mod2/ao0, or set nidaq.channels in the device config"
+    )
 
 
 def import_nidaqmx() -> Any:
@@ -55,13 +128,21 @@ def import_nidaqmx() -> Any:
     try:
         import nidaqmx
         import nidaqmx.constants
+        import nidaqmx.errors
+        import nidaqmx.system
+        import nidaqmx.system.watchdog
     except ImportError as exc:
-        raise DeviceError(INSTALL_HINT) from exc
+        raise DeviceError(f"{INSTALL_HINT} ({exc})") from exc
     return nidaqmx
 
 
 class NidaqDevice:
-    """Two analog outputs of an NI-DAQmx device (EV and MV drive).
+    """Two analog outputs of NI-DAQmx hardware (EV and MV drive), e.g. two NI 9264 modules.
+
+    Opening reads each module's product type and serial number, zeroes both outputs, arms the
+    chassis watchdog with 0 V expiration states where the chassis has one, and asks the driver
+    which sample rate it will really run at. Every driver failure, including a missing driver,
+    becomes a :class:`DeviceError` that says what to do.
 
     Parameters
     ----------
@@ -70,7 +151,26 @@ class NidaqDevice:
     clock : Clock, optional
         Must be a real clock: hardware cannot run in virtual time.
     device_name : str, optional
-        Overrides ``config.nidaq.device`` (``--device nidaq:cDAQ1Mod1``).
+        Overrides ``config.nidaq.channels`` (``--device nidaq:SPEC``; see :func:`resolve_lines`).
+
+    Attributes
+    ----------
+    lines : dict[str, str]
+        Physical channel of each output channel.
+    sample_rate_hz : float
+        The rate the driver runs trials at, Hz (read back after committing a task).
+    hardware : HardwareInfo
+        Product types, serial numbers, chassis and driver version.
+    watchdog : Watchdog
+        The chassis watchdog and its :attr:`~Watchdog.status`.
+    fault_log : list[str]
+        Faults met while the device was open (aborted trials, watchdog expiries).
+
+    Examples
+    --------
+    >>> dev = NidaqDevice(device_name="cDAQ1Mod1/ao0,cDAQ1Mod2/ao0")  # doctest: +SKIP
+    >>> dev.identity.model  # doctest: +SKIP
+    'NI 9264 cDAQ1Mod1/ao0 (EV) + NI 9264 cDAQ1Mod2/ao0 (MV) in cDAQ-9174 cDAQ1'
     """
 
     def __init__(
@@ -85,48 +185,109 @@ class NidaqDevice:
         if self.clock.virtual:
             raise DeviceError("the nidaq back-end drives hardware: it needs a real clock")
         self._nidaqmx = import_nidaqmx()
-        self.device_name = device_name or self.config.nidaq.device
-        self.lines = {
-            ch: f"{self.device_name}/{self.config.nidaq.ao_channels[ch]}" for ch in CHANNELS
-        }
+        self._errors = driver_errors(self._nidaqmx)
+        self.lines = resolve_lines(self.config, device_name)
+        self.fault_log: list[str] = []
+        # RLock: a SIGTERM handler runs stop() on the main thread, possibly while play_trial
+        # (same thread) holds the lock between two driver calls.
+        self._lock = threading.RLock()
+        self._active: Any = None
+        self._aborted = False
+        self._closed = True  # until fully open: close() must not touch a half-made device
+        self.watchdog = Watchdog(self._nidaqmx, "", list(self.lines.values()), 0.0)
+        lines_text = ", ".join(f"{ch}={line}" for ch, line in self.lines.items())
+        try:
+            self.hardware: HardwareInfo = probe_hardware(self._nidaqmx, self.lines)
+            self._write_zero()  # start from 0 V whatever the last program left behind
+            self.watchdog = Watchdog(
+                self._nidaqmx,
+                watchdog_device(
+                    self.hardware, self.config.nidaq.watchdog_device, self.lines.values()
+                ),
+                list(self.lines.values()),
+                self.config.nidaq.watchdog_s,
+            )
+            self.watchdog.start()
+            self.sample_rate_hz = self._probe_rate()
+        except self._errors as exc:
+            self.watchdog.close()
+            raise as_device_error(
+                self._nidaqmx, exc, f"opening {lines_text}", self.config.path
+            ) from exc
         self.identity = DeviceIdentity(
             backend="nidaq",
-            model=f"NI-DAQmx {self.device_name}",
-            serial_number="n/a",
-            firmware_version=f"masking-lab {__version__}",
+            model=self.hardware.model,
+            serial_number=self.hardware.serial_number,
+            firmware_version=(
+                f"NI-DAQmx {self.hardware.driver_version}; masking-lab {__version__}; "
+                f"{self.sample_rate_hz:g} S/s; watchdog {self.watchdog.status}"
+            ),
             port=None,
             limits=self.config.limits,
         )
+        log.info("NI-DAQmx opened: %s; %s", self.identity.model, self.identity.firmware_version)
         self._closed = False
-        self.stop()  # start from 0 V whatever the last program left behind
         safety.zero_on_exit(self)
 
+    def details(self) -> dict[str, Any]:
+        """Everything known about the hardware, as plain JSON-able data (for logs and reports).
+
+        Examples
+        --------
+        >>> sorted(dev.details())  # doctest: +SKIP
+        ['chassis', 'driver_version', 'lines', 'modules', 'sample_rate_hz', 'watchdog']
+        """
+        return {
+            "lines": dict(self.lines),
+            "modules": [dict(m) for m in self.hardware.modules],
+            "chassis": dict(self.hardware.chassis) if self.hardware.chassis else None,
+            "driver_version": self.hardware.driver_version,
+            "sample_rate_hz": self.sample_rate_hz,
+            "watchdog": self.watchdog.status,
+        }
+
     def play_trial(self, plan: TrialPlan, start_s: float) -> PlayResult:
-        """Write the trial's buffers as one finite, hardware-timed task starting at ``start_s``."""
-        data = build_output_buffer(plan, self.config)
-        fs = self.config.waveform.sample_rate_hz
+        """Play ``plan`` as one committed, hardware-timed finite task starting at ``start_s``.
+
+        Raises
+        ------
+        SafetyLimitError
+            An amplitude exceeds the limits; nothing was sent to the driver.
+        DeviceError
+            The driver failed or the trial was stopped (STOP); both outputs were set to 0 V.
+        """
+        self._check_open()
+        fs = self.sample_rate_hz
+        data = build_output_buffer(plan, self.config, fs)
         onsets = waveforms.trial_buffers(plan, fs, ramp_s=self.config.waveform.ramp_s)
-        constants = self._nidaqmx.constants
         try:
-            with self._nidaqmx.Task() as task:
-                self._add_channels(task)
-                task.timing.cfg_samp_clk_timing(
-                    rate=fs,
-                    sample_mode=constants.AcquisitionType.FINITE,
-                    samps_per_chan=data.shape[1],
-                )
+            if self.watchdog.clear_if_expired():
+                self.fault_log.append("watchdog had expired before a trial (host stalled)")
+            task = self._committed_task(data.shape[1])
+            with self._lock:
                 task.write(data, auto_start=False)
-                self.clock.sleep_until(start_s)
-                t0 = self.clock.now()
+            self.clock.sleep_until(start_s)
+            t0 = self.clock.now()
+            with self._lock:
+                self._ensure_not_aborted(task)
                 task.start()
-                task.wait_until_done(timeout=plan.duration_s + 2.0)
+            self._wait_done(task, plan.duration_s + 2.0)
+            with self._lock:
+                self._ensure_not_aborted(task)
+                self._active = None
                 task.stop()
+                task.close()
         except BaseException as exc:
+            # Ctrl-C, SIGTERM's SystemExit, a driver error or STOP: abort the task, then 0 V.
+            aborted = self._aborted
             self._zero_quietly()
-            if isinstance(exc, Exception) and type(exc).__module__.startswith("nidaqmx"):
+            if isinstance(exc, self._errors):
+                if aborted:
+                    raise DeviceError("trial stopped (STOP); outputs set to 0 V") from exc
+                self.fault_log.append(f"driver error during a trial: {first_line(exc)}")
                 raise DeviceError(
-                    f"NI-DAQmx {self.device_name} failed during a trial ({exc}); outputs set to "
-                    "0 V. Check the chassis and cabling, then `masking-lab resume LOG`"
+                    f"NI-DAQmx failed during a trial ({first_line(exc)}); outputs set to 0 V. "
+                    "Check the chassis and cabling, then `masking-lab resume LOG`"
                 ) from exc
             raise
         return PlayResult(
@@ -134,7 +295,7 @@ class NidaqDevice:
             actual_onsets_s=[t0 + k / fs for k in onsets.onset_samples],
             played_target_v=plan.target_amplitude_v,
             played_masker_v=plan.masker_amplitude_v if plan.masker is not None else 0.0,
-            extra={"backend": "nidaq", "start_s": t0},
+            extra={"backend": "nidaq", "start_s": t0, "sample_rate_hz": fs},
         )
 
     def set_amplitude(self, channel: Channel, stimulus: Stimulus, amplitude_v: float) -> None:
@@ -145,27 +306,136 @@ class NidaqDevice:
         )
 
     def stop(self) -> None:
-        """Write 0 V to both outputs (on-demand task)."""
-        with self._nidaqmx.Task() as task:
-            self._add_channels(task)
-            task.write([0.0, 0.0], auto_start=True)
+        """Abort a playing trial (task stop and close), then write 0 V to both outputs.
+
+        Safe to call from another thread or a signal handler while :meth:`play_trial` runs;
+        the trial then raises DeviceError.
+
+        Raises
+        ------
+        DeviceError
+            If 0 V cannot be written (driver or chassis gone).
+        """
+        with self._lock:
+            task, self._active = self._active, None
+            if task is not None:
+                self._aborted = True
+                # The NI 9264 holds the last sample of an aborted task: stop and release it so
+                # the lines are free for the 0 V write below.
+                with contextlib.suppress(*self._errors):
+                    task.stop()
+                with contextlib.suppress(*self._errors):
+                    task.close()
+                self.fault_log.append("playing trial aborted; outputs zeroed")
+            try:
+                self._write_zero()
+            except self._errors as exc:
+                raise as_device_error(
+                    self._nidaqmx, exc, "writing 0 V to both outputs", self.config.path
+                ) from exc
 
     def close(self) -> None:
-        """Write 0 V to both outputs. Idempotent."""
+        """Abort any trial, write 0 V to both outputs and release the watchdog. Idempotent."""
         if self._closed:
             return
         try:
             self.stop()
         finally:
             self._closed = True
+            self.watchdog.close()
             safety.forget(self)
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise DeviceError("the nidaq device is closed; open it again to play trials")
 
     def _add_channels(self, task: Any) -> None:
         for ch in CHANNELS:
             limit = self.config.limits.max_drive_v[ch]
             task.ao_channels.add_ao_voltage_chan(self.lines[ch], min_val=-limit, max_val=limit)
 
+    def _timed_task(self, rate_hz: float, n_samples: int) -> tuple[Any, float]:
+        """A new task on both lines, timed and committed; returns it and the rate read back."""
+        constants = self._nidaqmx.constants
+        task = self._nidaqmx.Task()
+        try:
+            self._add_channels(task)
+            task.timing.cfg_samp_clk_timing(
+                rate=rate_hz,
+                sample_mode=constants.AcquisitionType.FINITE,
+                samps_per_chan=n_samples,
+            )
+            # Committing reserves the lines and programs the hardware now, so start() is only
+            # the trigger, and it makes the driver settle the rate it will really use.
+            task.control(constants.TaskMode.TASK_COMMIT)
+            actual = float(task.timing.samp_clk_rate)
+        except BaseException:
+            with contextlib.suppress(*self._errors):
+                task.close()
+            raise
+        return task, actual
+
+    def _probe_rate(self) -> float:
+        wanted = self.config.waveform.sample_rate_hz
+        task, actual = self._timed_task(wanted, 2)
+        task.close()
+        if abs(actual - wanted) > RATE_TOLERANCE * wanted:
+            log.warning(
+                "NI-DAQmx runs %s at %.9g S/s, not the configured %.9g S/s; trials are "
+                "synthesized at the driver's rate",
+                "+".join(self.lines.values()),
+                actual,
+                wanted,
+            )
+        else:
+            log.info("NI-DAQmx sample rate %.9g S/s", actual)
+        return actual
+
+    def _committed_task(self, n_samples: int) -> Any:
+        with self._lock:
+            self._aborted = False
+            task, actual = self._timed_task(self.sample_rate_hz, n_samples)
+            self._active = task
+        if abs(actual - self.sample_rate_hz) > RATE_TOLERANCE * self.sample_rate_hz:
+            # The buffer was synthesized at the opening rate: played at another one, every
+            # carrier frequency and duration would be off.
+            raise DeviceError(
+                f"NI-DAQmx changed the sample rate from {self.sample_rate_hz:.9g} to "
+                f"{actual:.9g} S/s for this trial; not played. Check that no other task shares "
+                "the chassis timing engine, then resume"
+            )
+        return task
+
+    def _ensure_not_aborted(self, task: Any) -> None:
+        if self._active is not task:
+            raise DeviceError("trial stopped (STOP); outputs set to 0 V")
+
+    def _wait_done(self, task: Any, timeout_s: float) -> None:
+        # Poll instead of wait_until_done(): a blocking driver call would hold off Python's
+        # signal handlers (SIGTERM, Ctrl-C) until the whole trial had played.
+        deadline = time.monotonic() + timeout_s
+        while True:
+            with self._lock:
+                self._ensure_not_aborted(task)
+                if task.is_task_done():
+                    return
+            if time.monotonic() > deadline:
+                raise DeviceError(
+                    f"NI-DAQmx trial did not finish within {timeout_s:.1f} s; outputs set to "
+                    "0 V. Check the chassis, then `masking-lab resume LOG`"
+                )
+            time.sleep(POLL_S)
+
+    def _write_zero(self) -> None:
+        task = self._nidaqmx.Task()
+        try:
+            self._add_channels(task)
+            task.write([0.0, 0.0], auto_start=True)
+        finally:
+            with contextlib.suppress(*self._errors):
+                task.close()
+
     def _zero_quietly(self) -> None:
-        # The driver is already failing; the error that got us here is what gets raised.
+        # The error that got us here is what gets raised; zeroing is best effort on top.
         with contextlib.suppress(Exception):
             self.stop()
