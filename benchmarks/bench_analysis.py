@@ -28,7 +28,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from masking_lab.analysis.batch import AnalysisSettings, run_analyze
+from masking_lab.analysis.batch import run_analyze
+from masking_lab.analysis.settings import AnalysisSettings
 from masking_lab.simulation.synthetic_logs import simulate_study
 
 

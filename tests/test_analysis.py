@@ -14,8 +14,9 @@ import pandas as pd
 import pytest
 from scipy.stats import norm
 
-from masking_lab.analysis.batch import AnalysisSettings, progress_printer, run_analyze
+from masking_lab.analysis.batch import progress_printer, run_analyze
 from masking_lab.analysis.ramp_fit import ramp_least_squares
+from masking_lab.analysis.settings import AnalysisSettings
 from masking_lab.commands.cli import main
 from masking_lab.core.errors import AnalysisError
 from masking_lab.formats.masking_params import load_masking_params

@@ -9,15 +9,19 @@ from __future__ import annotations
 
 import io
 import math
+import re
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from masking_lab.analysis.experiment import ExperimentResult
 from masking_lab.analysis.pooling import level_sort_key
 from masking_lab.formats.fileio import write_bytes_atomic
 from masking_lab.formats.session_log import SessionLog
+
+__all__ = ["experiment_figure", "masking_function_figure", "safe_stem", "track_figure"]
 
 _COLORS = ("#1b6ca8", "#d1495b", "#2e933c", "#8f5ba6", "#e08e0b", "#555555")
 
@@ -98,6 +102,50 @@ def masking_function_figure(
     return _save(fig, path)
 
 
+def experiment_figure(path: str | Path, result: ExperimentResult) -> Path:
+    """The masking-function figure of one experiment's results.
+
+    Parameters
+    ----------
+    path : path
+        PNG to write.
+    result : ExperimentResult
+        Cells (mean shift ± SE, dB, against masker level, dB SL) and ramp fits to draw.
+
+    Returns
+    -------
+    Path
+        The file written.
+
+    Examples
+    --------
+    >>> for r in results:  # doctest: +SKIP
+    ...     experiment_figure(out / f"masking_{safe_stem(r.experiment)}.png", r)
+    """
+    cells = [
+        {
+            "mv_stimulus": c.mv_stimulus,
+            "pair": c.pair,
+            "masker_level_db_sl": c.masker_level_db_sl,
+            "mean_shift_db": c.mean_shift_db,
+            "se_db": None if c.test is None else c.test.se,
+        }
+        for c in result.cells
+    ]
+    fits = [
+        {
+            "label": g.label,
+            "levels": g.levels,
+            "intercept_db": g.fit.intercept_db if g.fit.status == "fitted" else None,
+            "slope": g.fit.slope,
+            "fitted_range_db_sl": g.fit.fitted_range_db_sl,
+            "status": g.fit.status,
+        }
+        for g in result.fits
+    ]
+    return masking_function_figure(path, experiment=result.experiment, cells=cells, fits=fits)
+
+
 def track_figure(path: str | Path, log: SessionLog, als_db: Mapping[str, float | None]) -> Path:
     """Staircase tracks of one session: level per trial, reversals marked, AL line.
 
@@ -163,3 +211,24 @@ def _save(fig: Any, path: str | Path) -> Path:
     fig.savefig(buf, format="png", metadata={"Software": None})
     plt.close(fig)
     return write_bytes_atomic(Path(path), buf.getvalue())
+
+
+def safe_stem(name: str) -> str:
+    """``name`` made safe as a file name stem: runs of other characters become ``_``.
+
+    Parameters
+    ----------
+    name : str
+        E.g. an experiment id or ``participant_experiment_session``.
+
+    Returns
+    -------
+    str
+        Letters, digits, ``.``, ``_`` and ``-`` only; ``"unnamed"`` if nothing is left.
+
+    Examples
+    --------
+    >>> safe_stem("EV270|MV"), safe_stem("//")
+    ('EV270_MV', 'unnamed')
+    """
+    return re.sub(r"[^A-Za-z0-9._-]+", "_", name).strip("_") or "unnamed"

@@ -144,22 +144,13 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from masking_lab.analysis.batch import AnalysisSettings, progress_printer, run_analyze
-    from masking_lab.core.errors import AnalysisError
+    from masking_lab.analysis.batch import progress_printer, run_analyze
+    from masking_lab.analysis.settings import AnalysisSettings, parse_lapse
 
-    if args.lapse == "fit":
-        lapse = None
-    else:
-        try:
-            lapse = float(args.lapse)
-        except ValueError:
-            raise AnalysisError(
-                f"--lapse {args.lapse!r}: give a rate such as 0.02, or 'fit'"
-            ) from None
     settings = AnalysisSettings(
         estimator=args.estimator,
         n_reversals_averaged=args.reversals,
-        lapse=lapse,
+        lapse=parse_lapse(args.lapse),
         unmasked_al=args.unmasked_al,
         pooling=args.pooling,
         pool_alpha=args.pool_alpha,

@@ -25,7 +25,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from masking_lab.analysis.batch import AnalysisSettings, run_fit
+    from masking_lab.analysis.batch import run_fit
+    from masking_lab.analysis.settings import AnalysisSettings
 
     settings = AnalysisSettings(
         pooling=args.pooling,

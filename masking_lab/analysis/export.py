@@ -1,0 +1,206 @@
+"""What an analysis writes: the ``masking_params.json`` document and every output file.
+
+:func:`masking_params_document` turns the ramp fits into the export (one entry per pair, with
+provenance); :func:`write_outputs` writes the tables, the export, the report and the
+masking-function figures through :mod:`masking_lab.formats` (atomic, byte-stable writes).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+
+from masking_lab import __version__
+from masking_lab.analysis.experiment import ExperimentResult
+from masking_lab.analysis.report import LogsInput, ShiftsTableInput, build_report
+from masking_lab.analysis.report_text import render_text
+from masking_lab.analysis.settings import AnalysisSettings
+from masking_lab.analysis.tables import (
+    ANOVA_COLUMNS,
+    FIT_COLUMNS,
+    ONE_SAMPLE_COLUMNS,
+    POSTHOC_COLUMNS,
+    SPHERICITY_COLUMNS,
+    anova_rows,
+    fit_rows,
+    one_sample_rows,
+    posthoc_rows,
+    sphericity_rows,
+)
+from masking_lab.formats.csv_table import csv_text
+from masking_lab.formats.fileio import write_text_atomic
+from masking_lab.formats.masking_params import masking_params_json
+
+__all__ = ["masking_params_document", "write_outputs"]
+
+
+def masking_params_document(
+    results: Sequence[ExperimentResult],
+    settings: AnalysisSettings,
+    *,
+    source: str,
+    inputs: Sequence[Mapping[str, str]],
+    skipped: Sequence[Mapping[str, str]] = (),
+    created_utc: str,
+) -> tuple[dict[str, Any], list[str]]:
+    """The masking_params.json document, and notes on pairs dropped as duplicates.
+
+    Parameters
+    ----------
+    results : sequence of ExperimentResult
+        Per-experiment results; a pair fitted in two experiments is kept from the first.
+    settings : AnalysisSettings
+        Recorded in the provenance.
+    source : {"analyze", "fit"}
+        The command.
+    inputs, skipped : sequence of mapping
+        Files read (``path``, ``sha256``) and files left out (``path``, ``reason``).
+    created_utc : str
+        ``YYYY-MM-DDTHH:MM:SSZ``.
+
+    Returns
+    -------
+    doc : dict
+        The document (JSON types); intercepts in dB, slopes in dB per dB SL, ranges in dB SL.
+    notes : list of str
+        One per pair dropped as a duplicate.
+
+    Examples
+    --------
+    >>> doc, notes = masking_params_document(
+    ...     [], AnalysisSettings(), source="fit", inputs=[], created_utc="1970-01-01T00:00:00Z"
+    ... )
+    >>> doc["functions"], notes
+    ([], [])
+    """
+    entries: dict[tuple[str, str], dict[str, Any]] = {}
+    notes = []
+    for res in results:
+        for gf in res.fits:
+            f = gf.fit
+            for lv in gf.levels:
+                target, masker = res.pair_of_level[lv]
+                if (target, masker) in entries:
+                    notes.append(
+                        f"{target}|{masker} is fitted in experiment "
+                        f"{entries[(target, masker)]['experiment']} and {res.experiment}; "
+                        f"the export keeps {entries[(target, masker)]['experiment']}"
+                    )
+                    continue
+                entries[(target, masker)] = {
+                    "target": target,
+                    "masker": masker,
+                    "masker_frequencies_hz": list(gf.frequencies_hz),
+                    "intercept_db": f.intercept_db,
+                    "slope": f.slope,
+                    "intercept_se_db": f.intercept_se_db,
+                    "slope_se": f.slope_se,
+                    "intercept_ci_db": None
+                    if f.intercept_ci_db is None
+                    else list(f.intercept_ci_db),
+                    "slope_ci": None if f.slope_ci is None else list(f.slope_ci),
+                    "fitted_range_db_sl": list(f.fitted_range_db_sl),
+                    "knee_db_sl": f.knee_db_sl,
+                    "adj_r2": f.adj_r2,
+                    "n_points": f.n_points,
+                    "pooled_pairs": list(gf.pairs),
+                    "status": f.status,
+                    "message": f.message,
+                    "experiment": res.experiment,
+                    "uncertainty": f.uncertainty,
+                    "ci_level": f.ci_level,
+                    "n_participants": gf.n_participants,
+                }
+    provenance: dict[str, Any] = {
+        "source": source,
+        "inputs": [dict(i) for i in inputs],
+        "settings": settings.as_dict(source),
+    }
+    if skipped:
+        provenance["skipped_inputs"] = [dict(s) for s in skipped]
+    doc = {
+        "schema_version": 1,
+        "software_version": __version__,
+        "created_utc": created_utc,
+        "provenance": provenance,
+        "functions": [entries[k] for k in sorted(entries)],
+    }
+    return doc, notes
+
+
+def write_outputs(
+    out: Path,
+    results: Sequence[ExperimentResult],
+    settings: AnalysisSettings,
+    *,
+    source: str,
+    inputs: Sequence[Mapping[str, str]],
+    skipped: Sequence[Mapping[str, str]],
+    created_utc: str,
+    report_inputs: LogsInput | ShiftsTableInput,
+    thresholds: pd.DataFrame | None,
+) -> list[Path]:
+    """Write the statistics tables, ``masking_params.json``, ``report.txt`` and figures.
+
+    Parameters
+    ----------
+    out : Path
+        Output folder (made if missing).
+    results : sequence of ExperimentResult
+        Per-experiment results.
+    settings : AnalysisSettings
+        Settings of the run (``figures`` = ``"none"`` draws nothing).
+    source : {"analyze", "fit"}
+        The command.
+    inputs, skipped : sequence of mapping
+        Provenance of the export (see :func:`masking_params_document`).
+    created_utc : str
+        ``created_utc`` of the export.
+    report_inputs : LogsInput or ShiftsTableInput
+        What the report says was read.
+    thresholds : DataFrame or None
+        The thresholds table (``analyze``), for the report.
+
+    Returns
+    -------
+    list of Path
+        The files written, in order.
+
+    Examples
+    --------
+    >>> write_outputs(  # doctest: +SKIP
+    ...     Path("out"), results, settings, source="fit", inputs=inputs, skipped=(),
+    ...     created_utc="1970-01-01T00:00:00Z", report_inputs=table, thresholds=None,
+    ... )
+    """
+    doc, export_notes = masking_params_document(
+        results, settings, source=source, inputs=inputs, skipped=skipped, created_utc=created_utc
+    )
+    report = build_report(
+        results,
+        settings,
+        source=source,
+        inputs=report_inputs,
+        thresholds=thresholds,
+        export_notes=export_notes,
+    )
+    tables = [
+        ("anova.csv", ANOVA_COLUMNS, anova_rows(results)),
+        ("sphericity.csv", SPHERICITY_COLUMNS, sphericity_rows(results)),
+        ("posthoc.csv", POSTHOC_COLUMNS, posthoc_rows(results)),
+        ("one_sample.csv", ONE_SAMPLE_COLUMNS, one_sample_rows(results, settings.test_alpha)),
+        ("ramp_fits.csv", FIT_COLUMNS, fit_rows(results)),
+    ]
+    files = [write_text_atomic(out / name, csv_text(cols, rows)) for name, cols, rows in tables]
+    files.append(write_text_atomic(out / "masking_params.json", masking_params_json(doc)))
+    files.append(write_text_atomic(out / "report.txt", render_text(report)))
+    if settings.figures != "none":
+        from masking_lab.analysis.figures import experiment_figure, safe_stem
+
+        for r in results:
+            path = out / "figures" / f"masking_{safe_stem(r.experiment)}.png"
+            files.append(experiment_figure(path, r))
+    return files
