@@ -31,12 +31,9 @@ from masking_lab.formats.masking_params import write_masking_params
 from masking_lab.formats.resources import shipped
 from masking_lab.rendering.solver import MutualMasking
 from masking_lab.simulation.observer import load_ground_truth, make_participant
-from masking_lab.usertest.design import (
-    IdentificationObserver,
-    load_usertest,
-    render_objects,
-    simulate_usertest,
-)
+from masking_lab.usertest.design import load_usertest
+from masking_lab.usertest.observer import IdentificationObserver, simulate_usertest
+from masking_lab.usertest.playback import render_objects
 from masking_lab.usertest.runner import UserTestOptions, run_usertest
 
 STIMULI = ("EV270", "MV120am40", "MV180", "MV270")

@@ -14,6 +14,7 @@ from masking_lab.core.errors import AnalysisError, ProtocolError, StaircaseError
 from masking_lab.formats.protocol import load_protocol
 from masking_lab.planning import plan as P
 from masking_lab.planning.figures import png_bytes, speed_accuracy
+from masking_lab.planning.report import answer_text
 from masking_lab.procedures.staircase_batch import COMPLETED, TRIAL_CAP, Observer, simulate
 from masking_lab.simulation.observer import load_ground_truth
 
@@ -256,9 +257,9 @@ def test_answers_pick_the_first_rule_that_is_precise_enough(exp1, small_plan):
     assert [a.rule.label for a in easy.answers] == ["4/1", "4/1"]
     hard = P.run_plan(exp1, replace(settings, precision_db=0.01, ml_replicates=0), thr)
     assert all(a.rule is None for a in hard.answers)
-    text = P.answer_text(hard.answers[0], hard.settings, 150)
+    text = answer_text(hard.answers[0], hard.settings, 150)
     assert "no stop rule up to 13 reversals reaches ±0.01 dB" in text
-    found = P.answer_text(easy.answers[0], easy.settings, 150)
+    found = answer_text(easy.answers[0], easy.settings, 150)
     assert found.startswith("4,4,4,2: 4/1 (run 4 reversals, average the last 1)")
 
 

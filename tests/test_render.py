@@ -16,13 +16,8 @@ from masking_lab.commands.cli import main
 from masking_lab.core.errors import SolverError
 from masking_lab.formats.masking_params import write_masking_params
 from masking_lab.formats.protocol import load_protocol
-from masking_lab.rendering.render import (
-    POINT_COLUMNS,
-    measurement_protocol,
-    render_scene,
-    runs_mm,
-    write_rendering,
-)
+from masking_lab.rendering.outputs import POINT_COLUMNS, measurement_protocol, write_rendering
+from masking_lab.rendering.render import render_scene, runs_mm
 from masking_lab.rendering.scene import GeometrySpec, PathSpec, Scene, TextureSpec, load_scene
 from masking_lab.rendering.solver import MutualMasking, PairProblem
 

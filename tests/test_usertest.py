@@ -15,20 +15,16 @@ from masking_lab.commands.cli import main
 from masking_lab.core.errors import AnalysisError, ProtocolError, SolverError
 from masking_lab.rendering.solver import MissingMaskingError, MutualMasking
 from masking_lab.simulation.observer import load_ground_truth
-from masking_lab.usertest.design import (
-    IdentificationObserver,
-    UserTestTiming,
-    analyze_usertest,
+from masking_lab.usertest.design import UserTestTiming, load_usertest, trial_list, trial_record
+from masking_lab.usertest.observer import IdentificationObserver, simulate_usertest
+from masking_lab.usertest.playback import (
     levels_at,
-    load_usertest,
     path_position_mm,
     path_x_from_screen_mm,
     render_objects,
-    simulate_usertest,
     trial_levels_db_v,
-    trial_list,
-    trial_record,
 )
+from masking_lab.usertest.stats import analyze_usertest
 
 ROOT = Path(__file__).resolve().parents[1]
 USERTEST = ROOT / "protocols" / "usertest.yaml"

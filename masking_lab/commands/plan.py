@@ -11,60 +11,36 @@ from __future__ import annotations
 import argparse
 import math
 import sys
-from typing import TYPE_CHECKING, Any
-
-if TYPE_CHECKING:
-    from masking_lab.planning.plan import PlanResult
+from collections.abc import Callable
 
 
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be ≥ 1, got {value}")
-    return value
+def _checked(
+    convert: Callable[[str], float], what: str, ok: Callable[[float], bool], rule: str
+) -> Callable[[str], float]:
+    """An argparse ``type``: ``convert`` the text, then require ``ok`` (``rule`` says what)."""
+
+    def parse(text: str) -> float:
+        try:
+            value = convert(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not {what}") from None
+        if not ok(value):
+            shown = value if convert is int else text
+            raise argparse.ArgumentTypeError(f"must be {rule}, got {shown}")
+        return value
+
+    return parse
 
 
-def _count(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be ≥ 0, got {value}")
-    return value
-
-
-def _positive_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not (math.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"must be a positive number, got {text}")
-    return value
-
-
-def _nonnegative_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not (math.isfinite(value) and value >= 0):
-        raise argparse.ArgumentTypeError(f"must be a number ≥ 0, got {text}")
-    return value
-
-
-def _finite_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not math.isfinite(value):
-        raise argparse.ArgumentTypeError(f"must be a finite number, got {text}")
-    return value
+_positive_int = _checked(int, "a whole number", lambda v: v >= 1, "≥ 1")
+_count = _checked(int, "a whole number", lambda v: v >= 0, "≥ 0")
+_positive_float = _checked(
+    float, "a number", lambda v: math.isfinite(v) and v > 0, "a positive number"
+)
+_nonnegative_float = _checked(
+    float, "a number", lambda v: math.isfinite(v) and v >= 0, "a number ≥ 0"
+)
+_finite_float = _checked(float, "a number", math.isfinite, "a finite number")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -188,6 +164,7 @@ def run(args: argparse.Namespace) -> int:
     from masking_lab.formats.protocol import load_protocol
     from masking_lab.planning import plan as P
     from masking_lab.planning.figures import png_bytes, speed_accuracy
+    from masking_lab.planning.report import answer_text, format_per_set, format_table, rows_to_csv
     from masking_lab.procedures.staircase_batch import Observer
     from masking_lab.simulation.observer import load_ground_truth
 
@@ -277,7 +254,7 @@ def run(args: argparse.Namespace) -> int:
             f"Reversals needed for ±{settings.precision_db:g} dB (stop rules RUN/RUN−"
             f"{result.protocol_rule.n_reversals - result.protocol_rule.n_averaged}, no trial "
             "cap):",
-            *(f"  {P.answer_text(a, settings, cap)}" for a in result.answers),
+            *(f"  {answer_text(a, settings, cap)}" for a in result.answers),
         ]
     )
     print(text)
@@ -285,9 +262,9 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     files = {
         "plan.txt": text + "\n",
-        "plan_table.csv": P.rows_to_csv(result.table),
-        "plan_sets.csv": P.rows_to_csv(result.per_set),
-        "plan_ladder.csv": P.rows_to_csv(result.ladder),
+        "plan_table.csv": rows_to_csv(result.table),
+        "plan_sets.csv": rows_to_csv(result.per_set),
+        "plan_ladder.csv": rows_to_csv(result.ladder),
     }
     for name, content in files.items():
         write_text_atomic(out / name, content)
@@ -298,90 +275,3 @@ def run(args: argparse.Namespace) -> int:
         file=sys.stderr,
     )
     return 0
-
-
-def _num(value: Any, fmt: str) -> str:
-    if value is None or (isinstance(value, float) and not math.isfinite(value)):
-        return "—"
-    return format(value, fmt)
-
-
-def format_table(result: PlanResult) -> str:
-    """The pooled table: one line per (schedule, rule), both estimators side by side."""
-    s = result.settings
-    z = s.z
-    lines = [
-        f"{'':23}{'trials':^11}{'minutes':^13}{'ends (%)':^16}"
-        f"{'reversal mean (dB)':^22}{'ML fit (dB)':^22}",
-        f"{'schedule (dB)':<16}{'rule':<7}{'med':>5}{'p90':>6}{'med':>7}{'p90':>6}"
-        f"{'AL':>6}{'ceil':>5}{'cap':>5}"
-        f"{'bias':>8}{'SD':>6}{f'±{z:g}SD':>8}"
-        f"{'bias':>8}{'SD':>6}{f'±{z:g}SD':>8}",
-    ]
-    by_key: dict[tuple, dict[str, dict]] = {}
-    for row in result.table:
-        key = (row["schedule"], row["down_up_ratio"], row["n_reversals"], row["n_averaged"])
-        by_key.setdefault(key, {})[row["estimator"]] = row
-    last_sched = None
-    for ests in by_key.values():
-        rm = ests["reversal_mean"]
-        ml = ests.get("ml", {})
-        sched = rm["schedule"] + (
-            "" if rm["down_up_ratio"] == 1.0 else f" d/u {rm['down_up_ratio']:g}"
-        )
-        if last_sched is not None and sched != last_sched:
-            lines.append("")
-        last_sched = sched
-        mark = "*" if rm.get("own") else " "
-        ends = rm["ceiling"] + rm["floor"]
-        lines.append(
-            f"{sched:<16}{mark}{rm['rule']:<6}{rm['trials_median']:>5.0f}{rm['trials_p90']:>6.0f}"
-            f"{rm['minutes_median']:>7.1f}{rm['minutes_p90']:>6.1f}"
-            f"{100 * rm['completed']:>6.1f}{100 * ends:>5.1f}{100 * rm['trial_cap']:>5.1f}"
-            f"{_num(rm.get('bias_db'), '+8.2f')}{_num(rm.get('sd_db'), '6.2f')}"
-            f"{_num(z * rm.get('worst_sd_db', math.nan), '8.2f')}"
-            f"{_num(ml.get('bias_db'), '+8.2f')}{_num(ml.get('sd_db'), '6.2f')}"
-            f"{_num(z * ml.get('worst_sd_db', math.nan), '8.2f')}"
-        )
-    lines.append(
-        f"* this protocol. Pooled over sets: bias is averaged, SD is the root-mean-square "
-        f"within-set SD, ±{z:g}SD uses the worst set. AL = sessions ending with a threshold; "
-        "ceil = ceiling or floor; cap = trial cap."
-    )
-    return "\n".join(lines)
-
-
-def format_per_set(result: PlanResult, *, only_own: bool) -> str:
-    """Per-set rows for the protocol's own setting (or every setting)."""
-    own_rule, own_sched = result.protocol_rule, result.protocol_schedule
-    steps = ",".join(f"{v:g}" for v in own_sched.step_sizes_db)
-    rows = [
-        r
-        for r in result.per_set
-        if not only_own
-        or (
-            r["schedule"] == steps
-            and r["down_up_ratio"] == own_sched.down_up_ratio
-            and r["rule"] == own_rule.label
-        )
-    ]
-    title = (
-        f"Per set, this protocol's setting ({steps} dB, {own_rule.label}):"
-        if only_own
-        else "Per set:"
-    )
-    lines = [
-        title,
-        f"{'set':<12}{'schedule':<16}{'rule':<7}{'estimator':<15}{'trials':>7}{'p90':>5}"
-        f"{'AL %':>7}{'bias':>8}{'SD':>6}",
-    ]
-    for r in rows:
-        sched = r["schedule"] + (
-            "" if r["down_up_ratio"] == 1.0 else f" d/u {r['down_up_ratio']:g}"
-        )
-        lines.append(
-            f"{r['set']:<12}{sched:<16}{r['rule']:<7}{r['estimator']:<15}"
-            f"{r['trials_median']:>7.0f}{r['trials_p90']:>5.0f}{100 * r['completed']:>7.1f}"
-            f"{_num(r.get('bias_db'), '+8.2f')}{_num(r.get('sd_db'), '6.2f')}"
-        )
-    return "\n".join(lines)

@@ -37,14 +37,12 @@ def run(args: argparse.Namespace) -> int:
     from masking_lab.core.errors import SolverError
     from masking_lab.device.rig_limits import max_level_db_sl
     from masking_lab.formats.masking_params import read_masking_params
-    from masking_lab.rendering.render import (
+    from masking_lab.rendering.outputs import (
         measurement_protocol,
-        needed_pairs,
-        render_scene,
-        summarize,
         write_measurement_protocol,
         write_rendering,
     )
+    from masking_lab.rendering.render import needed_pairs, render_scene, summarize
     from masking_lab.rendering.scene import load_scene
     from masking_lab.rendering.solver import MissingMaskingError, PairProblem, pair_from_params
 

@@ -37,10 +37,10 @@ from masking_lab.planning.plan import (
     PlanSettings,
     Schedule,
     StopRule,
-    rows_to_csv,
     run_plan,
     true_thresholds_db,
 )
+from masking_lab.planning.report import rows_to_csv
 from masking_lab.procedures.staircase import StaircaseSettings, implied_target_p
 from masking_lab.procedures.staircase_batch import Observer, simulate
 from masking_lab.simulation.observer import load_ground_truth

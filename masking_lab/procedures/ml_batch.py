@@ -12,7 +12,7 @@ search range, a flat function (scale at its upper bound).
 :mod:`masking_lab.procedures.staircase_batch` produces tracks by the thousand; fitting them one at
 a time with a
 scalar optimiser would dominate ``masking-lab plan``'s run time. Here each track is first reduced
-to its distinct levels with trial and correct counts (a staircase visits a dozen or two levels),
+to its distinct levels with trial and correct counts (:mod:`masking_lab.procedures.ml_counts`),
 and all tracks are fitted together: for a fixed scale, a coarse grid over the threshold followed
 by safeguarded Newton steps in the bracket around the best grid point; with a fitted scale,
 three starts (that fit, a shallower one, and a near-step function), each climbed by projected
@@ -34,6 +34,26 @@ from numpy.typing import ArrayLike, NDArray
 
 from masking_lab.core.errors import AnalysisError
 from masking_lab.core.psychometric import GUESS_3IFC, LEVITT_1U3D
+from masking_lab.procedures.ml_counts import (
+    LevelCounts,
+    LevelIndex,
+    LogisticModel,
+    index_levels,
+    level_counts,
+    log_likelihood,
+    logistic_model,
+)
+
+__all__ = [
+    "LevelCounts",
+    "LevelIndex",
+    "MLFit",
+    "index_levels",
+    "level_counts",
+    "log_likelihood",
+    "ml_threshold_db",
+    "ml_threshold_from_counts",
+]
 
 _GRID_POINTS = 25
 _NEWTON_ITERATIONS = 16  # the bisection fallback alone would shrink the bracket 65536-fold
@@ -43,25 +63,6 @@ _GAIN_TOLERANCE = 1e-7  # log-likelihood units; a step gaining less ends the cli
 _HALVINGS = 12
 _SHALLOW_FACTOR = 4.0  # the shallow start's scale, × the given scale
 _GOLDEN_ITERATIONS = 30  # shrinks a gap between levels 0.618^30 ≈ 5e-7-fold
-
-
-@dataclass(frozen=True)
-class LevelCounts:
-    """Trials per distinct level of each track (zero-padded to the longest row).
-
-    Attributes
-    ----------
-    level_db : ndarray, shape (R, U)
-        Distinct levels visited by each track, dB (ascending; padding repeats the last level).
-    n_trials : ndarray, shape (R, U)
-        Trials at each level.
-    n_correct : ndarray, shape (R, U)
-        Correct answers at each level.
-    """
-
-    level_db: NDArray[np.float64]
-    n_trials: NDArray[np.float64]
-    n_correct: NDArray[np.float64]
 
 
 @dataclass(frozen=True)
@@ -86,212 +87,6 @@ class MLFit:
     location_db: NDArray[np.float64]
     scale_db: NDArray[np.float64]
     log_likelihood: NDArray[np.float64]
-
-
-@dataclass(frozen=True)
-class LevelIndex:
-    """Each trial's place among its track's distinct levels, computed once per set of tracks.
-
-    :meth:`counts` then gives the counts for any prefix of every track (a shorter stop rule, a
-    trial cap) without sorting again.
-
-    Attributes
-    ----------
-    level_db : ndarray, shape (R, U)
-        Distinct levels of each track, ascending, dB (padding repeats the row's last level).
-    trial_level : ndarray of int, shape (R, T)
-        Column of ``level_db`` holding each trial's level (−1: no trial).
-    correct : ndarray of bool, shape (R, T)
-        Answers.
-    """
-
-    level_db: NDArray[np.float64]
-    trial_level: NDArray[np.int64]
-    correct: NDArray[np.bool_]
-
-    def counts(
-        self, n_trials: ArrayLike | None = None, rows: ArrayLike | None = None
-    ) -> LevelCounts:
-        """Counts over the first ``n_trials[i]`` trials of each track (all trials if None).
-
-        Parameters
-        ----------
-        n_trials : array of int, shape (R,), optional
-            Trials of each track to count.
-        rows : array of int, optional
-            Only these tracks (the result has one row per entry).
-        """
-        group = self.trial_level
-        correct = self.correct
-        level = self.level_db
-        use = group >= 0
-        if n_trials is not None:
-            use = use & (np.arange(group.shape[1])[None, :] < np.asarray(n_trials)[:, None])
-        if rows is not None:
-            idx = np.asarray(rows, dtype=np.intp)
-            group, correct, level, use = group[idx], correct[idx], level[idx], use[idx]
-        n_rows, n_groups = level.shape
-        flat = (np.arange(n_rows)[:, None] * n_groups + group)[use]
-        size = n_rows * n_groups
-        n = np.bincount(flat, minlength=size).astype(float).reshape(n_rows, n_groups)
-        k = np.bincount(flat, weights=correct[use], minlength=size).reshape(n_rows, n_groups)
-        return LevelCounts(level, n, k)
-
-
-def index_levels(levels_db: ArrayLike, correct: ArrayLike) -> LevelIndex:
-    """Find each track's distinct levels (see :class:`LevelIndex`).
-
-    Parameters
-    ----------
-    levels_db : array, shape (R, T)
-        Trial levels in dB; NaN marks no trial (past a track's end).
-    correct : array of bool, shape (R, T)
-        Answers.
-
-    Raises
-    ------
-    AnalysisError
-        If the arrays are not matching 2-D arrays.
-    """
-    lv = np.asarray(levels_db, dtype=float)
-    ok = np.asarray(correct, dtype=bool)
-    if lv.ndim != 2 or lv.shape != ok.shape:
-        raise AnalysisError(
-            f"levels and answers must be matching 2-D (tracks × trials) arrays, got "
-            f"{lv.shape} and {ok.shape}"
-        )
-    n_rows = lv.shape[0]
-    keyed = np.where(np.isnan(lv), np.inf, lv)
-    order = np.argsort(keyed, axis=1, kind="stable")
-    x = np.take_along_axis(keyed, order, axis=1)
-    valid = np.isfinite(x)
-    new = np.ones_like(valid)
-    new[:, 1:] = x[:, 1:] != x[:, :-1]
-    group = np.cumsum(new, axis=1) - 1
-    n_groups = int(group[valid].max()) + 1 if valid.any() else 1
-    level = np.full((n_rows, n_groups), np.nan)
-    rows = np.broadcast_to(np.arange(n_rows)[:, None], x.shape)
-    level[rows[valid], group[valid]] = x[valid]
-    # Padding repeats each row's last level so that it is a harmless finite number.
-    seen = np.where(np.isnan(level), 0, np.arange(n_groups))
-    level = np.take_along_axis(level, np.maximum.accumulate(seen, axis=1), axis=1)
-    level = np.where(np.isnan(level), 0.0, level)  # rows without any trial
-    trial_level = np.full(lv.shape, -1, dtype=np.int64)
-    np.put_along_axis(trial_level, order, np.where(valid, group, -1), axis=1)
-    return LevelIndex(level, trial_level, ok)
-
-
-def level_counts(levels_db: ArrayLike, correct: ArrayLike) -> LevelCounts:
-    """Reduce tracks to counts per distinct level (the likelihood's sufficient statistics).
-
-    Parameters
-    ----------
-    levels_db : array, shape (R, T)
-        Trial levels in dB; NaN marks no trial (past a track's end).
-    correct : array of bool, shape (R, T)
-        Answers.
-    """
-    return index_levels(levels_db, correct).counts()
-
-
-def _logistic_parts(
-    counts: LevelCounts, threshold_db: NDArray[np.float64], scale_db: NDArray[np.float64], c: float
-) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
-    """y = (x − t)/s, F(y + c) and 1 − F(y + c) without cancellation or overflow (one exp).
-
-    ``c`` = logit of the rise fraction at ``p_target``, so that p(t) = p_target.
-    """
-    y = (counts.level_db - threshold_db[:, None]) / scale_db[:, None]
-    z = y + c
-    e = np.exp(-np.abs(z))
-    small = e / (1.0 + e)
-    big = 1.0 / (1.0 + e)
-    pos = z >= 0
-    return y, np.where(pos, big, small), np.where(pos, small, big)
-
-
-@dataclass(frozen=True)
-class _Model:
-    guess: float
-    lapse: float
-    c: float  # logit((p_target − γ)/(1 − γ − λ)): threshold = α + s·c
-
-    @property
-    def rise(self) -> float:
-        return 1.0 - self.guess - self.lapse
-
-    def log_likelihood(
-        self, counts: LevelCounts, threshold_db: NDArray[np.float64], scale_db: NDArray[np.float64]
-    ) -> NDArray[np.float64]:
-        _, f, g = _logistic_parts(counts, threshold_db, scale_db, self.c)
-        tiny = np.finfo(float).tiny
-        p = np.maximum(self.guess + self.rise * f, tiny)
-        q = np.maximum(self.lapse + self.rise * g, tiny)  # 1 − p without cancellation
-        ll = counts.n_correct * np.log(p) + (counts.n_trials - counts.n_correct) * np.log(q)
-        return ll.sum(axis=1)
-
-    def derivatives(
-        self, counts: LevelCounts, threshold_db: NDArray[np.float64], scale_db: NDArray[np.float64]
-    ) -> tuple[NDArray[np.float64], ...]:
-        """Gradient and Hessian of the log-likelihood in (t, u = ln s), per track.
-
-        Returns (g_t, g_u, H_tt, H_tu, H_uu, I_tt, I_tu, I_uu): gradient, observed Hessian and
-        expected (Fisher) information, each of shape (R,).
-        """
-        y, f, g = _logistic_parts(counts, threshold_db, scale_db, self.c)
-        tiny = np.finfo(float).tiny
-        p = np.maximum(self.guess + self.rise * f, tiny)
-        q = np.maximum(self.lapse + self.rise * g, tiny)
-        h = self.rise * f * g  # dp/dz
-        h2 = h * (g - f)  # d²p/dz²
-        s = scale_db[:, None]
-        k = counts.n_correct
-        m = counts.n_trials - k
-        w = k / p - m / q
-        curv = -(k / p**2 + m / q**2)
-        info = counts.n_trials / (p * q)
-        dt = -h / s
-        du = -h * y
-        dtt = h2 / s**2
-        dtu = (h2 * y + h) / s
-        duu = h2 * y**2 + h * y
-        return (
-            (w * dt).sum(axis=1),
-            (w * du).sum(axis=1),
-            (w * dtt + curv * dt * dt).sum(axis=1),
-            (w * dtu + curv * dt * du).sum(axis=1),
-            (w * duu + curv * du * du).sum(axis=1),
-            (info * dt * dt).sum(axis=1),
-            (info * dt * du).sum(axis=1),
-            (info * du * du).sum(axis=1),
-        )
-
-
-def log_likelihood(
-    counts: LevelCounts,
-    threshold_db: ArrayLike,
-    scale_db: float,
-    *,
-    guess: float = GUESS_3IFC,
-    lapse: float = 0.02,
-    p_target: float = LEVITT_1U3D,
-) -> NDArray[np.float64]:
-    """Binomial log-likelihood (natural log) of each track for a threshold and scale.
-
-    Parameters
-    ----------
-    counts : LevelCounts
-        From :func:`level_counts`.
-    threshold_db : array, shape (R,)
-        Level where p(correct) = ``p_target``, per track, dB.
-    scale_db : float
-        Logistic scale s, dB.
-    guess, lapse, p_target : float
-        γ, λ and the p defining the threshold.
-    """
-    model = _model(guess, lapse, p_target)
-    t = np.asarray(threshold_db, dtype=float).reshape(-1)
-    return model.log_likelihood(counts, t, np.full(t.shape, float(scale_db)))
 
 
 def ml_threshold_db(
@@ -358,7 +153,7 @@ def ml_threshold_from_counts(
     min_trials: int = 10,
 ) -> MLFit:
     """:func:`ml_threshold_db` on counts from :func:`level_counts` or :meth:`LevelIndex.counts`."""
-    model = _model(guess, lapse, p_target)
+    model = logistic_model(guess, lapse, p_target)
     s_lo, s_hi = (float(v) for v in scale_bounds_db)
     if not (0 < s_lo < s_hi and np.isfinite(s_hi)):
         raise AnalysisError(f"scale_bounds_db must be 0 < low < high dB, got {scale_bounds_db}")
@@ -417,7 +212,7 @@ def ml_threshold_from_counts(
 
 def _fit_rows(
     sub: LevelCounts,
-    model: _Model,
+    model: LogisticModel,
     t_lo: NDArray[np.float64],
     t_hi: NDArray[np.float64],
     scale_db: float,
@@ -457,21 +252,10 @@ def _fit_rows(
     return t3[take], s3[take], ll3[take]
 
 
-def _model(guess: float, lapse: float, p_target: float) -> _Model:
-    if not (0 <= guess < 1 and 0 <= lapse < 1 - guess):
-        raise AnalysisError(f"need 0 ≤ guess < 1 and 0 ≤ lapse < 1 − guess, got {guess}, {lapse}")
-    if not guess < p_target < 1 - lapse:
-        raise AnalysisError(
-            f"p_target={p_target} must lie between guess={guess} and 1 − lapse={1 - lapse}"
-        )
-    q = (p_target - guess) / (1.0 - guess - lapse)
-    return _Model(guess, lapse, float(np.log(q / (1.0 - q))))
-
-
 def _fit_threshold(
     counts: LevelCounts,
     scale_db: NDArray[np.float64],
-    model: _Model,
+    model: LogisticModel,
     t_lo: NDArray[np.float64],
     t_hi: NDArray[np.float64],
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -514,7 +298,7 @@ def _fit_threshold(
 
 
 def _steep_start(
-    counts: LevelCounts, scale_db: float, model: _Model
+    counts: LevelCounts, scale_db: float, model: LogisticModel
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Best threshold for a near-step function (scale ``scale_db``).
 
@@ -562,7 +346,7 @@ def _maximise_2d(
     t: NDArray[np.float64],
     s: NDArray[np.float64],
     ll: NDArray[np.float64],
-    model: _Model,
+    model: LogisticModel,
     t_lo: NDArray[np.float64],
     t_hi: NDArray[np.float64],
     s_lo: float,

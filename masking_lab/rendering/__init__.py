@@ -1,1 +1,20 @@
-"""rendering."""
+"""Rendering: the inverse of mutual masking, applied to scenes (paper §3).
+
+Given fitted masking functions, the rendering wing turns what a scene should *feel* like (perceived
+MV and EV levels, dB SL, per haptic interaction point) into the inputs to play.
+
+- :mod:`~masking_lab.rendering.pair`: :class:`MutualMasking`, the two masking ramps of one MV/EV
+  pair, and :func:`pair_from_params` (from a parsed ``masking_params.json``).
+- :mod:`~masking_lab.rendering.ramp_inverse`: the four-case closed form and how many answers a
+  target has (none, one, several).
+- :mod:`~masking_lab.rendering.solver`: the public solver (:func:`solve` on arrays,
+  :func:`forward`); re-exports the names of the two modules above.
+- :mod:`~masking_lab.rendering.scene`: scenes (path, geometry by EV, texture by MV);
+  :func:`parse_scene` is pure, :func:`load_scene` reads a file.
+- :mod:`~masking_lab.rendering.render`: :func:`render_scene` and :func:`summarize` (pure).
+- :mod:`~masking_lab.rendering.outputs`: ``points.csv``, ``summary.json``, the figure and the
+  measurement protocol written to disk.
+- :mod:`~masking_lab.rendering.figures`: the Figure-4-like PNG.
+
+Imports point one way: ramp_inverse ← pair ← solver ← render ← figures ← outputs.
+"""

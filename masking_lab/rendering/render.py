@@ -1,39 +1,34 @@
 """Render a scene: per-point targets → compensated inputs, and what each input pair feels like.
 
-:func:`render_scene` is pure: for every interaction point it takes the scene's perceived targets
+:func:`render_scene` takes, for every interaction point, the scene's perceived targets
 (m_p, e_p), asks the solver for the inputs (m_i, e_i), and runs the forward model twice — on the
 compensated inputs and on the targets played as they are (no compensation, paper Figure 4b) — to
-give the masked ALs and the perceived intensities of both. :func:`write_rendering` writes the
-per-point table, a summary and a Figure-4-like figure.
+give the masked ALs and the perceived intensities of both. :func:`summarize` condenses a
+:class:`Rendering` into a JSON-ready summary.
 
 Model only what a scene needs (:func:`needed_pairs`): a single-channel scene has nothing to mask
-it and passes straight through without parameters; a two-channel scene loads exactly the two
-masking functions of its (MV, EV) stimulus pair. When those are not fitted,
-:func:`measurement_protocol` builds the masked-threshold protocol that measures just that pair.
+it and passes straight through without parameters; a two-channel scene needs exactly the two
+masking functions of its (MV, EV) stimulus pair.
+
+Pure: no file is read or written here. :mod:`masking_lab.rendering.outputs` writes the per-point
+table, the summary and the figure, and the protocol that measures missing masking functions.
 """
 
 from __future__ import annotations
 
-import json
 import math
-from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 from numpy.typing import NDArray
 
 from masking_lab import __version__
 from masking_lab.core.errors import SolverError
-from masking_lab.formats.fileio import write_bytes_atomic, write_text_atomic
-from masking_lab.formats.resources import shipped
 from masking_lab.rendering.scene import Scene
 from masking_lab.rendering.solver import (
     REASON_TEXT,
     MutualMasking,
-    PairProblem,
     Reason,
     Solution,
     ev_masked_al_db_sl,
@@ -41,8 +36,7 @@ from masking_lab.rendering.solver import (
     solve,
 )
 
-# Masker levels of the paper's experiments I and II (Table 1), dB SL.
-MEASURE_LEVELS_DB_SL: tuple[float, ...] = (5.0, 10.0, 15.0, 20.0, 25.0)
+__all__ = ["NO_MASKING", "Rendering", "needed_pairs", "render_scene", "runs_mm", "summarize"]
 
 # Nothing masks a channel that plays alone: the ramps are identically 0.
 NO_MASKING = MutualMasking(0.0, 0.0, 0.0, 0.0, mv="none", ev="none")
@@ -275,123 +269,3 @@ def _num(x: float) -> float | str | None:
     if math.isinf(x):
         return "-inf" if x < 0 else "inf"
     return x
-
-
-# --------------------------------------------------------------------------------------------
-# Files
-
-POINT_COLUMNS = (
-    "x_mm",
-    "t_s",
-    "mv_target_db_sl",
-    "ev_target_db_sl",
-    "mv_input_db_sl",
-    "ev_input_db_sl",
-    "case",
-    "status",
-    "mv_exceeds_rating",
-    "ev_exceeds_rating",
-    "mv_masked_al_db_sl",
-    "ev_masked_al_db_sl",
-    "mv_perceived_db_sl",
-    "ev_perceived_db_sl",
-    "mv_masked_al_uncomp_db_sl",
-    "ev_masked_al_uncomp_db_sl",
-    "mv_perceived_uncomp_db_sl",
-    "ev_perceived_uncomp_db_sl",
-)
-
-
-def points_csv(r: Rendering) -> str:
-    """The per-point table as CSV text (floats round-trip exactly; −inf is a silent channel)."""
-    sol = r.solution
-    cols: list[Sequence[Any]] = []
-    for name in POINT_COLUMNS:
-        if name == "case":
-            cols.append([str(int(c)) for c in sol.case])
-        elif name == "status":
-            cols.append(sol.status_names())
-        elif name.endswith("exceeds_rating"):
-            cols.append(["1" if v else "0" for v in getattr(sol, name)])
-        else:
-            cols.append([repr(float(v)) for v in getattr(r, name)])
-    lines = [",".join(POINT_COLUMNS)]
-    lines += [",".join(row) for row in zip(*cols, strict=True)]
-    return "\n".join(lines) + "\n"
-
-
-def write_rendering(r: Rendering, out_dir: str | Path, *, figure: bool = True) -> list[Path]:
-    """Write ``points.csv``, ``summary.json`` and (optionally) ``figure4.png`` into ``out_dir``.
-
-    Each file is written atomically and fsynced. Returns the paths written.
-    """
-    out = Path(out_dir)
-    written = [
-        write_text_atomic(out / "points.csv", points_csv(r)),
-        write_text_atomic(
-            out / "summary.json", json.dumps(summarize(r), indent=2, allow_nan=False) + "\n"
-        ),
-    ]
-    if figure:
-        from masking_lab.rendering.figures import figure4_png
-
-        written.append(write_bytes_atomic(out / "figure4.png", figure4_png(r)))
-    return written
-
-
-def measurement_protocol(
-    problems: Sequence[PairProblem], *, levels_db_sl: Sequence[float] = MEASURE_LEVELS_DB_SL
-) -> dict[str, Any]:
-    """A masked-threshold protocol measuring only the masking functions in ``problems``.
-
-    One set per (target, masker, level); the staircase and timing are those of the shipped
-    experiment I protocol, so the new data pool with the paper's.
-
-    Parameters
-    ----------
-    problems : sequence of PairProblem
-        The directions to measure (target stimulus, masker stimulus).
-    levels_db_sl : sequence of float
-        Masker levels, dB SL (default the paper's 5–25 dB SL).
-    """
-    if not problems:
-        raise SolverError("nothing to measure: every masking function the scene needs is fitted")
-    template = yaml.safe_load(shipped("protocols", "experiment1.yaml").read_text(encoding="utf-8"))
-    stimuli = sorted({p.target for p in problems} | {p.masker for p in problems})
-    sets = []
-    for p in problems:
-        for level in levels_db_sl:
-            sets.append(
-                {
-                    "id": f"{p.target}_by_{p.masker}_{level:02g}",
-                    "target": p.target,
-                    "masker": p.masker,
-                    "masker_level_db_sl": float(level),
-                }
-            )
-    listed = ", ".join(f"{p.target} masked by {p.masker}" for p in problems)
-    return {
-        "schema_version": 1,
-        "experiment": "measure_" + "_".join(stimuli),
-        "description": f"Measures only what a scene needs and the parameters lack: {listed}, "
-        f"at {', '.join(f'{lv:g}' for lv in levels_db_sl)} dB SL. Written by masking-lab "
-        "render; run after the baseline of every stimulus involved.",
-        "kind": "masked",
-        "staircase": template["staircase"],
-        "timing": template["timing"],
-        "order": {"randomize": True},
-        "sets": sets,
-    }
-
-
-def write_measurement_protocol(protocol: Mapping[str, Any], out_dir: str | Path) -> Path:
-    """Validate ``protocol`` with the protocol loader and write it as ``<experiment>.yaml``."""
-    from masking_lab.formats.protocol import parse_protocol
-
-    text = (
-        "# Written by masking-lab render: measures the masking a scene needs.\n"
-        + yaml.safe_dump(dict(protocol), sort_keys=False, allow_unicode=True)
-    )
-    path = Path(out_dir) / f"{protocol['experiment']}.yaml"
-    parse_protocol(text.encode("utf-8"), str(path))
-    return write_text_atomic(path, text)

@@ -23,8 +23,9 @@ without the exact mapping; this is our choice, documented in docs/scenes.md.
 Texture: the MV stimulus (carrier, optional envelope, e.g. ``MV120am40``) at a constant perceived
 level (smooth 6 dB SL, rough and coarse 12 dB SL in the paper).
 
-Everything here is pure except :func:`load_scene`, which reads and validates a YAML file against
-``data_schema/scene.schema.json``.
+Everything here is pure except :func:`load_scene`, which reads a YAML file; it is a thin reader
+over :func:`parse_scene_text` (YAML in memory) and :func:`parse_scene` (an already parsed
+mapping, validated against ``data_schema/scene.schema.json``).
 """
 
 from __future__ import annotations
@@ -37,12 +38,24 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
-import yaml
 from numpy.typing import ArrayLike, NDArray
 
 from masking_lab.core.errors import ProtocolError
 from masking_lab.core.stimulus import parse_stimulus
+from masking_lab.formats.protocol import _safe_yaml as safe_yaml
 from masking_lab.formats.schemas import key_path, schema_errors
+
+__all__ = [
+    "SHAPES",
+    "GeometrySpec",
+    "PathSpec",
+    "Scene",
+    "Shape",
+    "TextureSpec",
+    "load_scene",
+    "parse_scene",
+    "parse_scene_text",
+]
 
 Shape = Literal["bump", "hole", "ascending", "descending"]
 SHAPES: tuple[Shape, ...] = ("bump", "hole", "ascending", "descending")
@@ -226,7 +239,7 @@ class Scene:
 
 
 def load_scene(path: str | Path) -> Scene:
-    """Read and validate a scene YAML file.
+    """Read a scene YAML file and build it with :func:`parse_scene_text`.
 
     Raises
     ------
@@ -238,21 +251,42 @@ def load_scene(path: str | Path) -> Scene:
         raw = p.read_bytes()
     except OSError as exc:
         raise ProtocolError(str(p), "", f"cannot read the scene ({exc.strerror or exc})") from exc
-    try:
-        data = yaml.safe_load(raw.decode("utf-8", errors="replace"))
-    except yaml.MarkedYAMLError as exc:
-        mark = exc.problem_mark or exc.context_mark
-        where = f"line {mark.line + 1}, column {mark.column + 1}" if mark else ""
-        raise ProtocolError(
-            str(p), where, f"malformed YAML: {exc.problem}; fix the syntax"
-        ) from exc
-    except yaml.YAMLError as exc:
-        raise ProtocolError(str(p), "", f"malformed YAML: {exc}") from exc
-    return scene_from_dict(data, str(p), sha256=hashlib.sha256(raw).hexdigest())
+    return parse_scene_text(raw, str(p))
 
 
-def scene_from_dict(data: Any, source: str = "<memory>", sha256: str = "") -> Scene:
-    """Validate a parsed scene mapping against the schema and build a :class:`Scene`.
+def parse_scene_text(raw: bytes | str, source: str = "<memory>") -> Scene:
+    """Parse scene YAML already in memory (safe loader) and build it with :func:`parse_scene`.
+
+    Parameters
+    ----------
+    raw : bytes or str
+        The scene file's content (str is encoded as UTF-8 for the hash).
+    source : str
+        Names the content in messages and on the :class:`Scene`.
+
+    Raises
+    ------
+    ProtocolError
+        Malformed YAML (with its line), a duplicated key, or what :func:`parse_scene` refuses.
+    """
+    data_bytes = raw.encode("utf-8") if isinstance(raw, str) else raw
+    data, _lines = safe_yaml(data_bytes.decode("utf-8", errors="replace"), source)
+    return parse_scene(data, source, sha256=hashlib.sha256(data_bytes).hexdigest())
+
+
+def parse_scene(data: Any, source: str = "<memory>", sha256: str = "") -> Scene:
+    """Validate an already parsed scene mapping against the schema and build a :class:`Scene`.
+
+    Pure: no file, no YAML.
+
+    Parameters
+    ----------
+    data : mapping
+        The scene's content (what :func:`load_scene` parses from YAML).
+    source : str
+        Names the data in messages and on the :class:`Scene`.
+    sha256 : str
+        Hash of the bytes the content came from ("" when built in memory).
 
     Raises
     ------

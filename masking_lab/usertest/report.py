@@ -23,7 +23,8 @@ from typing import Any
 
 from masking_lab.core.errors import AnalysisError, LogError
 from masking_lab.formats.fileio import write_bytes_atomic, write_text_atomic
-from masking_lab.usertest.design import CONDITIONS, MEASURES, UserTestAnalysis, analyze_usertest
+from masking_lab.usertest.design import CONDITIONS, MEASURES
+from masking_lab.usertest.stats import UserTestAnalysis, analyze_usertest
 
 RECORD = "usertest_trial"
 COMPENSATED_COLOUR = "tab:blue"
@@ -198,7 +199,7 @@ def tests_rows(analysis: UserTestAnalysis) -> list[dict[str, Any]]:
 
 def confusion_csv(table: Any) -> str:
     """A confusion matrix as CSV: first column the presented class, then one per answer."""
-    from masking_lab.analysis.batch import csv_text
+    from masking_lab.formats.csv_table import csv_text
 
     columns = [str(table.index.name), *[str(c) for c in table.columns]]
     rows = [
@@ -343,7 +344,7 @@ def write_usertest_report(
     AnalysisError
         No user-test logs, inconsistent designs, or records that do not fit the design.
     """
-    from masking_lab.analysis.batch import csv_text
+    from masking_lab.formats.csv_table import csv_text
 
     data = collect_usertest(data_dir)
     analysis = analyze_usertest(data.records, data.geometries, data.textures)

@@ -31,7 +31,8 @@ from masking_lab.core.seeding import trial_rng
 from masking_lab.rendering.render import Rendering
 from masking_lab.rendering.solver import MutualMasking
 from masking_lab.simulation.observer import GroundTruth, SimulatedParticipant, make_participant
-from masking_lab.usertest.design import IdentificationObserver, UserTestDesign
+from masking_lab.usertest.design import UserTestDesign
+from masking_lab.usertest.observer import IdentificationObserver
 from masking_lab.usertest.responder_base import (
     FingerReader,
     StreamResult,

@@ -1,0 +1,292 @@
+"""Sufficient statistics of staircase tracks, and the likelihood of a forced-choice logistic.
+
+A staircase visits a dozen or two distinct levels, so the binomial likelihood of a track depends
+only on its trials and correct answers per distinct level (:class:`LevelCounts`).
+:func:`index_levels` sorts each track's trials once (:class:`LevelIndex`) so that counts for any
+prefix of every track — a shorter stop rule, a trial cap — come without sorting again.
+:class:`LogisticModel` and :func:`log_likelihood` evaluate the model
+``p(x) = γ + (1 − γ − λ)·F((x − α)/s)`` (levels and scale in dB) on those counts, with the
+derivatives the batch fitter (:mod:`masking_lab.procedures.ml_batch`) climbs. Pure numpy.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from masking_lab.core.errors import AnalysisError
+from masking_lab.core.psychometric import GUESS_3IFC, LEVITT_1U3D
+
+__all__ = [
+    "LevelCounts",
+    "LevelIndex",
+    "LogisticModel",
+    "index_levels",
+    "level_counts",
+    "log_likelihood",
+    "logistic_model",
+]
+
+
+@dataclass(frozen=True)
+class LevelCounts:
+    """Trials per distinct level of each track (zero-padded to the longest row).
+
+    Attributes
+    ----------
+    level_db : ndarray, shape (R, U)
+        Distinct levels visited by each track, dB (ascending; padding repeats the last level).
+    n_trials : ndarray, shape (R, U)
+        Trials at each level.
+    n_correct : ndarray, shape (R, U)
+        Correct answers at each level.
+    """
+
+    level_db: NDArray[np.float64]
+    n_trials: NDArray[np.float64]
+    n_correct: NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class LevelIndex:
+    """Each trial's place among its track's distinct levels, computed once per set of tracks.
+
+    :meth:`counts` then gives the counts for any prefix of every track (a shorter stop rule, a
+    trial cap) without sorting again.
+
+    Attributes
+    ----------
+    level_db : ndarray, shape (R, U)
+        Distinct levels of each track, ascending, dB (padding repeats the row's last level).
+    trial_level : ndarray of int, shape (R, T)
+        Column of ``level_db`` holding each trial's level (−1: no trial).
+    correct : ndarray of bool, shape (R, T)
+        Answers.
+    """
+
+    level_db: NDArray[np.float64]
+    trial_level: NDArray[np.int64]
+    correct: NDArray[np.bool_]
+
+    def counts(
+        self, n_trials: ArrayLike | None = None, rows: ArrayLike | None = None
+    ) -> LevelCounts:
+        """Counts over the first ``n_trials[i]`` trials of each track (all trials if None).
+
+        Parameters
+        ----------
+        n_trials : array of int, shape (R,), optional
+            Trials of each track to count.
+        rows : array of int, optional
+            Only these tracks (the result has one row per entry).
+        """
+        group = self.trial_level
+        correct = self.correct
+        level = self.level_db
+        use = group >= 0
+        if n_trials is not None:
+            use = use & (np.arange(group.shape[1])[None, :] < np.asarray(n_trials)[:, None])
+        if rows is not None:
+            idx = np.asarray(rows, dtype=np.intp)
+            group, correct, level, use = group[idx], correct[idx], level[idx], use[idx]
+        n_rows, n_groups = level.shape
+        flat = (np.arange(n_rows)[:, None] * n_groups + group)[use]
+        size = n_rows * n_groups
+        n = np.bincount(flat, minlength=size).astype(float).reshape(n_rows, n_groups)
+        k = np.bincount(flat, weights=correct[use], minlength=size).reshape(n_rows, n_groups)
+        return LevelCounts(level, n, k)
+
+
+def index_levels(levels_db: ArrayLike, correct: ArrayLike) -> LevelIndex:
+    """Find each track's distinct levels (see :class:`LevelIndex`).
+
+    Parameters
+    ----------
+    levels_db : array, shape (R, T)
+        Trial levels in dB; NaN marks no trial (past a track's end).
+    correct : array of bool, shape (R, T)
+        Answers.
+
+    Raises
+    ------
+    AnalysisError
+        If the arrays are not matching 2-D arrays.
+    """
+    lv = np.asarray(levels_db, dtype=float)
+    ok = np.asarray(correct, dtype=bool)
+    if lv.ndim != 2 or lv.shape != ok.shape:
+        raise AnalysisError(
+            f"levels and answers must be matching 2-D (tracks × trials) arrays, got "
+            f"{lv.shape} and {ok.shape}"
+        )
+    n_rows = lv.shape[0]
+    keyed = np.where(np.isnan(lv), np.inf, lv)
+    order = np.argsort(keyed, axis=1, kind="stable")
+    x = np.take_along_axis(keyed, order, axis=1)
+    valid = np.isfinite(x)
+    new = np.ones_like(valid)
+    new[:, 1:] = x[:, 1:] != x[:, :-1]
+    group = np.cumsum(new, axis=1) - 1
+    n_groups = int(group[valid].max()) + 1 if valid.any() else 1
+    level = np.full((n_rows, n_groups), np.nan)
+    rows = np.broadcast_to(np.arange(n_rows)[:, None], x.shape)
+    level[rows[valid], group[valid]] = x[valid]
+    # Padding repeats each row's last level so that it is a harmless finite number.
+    seen = np.where(np.isnan(level), 0, np.arange(n_groups))
+    level = np.take_along_axis(level, np.maximum.accumulate(seen, axis=1), axis=1)
+    level = np.where(np.isnan(level), 0.0, level)  # rows without any trial
+    trial_level = np.full(lv.shape, -1, dtype=np.int64)
+    np.put_along_axis(trial_level, order, np.where(valid, group, -1), axis=1)
+    return LevelIndex(level, trial_level, ok)
+
+
+def level_counts(levels_db: ArrayLike, correct: ArrayLike) -> LevelCounts:
+    """Reduce tracks to counts per distinct level (the likelihood's sufficient statistics).
+
+    Parameters
+    ----------
+    levels_db : array, shape (R, T)
+        Trial levels in dB; NaN marks no trial (past a track's end).
+    correct : array of bool, shape (R, T)
+        Answers.
+    """
+    return index_levels(levels_db, correct).counts()
+
+
+# --------------------------------------------------------------------------------------------
+# The likelihood
+
+
+def _logistic_parts(
+    counts: LevelCounts, threshold_db: NDArray[np.float64], scale_db: NDArray[np.float64], c: float
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """y = (x − t)/s, F(y + c) and 1 − F(y + c) without cancellation or overflow (one exp).
+
+    ``c`` = logit of the rise fraction at ``p_target``, so that p(t) = p_target.
+    """
+    y = (counts.level_db - threshold_db[:, None]) / scale_db[:, None]
+    z = y + c
+    e = np.exp(-np.abs(z))
+    small = e / (1.0 + e)
+    big = 1.0 / (1.0 + e)
+    pos = z >= 0
+    return y, np.where(pos, big, small), np.where(pos, small, big)
+
+
+@dataclass(frozen=True)
+class LogisticModel:
+    """The forced-choice logistic with γ and λ fixed, parametrised by its threshold.
+
+    Attributes
+    ----------
+    guess : float
+        γ, p(correct) far below threshold.
+    lapse : float
+        λ, p(wrong) far above threshold.
+    c : float
+        logit((p_target − γ)/(1 − γ − λ)): threshold = α + s·c (dimensionless).
+    """
+
+    guess: float
+    lapse: float
+    c: float
+
+    @property
+    def rise(self) -> float:
+        """1 − γ − λ: the part of p(correct) the psychometric function spans."""
+        return 1.0 - self.guess - self.lapse
+
+    def log_likelihood(
+        self, counts: LevelCounts, threshold_db: NDArray[np.float64], scale_db: NDArray[np.float64]
+    ) -> NDArray[np.float64]:
+        """Log-likelihood (natural log) per track at threshold ``threshold_db`` and scale
+        ``scale_db`` (both dB, shape (R,))."""
+        _, f, g = _logistic_parts(counts, threshold_db, scale_db, self.c)
+        tiny = np.finfo(float).tiny
+        p = np.maximum(self.guess + self.rise * f, tiny)
+        q = np.maximum(self.lapse + self.rise * g, tiny)  # 1 − p without cancellation
+        ll = counts.n_correct * np.log(p) + (counts.n_trials - counts.n_correct) * np.log(q)
+        return ll.sum(axis=1)
+
+    def derivatives(
+        self, counts: LevelCounts, threshold_db: NDArray[np.float64], scale_db: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], ...]:
+        """Gradient and Hessian of the log-likelihood in (t, u = ln s), per track.
+
+        Returns (g_t, g_u, H_tt, H_tu, H_uu, I_tt, I_tu, I_uu): gradient, observed Hessian and
+        expected (Fisher) information, each of shape (R,).
+        """
+        y, f, g = _logistic_parts(counts, threshold_db, scale_db, self.c)
+        tiny = np.finfo(float).tiny
+        p = np.maximum(self.guess + self.rise * f, tiny)
+        q = np.maximum(self.lapse + self.rise * g, tiny)
+        h = self.rise * f * g  # dp/dz
+        h2 = h * (g - f)  # d²p/dz²
+        s = scale_db[:, None]
+        k = counts.n_correct
+        m = counts.n_trials - k
+        w = k / p - m / q
+        curv = -(k / p**2 + m / q**2)
+        info = counts.n_trials / (p * q)
+        dt = -h / s
+        du = -h * y
+        dtt = h2 / s**2
+        dtu = (h2 * y + h) / s
+        duu = h2 * y**2 + h * y
+        return (
+            (w * dt).sum(axis=1),
+            (w * du).sum(axis=1),
+            (w * dtt + curv * dt * dt).sum(axis=1),
+            (w * dtu + curv * dt * du).sum(axis=1),
+            (w * duu + curv * du * du).sum(axis=1),
+            (info * dt * dt).sum(axis=1),
+            (info * dt * du).sum(axis=1),
+            (info * du * du).sum(axis=1),
+        )
+
+
+def log_likelihood(
+    counts: LevelCounts,
+    threshold_db: ArrayLike,
+    scale_db: float,
+    *,
+    guess: float = GUESS_3IFC,
+    lapse: float = 0.02,
+    p_target: float = LEVITT_1U3D,
+) -> NDArray[np.float64]:
+    """Binomial log-likelihood (natural log) of each track for a threshold and scale.
+
+    Parameters
+    ----------
+    counts : LevelCounts
+        From :func:`level_counts`.
+    threshold_db : array, shape (R,)
+        Level where p(correct) = ``p_target``, per track, dB.
+    scale_db : float
+        Logistic scale s, dB.
+    guess, lapse, p_target : float
+        γ, λ and the p defining the threshold.
+    """
+    model = logistic_model(guess, lapse, p_target)
+    t = np.asarray(threshold_db, dtype=float).reshape(-1)
+    return model.log_likelihood(counts, t, np.full(t.shape, float(scale_db)))
+
+
+def logistic_model(guess: float, lapse: float, p_target: float) -> LogisticModel:
+    """Check γ, λ and p_target (probabilities) and build the model.
+
+    Raises
+    ------
+    AnalysisError
+        Unless 0 ≤ γ < 1, 0 ≤ λ < 1 − γ and γ < p_target < 1 − λ.
+    """
+    if not (0 <= guess < 1 and 0 <= lapse < 1 - guess):
+        raise AnalysisError(f"need 0 ≤ guess < 1 and 0 ≤ lapse < 1 − guess, got {guess}, {lapse}")
+    if not guess < p_target < 1 - lapse:
+        raise AnalysisError(
+            f"p_target={p_target} must lie between guess={guess} and 1 − lapse={1 - lapse}"
+        )
+    q = (p_target - guess) / (1.0 - guess - lapse)
+    return LogisticModel(guess, lapse, float(np.log(q / (1.0 - q))))

@@ -1,0 +1,242 @@
+"""Analysis of a user test: correct rates, compensated vs uncompensated paired tests, confusion.
+
+:func:`analyze_usertest` takes logged trial records (:func:`~masking_lab.usertest.design
+.trial_record`): correct rates (0–1) per participant and condition, a paired t-test per measure
+(both answers, geometry, texture) with Cohen's d_z, and confusion matrices (counts) per
+condition. Pure: pandas and scipy are imported when it runs.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from masking_lab.core.errors import AnalysisError
+from masking_lab.usertest.design import CONDITIONS, MEASURES
+
+__all__ = ["PairedComparison", "UserTestAnalysis", "analyze_usertest"]
+
+
+@dataclass(frozen=True)
+class PairedComparison:
+    """Compensated vs uncompensated correct rate for one measure, paired by participant.
+
+    Attributes
+    ----------
+    measure : {"both", "geometry", "texture"}
+        Which answers had to be right.
+    n : int
+        Participants with both conditions.
+    mean_compensated, mean_uncompensated : float
+        Mean correct rate (0–1).
+    mean_difference : float
+        Compensated minus uncompensated, mean over participants.
+    t : float or None
+        Paired t statistic (df = n − 1); None when it cannot be computed.
+    p : float or None
+        Two-sided p-value; None when it cannot be computed.
+    dz : float or None
+        Cohen's d_z (mean difference / SD of differences).
+    note : str
+        Why t/p are missing, if they are.
+    """
+
+    measure: str
+    n: int
+    mean_compensated: float
+    mean_uncompensated: float
+    mean_difference: float
+    t: float | None
+    p: float | None
+    dz: float | None
+    note: str = ""
+
+
+@dataclass(frozen=True)
+class UserTestAnalysis:
+    """Results of :func:`analyze_usertest`.
+
+    Attributes
+    ----------
+    rates : pandas.DataFrame
+        Per participant × condition: ``n_trials``, ``n_no_answer`` and the correct rates
+        ``both``, ``geometry``, ``texture`` (0–1; no answer counts as wrong).
+    summary : pandas.DataFrame
+        Per condition × measure: ``mean``, ``sd`` (between participants, ddof 1), ``n``.
+    tests : list[PairedComparison]
+        One per measure (needs both conditions).
+    confusion : dict
+        ``confusion[condition]["geometry" | "texture"]``: counts, rows presented, columns
+        answered (plus a ``no answer`` column).
+    """
+
+    rates: Any
+    summary: Any
+    tests: list[PairedComparison]
+    confusion: dict[str, dict[str, Any]]
+
+
+def analyze_usertest(
+    records: Iterable[Mapping[str, Any]],
+    geometries: Sequence[str],
+    textures: Sequence[str],
+) -> UserTestAnalysis:
+    """Correct rates per participant and condition, paired tests and confusion matrices.
+
+    Parameters
+    ----------
+    records : iterable of mapping
+        Logged trials (:func:`trial_record`); answers are 1-based keys or None.
+    geometries, textures : sequence of str
+        The design's answer keys, in order.
+
+    Raises
+    ------
+    AnalysisError
+        No records, a record without a required field, an unknown geometry/texture/condition,
+        or an answer key out of range — naming the record.
+    """
+    import pandas as pd
+    from scipy import stats
+
+    rows = []
+    for i, rec in enumerate(records):
+        rows.append(_check_record(i, rec, geometries, textures))
+    if not rows:
+        raise AnalysisError("no user-test trial records to analyse; point at the session logs")
+    df = pd.DataFrame(rows)
+    df["geometry_ok"] = df["geometry_answer"] == df["geometry_key"]
+    df["texture_ok"] = df["texture_answer"] == df["texture_key"]
+    df["both_ok"] = df["geometry_ok"] & df["texture_ok"]
+    grouped = df.groupby(["participant", "condition"], sort=True)
+    rates = grouped.agg(
+        n_trials=("both_ok", "size"),
+        n_no_answer=("no_answer", "sum"),
+        both=("both_ok", "mean"),
+        geometry=("geometry_ok", "mean"),
+        texture=("texture_ok", "mean"),
+    ).reset_index()
+    summary = (
+        rates.melt(
+            id_vars=["participant", "condition"], value_vars=list(MEASURES), var_name="measure"
+        )
+        .groupby(["condition", "measure"], sort=True)["value"]
+        .agg(mean="mean", sd=_sd, n="size")
+        .reset_index()
+    )
+    tests = []
+    wide = rates.pivot(index="participant", columns="condition", values=list(MEASURES))
+    for m in MEASURES:
+        tests.append(_paired(wide, m, stats))
+    confusion: dict[str, dict[str, Any]] = {}
+    for cond, part in df.groupby("condition", sort=True):
+        confusion[str(cond)] = {
+            "geometry": _confusion(part, "geometry", "geometry_answer", geometries),
+            "texture": _confusion(part, "texture", "texture_answer", textures),
+        }
+    return UserTestAnalysis(rates=rates, summary=summary, tests=tests, confusion=confusion)
+
+
+_REQUIRED = ("participant", "geometry", "texture", "condition", "geometry_answer", "texture_answer")
+
+
+def _check_record(
+    i: int, rec: Mapping[str, Any], geometries: Sequence[str], textures: Sequence[str]
+) -> dict[str, Any]:
+    for key in _REQUIRED:
+        if key not in rec:
+            raise AnalysisError(
+                f"user-test record {i}: no {key!r}; records need {', '.join(_REQUIRED)}"
+            )
+    if rec["geometry"] not in geometries:
+        raise AnalysisError(
+            f"user-test record {i}: geometry {rec['geometry']!r} is not one of {list(geometries)}"
+        )
+    if rec["texture"] not in textures:
+        raise AnalysisError(
+            f"user-test record {i}: texture {rec['texture']!r} is not one of {list(textures)}"
+        )
+    if rec["condition"] not in CONDITIONS:
+        raise AnalysisError(
+            f"user-test record {i}: condition {rec['condition']!r} is not one of {CONDITIONS}"
+        )
+    answers = {}
+    for key, n in (("geometry_answer", len(geometries)), ("texture_answer", len(textures))):
+        a = rec[key]
+        if a is not None and (isinstance(a, bool) or not isinstance(a, int) or not 1 <= a <= n):
+            raise AnalysisError(
+                f"user-test record {i}: {key} is {a!r}; it must be a key 1..{n} or null (no answer)"
+            )
+        answers[key] = a
+    return {
+        "participant": str(rec["participant"]),
+        "condition": rec["condition"],
+        "geometry": rec["geometry"],
+        "texture": rec["texture"],
+        "geometry_key": geometries.index(rec["geometry"]) + 1,
+        "texture_key": textures.index(rec["texture"]) + 1,
+        "geometry_answer": answers["geometry_answer"],
+        "texture_answer": answers["texture_answer"],
+        "no_answer": answers["geometry_answer"] is None or answers["texture_answer"] is None,
+    }
+
+
+def _sd(values: Any) -> float:
+    # Between-participant SD; undefined for one participant.
+    return float(np.std(values, ddof=1)) if len(values) > 1 else math.nan
+
+
+def _paired(wide: Any, measure: str, stats: Any) -> PairedComparison:
+    cols = [(measure, c) for c in CONDITIONS]
+    if any(c not in wide.columns for c in cols):
+        present = sorted({c for _, c in wide.columns})
+        return PairedComparison(
+            measure,
+            0,
+            math.nan,
+            math.nan,
+            math.nan,
+            None,
+            None,
+            None,
+            f"needs both conditions; the records have only {present}",
+        )
+    both = wide[cols].dropna()
+    comp = both[(measure, "compensated")].to_numpy(dtype=float)
+    unc = both[(measure, "uncompensated")].to_numpy(dtype=float)
+    n = comp.size
+    diff = comp - unc
+    mean_c = float(comp.mean()) if n else math.nan
+    mean_u = float(unc.mean()) if n else math.nan
+    mean_d = float(diff.mean()) if n else math.nan
+    sd = float(np.std(diff, ddof=1)) if n >= 2 else math.nan
+    note = ""
+    if n < 2:
+        note = f"a paired test needs ≥ 2 participants with both conditions, got {n}"
+    # Rates are multiples of 1/trials: equal differences can differ in the last bits.
+    elif sd <= 1e-12 * max(1.0, float(np.max(np.abs(diff)))):
+        note = "every participant's difference is the same; the paired t-test is undefined"
+    if note:
+        return PairedComparison(measure, n, mean_c, mean_u, mean_d, None, None, None, note)
+    res = stats.ttest_rel(comp, unc)
+    return PairedComparison(
+        measure, n, mean_c, mean_u, mean_d, float(res.statistic), float(res.pvalue), mean_d / sd
+    )
+
+
+def _confusion(part: Any, presented: str, answered: str, labels: Sequence[str]) -> Any:
+    import pandas as pd
+
+    columns = [*labels, "no answer"]
+    table = pd.DataFrame(0, index=list(labels), columns=columns)
+    for shown, ans in zip(part[presented], part[answered], strict=True):
+        missing = ans is None or (isinstance(ans, float) and math.isnan(ans))
+        col = "no answer" if missing else labels[int(ans) - 1]
+        table.loc[shown, col] += 1
+    table.index.name = f"{presented} presented"
+    table.columns.name = "answered"
+    return table
