@@ -144,7 +144,8 @@ def run_demo(settings: DemoSettings, stream: TextIO | None = None) -> int:
     t_collect = time.perf_counter() - t_start
 
     print("analysing the logs ...", file=err, flush=True)
-    from masking_lab.analysis.batch import AnalysisSettings, run_analyze
+    from masking_lab.analysis.batch import run_analyze
+    from masking_lab.analysis.settings import AnalysisSettings
 
     summary = run_analyze(
         out / "data",
@@ -221,7 +222,8 @@ def _progress(err: TextIO, k: int, total: int, s: SessionDone) -> None:
 def _render(out: Path) -> dict[str, Any]:
     from masking_lab.device.rig_limits import max_level_db_sl
     from masking_lab.formats.masking_params import read_masking_params
-    from masking_lab.rendering.render import needed_pairs, render_scene, summarize, write_rendering
+    from masking_lab.rendering.outputs import write_rendering
+    from masking_lab.rendering.render import needed_pairs, render_scene, summarize
     from masking_lab.rendering.scene import load_scene
     from masking_lab.rendering.solver import pair_from_params
 

@@ -47,8 +47,10 @@ from masking_lab.core.errors import (
 from masking_lab.formats.schemas import schema_errors
 from masking_lab.rendering.solver import MutualMasking
 from masking_lab.simulation.observer import load_ground_truth, make_participant
-from masking_lab.usertest.design import levels_at, load_usertest, render_objects, trial_list
+from masking_lab.usertest.design import load_usertest, trial_list
 from masking_lab.usertest.keys_responder import UserTestKeysResponder
+from masking_lab.usertest.playback import levels_at, render_objects
+from masking_lab.usertest.preparation import baseline_protocol
 from masking_lab.usertest.responder_base import (
     StreamResult,
     UserTestInfo,
@@ -56,7 +58,6 @@ from masking_lab.usertest.responder_base import (
 )
 from masking_lab.usertest.runner import (
     UserTestOptions,
-    baseline_protocol,
     resume_usertest,
     run_usertest,
 )

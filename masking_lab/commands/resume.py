@@ -50,15 +50,13 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from masking_lab.commands.run import device_unavailable, print_result
+    from masking_lab.commands.run import device_unavailable
+    from masking_lab.commands.session_kinds import for_log
     from masking_lab.core.errors import DeviceError
-    from masking_lab.session.runner import resume_session
-    from masking_lab.usertest.runner import is_usertest_log
 
-    if is_usertest_log(args.log):
-        return _resume_usertest(args)
+    kind = for_log(args.log)
     try:
-        result = resume_session(
+        result = kind.resume(
             Path(args.log),
             device=args.device,
             responder=args.responder,
@@ -69,27 +67,4 @@ def run(args: argparse.Namespace) -> int:
         )
     except DeviceError as exc:
         return device_unavailable(args.command, exc)
-    return print_result(result)
-
-
-def _resume_usertest(args: argparse.Namespace) -> int:
-    """``resume`` of a user-test log (masking_lab.usertest.runner)."""
-    from pathlib import Path
-
-    from masking_lab.commands.run import device_unavailable, print_usertest_result
-    from masking_lab.core.errors import DeviceError
-    from masking_lab.usertest.runner import resume_usertest
-
-    try:
-        result = resume_usertest(
-            Path(args.log),
-            device=args.device,
-            responder=args.responder,
-            allow_changed_protocol=args.allow_changed_protocol,
-            device_config=Path(args.device_config) if args.device_config else None,
-            participant_tty=args.participant_tty,
-            progress=args.progress,
-        )
-    except DeviceError as exc:
-        return device_unavailable(args.command, exc)
-    return print_usertest_result(result)
+    return kind.print_result(result)

@@ -94,88 +94,16 @@ def _progress_flags(p: argparse.ArgumentParser) -> None:
     )
 
 
-def print_result(result) -> int:  # type: ignore[no-untyped-def]
-    """Print where the log is and one line per finished set; return the exit code."""
-    print(f"log: {result.log_path}")
-    for outcome in result.outcomes:
-        print(f"  {outcome.summary()}")
-    if result.message:
-        print(result.message, file=sys.stderr)
-    return int(result.exit_code)
-
-
 def run(args: argparse.Namespace) -> int:
-    from pathlib import Path
-
+    from masking_lab.commands.session_kinds import for_protocol
     from masking_lab.core.errors import DeviceError
-    from masking_lab.session.runner import RunOptions, run_session
-    from masking_lab.usertest.runner import is_usertest_protocol
 
-    if is_usertest_protocol(args.protocol):
-        return _run_usertest(args)
-    sets = None
-    if args.sets:
-        sets = tuple(s for item in args.sets for s in item.split(",") if s)
-    options = RunOptions(
-        protocol=Path(args.protocol),
-        participant=args.participant,
-        device=args.device,
-        responder=args.responder,
-        data_dir=Path(args.data),
-        seed=args.seed,
-        sets=sets,
-        real_time=args.real_time,
-        ground_truth=Path(args.ground_truth) if args.ground_truth else None,
-        device_config=Path(args.device_config) if args.device_config else None,
-        progress=args.progress,
-        participant_tty=args.participant_tty,
-    )
+    kind = for_protocol(args.protocol)
     try:
-        result = run_session(options)
+        result = kind.start(args)
     except DeviceError as exc:
         return device_unavailable(args.command, exc)
-    return print_result(result)
-
-
-def _run_usertest(args: argparse.Namespace) -> int:
-    """``run`` of a user-test protocol: the user-test session (masking_lab.usertest.runner)."""
-    from pathlib import Path
-
-    from masking_lab.core.errors import DeviceError, MaskingLabError
-    from masking_lab.usertest.runner import UserTestOptions, run_usertest
-
-    if args.sets:
-        raise MaskingLabError("--sets: a user-test protocol has no sets; leave it out")
-    options = UserTestOptions(
-        protocol=Path(args.protocol),
-        participant=args.participant,
-        device=args.device,
-        responder=args.responder,
-        data_dir=Path(args.data),
-        params=Path(args.params) if args.params else None,
-        seed=args.seed,
-        allow_clipping=args.allow_clipping,
-        real_time=args.real_time,
-        ground_truth=Path(args.ground_truth) if args.ground_truth else None,
-        device_config=Path(args.device_config) if args.device_config else None,
-        progress=args.progress,
-        participant_tty=args.participant_tty,
-    )
-    try:
-        result = run_usertest(options)
-    except DeviceError as exc:
-        return device_unavailable(args.command, exc)
-    return print_usertest_result(result)
-
-
-def print_usertest_result(result) -> int:  # type: ignore[no-untyped-def]
-    """Print where the log is and the correct answers so far; return the exit code."""
-    print(f"log: {result.log_path}")
-    for line in result.summary_lines():
-        print(f"  {line}")
-    if result.message:
-        print(result.message, file=sys.stderr)
-    return int(result.exit_code)
+    return kind.print_result(result)
 
 
 def device_unavailable(command: str, exc: Exception) -> int:

@@ -37,9 +37,15 @@ def write_bytes_atomic(path: str | Path, data: bytes) -> Path:
 
 
 def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
+    # Read, never set: flipping os.umask to read it races with other threads creating files.
+    try:
+        with open("/proc/self/status", encoding="ascii") as fh:
+            for line in fh:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except OSError:
+        pass
+    return 0o022  # no /proc (not Linux): the common default
 
 
 def write_text_atomic(path: str | Path, text: str) -> Path:

@@ -169,6 +169,55 @@ def parse_protocol(
     """:func:`load_protocol` on bytes already read; ``source`` names them in messages."""
     text = raw.decode("utf-8", errors="replace")
     data, lines = _safe_yaml(text, source)
+    return protocol_from_mapping(
+        data,
+        source,
+        sha256=hashlib.sha256(raw).hexdigest(),
+        lines=lines,
+        max_level_db_sl=max_level_db_sl,
+    )
+
+
+def protocol_from_mapping(
+    data: Any,
+    source: str,
+    *,
+    sha256: str,
+    lines: Mapping[str, int] | None = None,
+    max_level_db_sl: Mapping[str, float] | None = None,
+) -> Protocol:
+    """Validate and build a protocol from an already parsed mapping (no file, no YAML).
+
+    This is how ``resume`` rebuilds the protocol stored in a log header: the mapping is used as
+    it is, never written back to YAML and parsed again.
+
+    Parameters
+    ----------
+    data : mapping
+        The protocol's content (what :func:`load_protocol` parses from YAML).
+    source : str
+        Names the data in error messages.
+    sha256 : str
+        Hash of the file the content came from (kept on the :class:`Protocol`).
+    lines : mapping of key path → line, optional
+        Where each key stands in the source, for messages; none for data without a file.
+    max_level_db_sl : mapping of channel → dB SL, optional
+        As for :func:`load_protocol`.
+
+    Raises
+    ------
+    ProtocolError
+        If the content breaks the schema or the rules.
+
+    Examples
+    --------
+    >>> import yaml
+    >>> from masking_lab.formats.resources import shipped
+    >>> data = yaml.safe_load(shipped("protocols", "baseline.yaml").read_text())
+    >>> protocol_from_mapping(data, "baseline", sha256="0" * 64).kind
+    'baseline'
+    """
+    lines = lines if lines is not None else {}
     if not isinstance(data, dict):
         raise ProtocolError(
             source, "line 1", "a protocol is a YAML mapping (key: value lines) at the top level"
@@ -176,7 +225,7 @@ def parse_protocol(
     problems = list(_schema_problems(data, lines))
     if problems:
         raise ProtocolError(source, problems[0][0], _join(problems))
-    protocol, problems = _build(data, source, hashlib.sha256(raw).hexdigest(), lines)
+    protocol, problems = _build(data, source, sha256, lines)
     if max_level_db_sl is not None and protocol is not None:
         problems += list(_limit_problems(protocol, data, lines, max_level_db_sl))
     if problems or protocol is None:

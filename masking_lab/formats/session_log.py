@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from masking_lab.core.errors import LogError
+from masking_lab.formats.records import encode_record
 
 
 @dataclass
@@ -191,8 +192,7 @@ class SessionLogWriter:
 
     def append(self, record: dict[str, Any]) -> None:
         """Write ``record`` as one line and fsync before returning."""
-        line = json.dumps(record, separators=(",", ":"), allow_nan=False, ensure_ascii=False)
-        self._fh.write(line + "\n")
+        self._fh.write(encode_record(record) + "\n")
         self._fh.flush()
         os.fsync(self._fh.fileno())
 

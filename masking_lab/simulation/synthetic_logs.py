@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
-import json
 import os
 from collections.abc import Sequence
 from datetime import UTC, datetime, timedelta
@@ -28,6 +27,7 @@ import yaml
 
 from masking_lab import __version__
 from masking_lab.formats.protocol import Protocol, load_protocol, parse_protocol
+from masking_lab.formats.records import encode_record
 from masking_lab.formats.resources import shipped
 from masking_lab.procedures.staircase import Staircase, start
 from masking_lab.simulation.observer import (
@@ -203,10 +203,7 @@ def write_log(path: str | Path, records: Sequence[dict[str, Any]]) -> Path:
     """Write records as a JSON Lines log (same serialisation as the session log writer)."""
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
-    text = "".join(
-        json.dumps(r, separators=(",", ":"), allow_nan=False, ensure_ascii=False) + "\n"
-        for r in records
-    )
+    text = "".join(encode_record(r) + "\n" for r in records)
     with open(p, "w", encoding="utf-8", newline="\n") as fh:
         fh.write(text)
         fh.flush()

@@ -1,0 +1,155 @@
+"""The session kinds ``run`` and ``resume`` dispatch on, in one table.
+
+Each kind says how to recognise its protocol and its log, how to turn the command line into its
+options, how to start and resume a session (through :mod:`masking_lab.session.frame`), and how to
+print the result. A new kind of session is one more row.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from masking_lab.core.errors import MaskingLabError
+
+
+@dataclass(frozen=True)
+class SessionCommand:
+    """How ``run`` and ``resume`` handle one kind of session.
+
+    Attributes
+    ----------
+    name : str
+        The kind's name (``"threshold"``, ``"usertest"``).
+    is_protocol, is_log : callable
+        Recognise the kind's protocol file and session log by their content.
+    start : callable
+        ``args -> result``: run a new session from the ``run`` arguments.
+    resume : callable
+        ``(log path, resume keyword arguments) -> result``.
+    print_result : callable
+        Print the result; return the exit code.
+    """
+
+    name: str
+    is_protocol: Callable[[str], bool]
+    is_log: Callable[[str], bool]
+    start: Callable[[argparse.Namespace], Any]
+    resume: Callable[..., Any]
+    print_result: Callable[[Any], int]
+
+
+def _common(args: argparse.Namespace) -> dict[str, Any]:
+    return {
+        "protocol": Path(args.protocol),
+        "participant": args.participant,
+        "device": args.device,
+        "responder": args.responder,
+        "data_dir": Path(args.data),
+        "seed": args.seed,
+        "real_time": args.real_time,
+        "ground_truth": Path(args.ground_truth) if args.ground_truth else None,
+        "device_config": Path(args.device_config) if args.device_config else None,
+        "progress": args.progress,
+        "participant_tty": args.participant_tty,
+    }
+
+
+def _start_threshold(args: argparse.Namespace) -> Any:
+    from masking_lab.session.runner import RunOptions, run_session
+
+    sets = None
+    if args.sets:
+        sets = tuple(s for item in args.sets for s in item.split(",") if s)
+    return run_session(RunOptions(sets=sets, **_common(args)))
+
+
+def _resume_threshold(log: Path, **kwargs: Any) -> Any:
+    from masking_lab.session.runner import resume_session
+
+    return resume_session(log, **kwargs)
+
+
+def _print_threshold(result: Any) -> int:
+    print(f"log: {result.log_path}")
+    for outcome in result.outcomes:
+        print(f"  {outcome.summary()}")
+    if result.message:
+        print(result.message, file=sys.stderr)
+    return int(result.exit_code)
+
+
+def _is_usertest_protocol(path: str) -> bool:
+    from masking_lab.usertest.runner import is_usertest_protocol
+
+    return is_usertest_protocol(path)
+
+
+def _is_usertest_log(path: str) -> bool:
+    from masking_lab.usertest.runner import is_usertest_log
+
+    return is_usertest_log(path)
+
+
+def _start_usertest(args: argparse.Namespace) -> Any:
+    from masking_lab.usertest.runner import UserTestOptions, run_usertest
+
+    if args.sets:
+        raise MaskingLabError("--sets: a user-test protocol has no sets; leave it out")
+    return run_usertest(
+        UserTestOptions(
+            params=Path(args.params) if args.params else None,
+            allow_clipping=args.allow_clipping,
+            **_common(args),
+        )
+    )
+
+
+def _resume_usertest(log: Path, **kwargs: Any) -> Any:
+    from masking_lab.usertest.runner import resume_usertest
+
+    return resume_usertest(log, **kwargs)
+
+
+def _print_usertest(result: Any) -> int:
+    print(f"log: {result.log_path}")
+    for line in result.summary_lines():
+        print(f"  {line}")
+    if result.message:
+        print(result.message, file=sys.stderr)
+    return int(result.exit_code)
+
+
+# The first row whose test matches wins; the threshold session is the default.
+KINDS: tuple[SessionCommand, ...] = (
+    SessionCommand(
+        "usertest",
+        _is_usertest_protocol,
+        _is_usertest_log,
+        _start_usertest,
+        _resume_usertest,
+        _print_usertest,
+    ),
+    SessionCommand(
+        "threshold",
+        lambda _: True,
+        lambda _: True,
+        _start_threshold,
+        _resume_threshold,
+        _print_threshold,
+    ),
+)
+
+
+def for_protocol(path: str) -> SessionCommand:
+    """The kind that runs the protocol at ``path``."""
+    return next(k for k in KINDS if k.is_protocol(path))
+
+
+def for_log(path: str) -> SessionCommand:
+    """The kind that resumes the session log at ``path``."""
+    return next(k for k in KINDS if k.is_log(path))

@@ -1,0 +1,218 @@
+"""Opening a session: entry-point checks, the clock kind, the device and the responder, the log.
+
+Everything a session does before its first trial and that every session kind shares; the frame
+(:mod:`masking_lab.session.frame`) calls these in order.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import re
+from collections.abc import Callable, Iterator, Mapping
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any, TypeVar
+
+import yaml
+
+from masking_lab.core.clock import Clock
+from masking_lab.core.errors import MaskingLabError, ProtocolError
+from masking_lab.device.base import Device
+from masking_lab.formats.session_log import SessionLogWriter
+from masking_lab.session.shell import Closable, close_quietly
+from masking_lab.simulation.observer import ground_truth_from_dict
+
+_PARTICIPANT = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
+_DEVICE_SPEC = re.compile(r"^(sim|emulator|serial:.+|nidaq(:.+)?)$")
+
+DeviceOpener = Callable[[str, Clock], Device]
+
+DeviceT = TypeVar("DeviceT", bound=Device)
+ResponderT = TypeVar("ResponderT", bound=Closable)
+ContextT = TypeVar("ContextT")
+
+
+def check_participant(participant: str) -> str:
+    """The participant id, if it can name a data folder.
+
+    Raises
+    ------
+    MaskingLabError
+        Empty, or characters other than letters, digits, ``_``, ``-`` and ``.``.
+    """
+    if not _PARTICIPANT.match(participant or ""):
+        raise MaskingLabError(
+            f"--participant {participant!r}: use letters, digits, '_', '-' and '.' only (it "
+            "names the participant's data folder), e.g. S01"
+        )
+    return participant
+
+
+def check_device_spec(spec: str) -> str:
+    """The device spec without surrounding blanks.
+
+    Raises
+    ------
+    MaskingLabError
+        Not ``sim``, ``emulator``, ``serial:PORT`` or ``nidaq[:DEVICE]``.
+    """
+    if not _DEVICE_SPEC.match(spec.strip()):
+        raise MaskingLabError(
+            f"--device {spec!r}: choose sim, emulator, serial:PORT (e.g. serial:/dev/ttyACM0) "
+            "or nidaq[:DEVICE]"
+        )
+    return spec.strip()
+
+
+def use_virtual_clock(device: str, responder: str, real_time: bool) -> bool:
+    """True if nothing real waits on the session: a sim responder on a simulated device.
+
+    Then a virtual clock runs the session as fast as the computer can (``real_time`` forbids it).
+    """
+    if real_time or responder != "sim":
+        return False
+    return device == "sim" or device == "emulator"
+
+
+def observer_record(ground_truth: Path | None) -> dict[str, Any]:
+    """The simulated observer for the header: ground-truth path, population seed and truth.
+
+    Parameters
+    ----------
+    ground_truth : Path or None
+        A ground-truth YAML or JSON file; None: the shipped simulation ground truth.
+
+    Raises
+    ------
+    ProtocolError
+        Unreadable or malformed, or not a valid ground truth.
+    """
+    from masking_lab.formats.resources import shipped
+
+    if ground_truth is None:
+        text = shipped("protocols", "simulation/ground_truth.yaml").read_text(encoding="utf-8")
+        source = "protocols/simulation/ground_truth.yaml"
+    else:
+        try:
+            text = Path(ground_truth).read_text(encoding="utf-8")
+        except OSError as exc:
+            raise ProtocolError(
+                str(ground_truth), "", f"cannot read the ground truth ({exc.strerror or exc})"
+            ) from exc
+        source = str(ground_truth)
+    try:
+        truth = yaml.safe_load(text)  # JSON is YAML too
+    except yaml.YAMLError as exc:
+        raise ProtocolError(source, "", f"malformed YAML or JSON: {exc}") from exc
+    ground_truth_from_dict(truth, source)  # validate now, before the session starts
+    return {"ground_truth_path": source, "population_seed": 0, "truth": truth}
+
+
+# --------------------------------------------------------------------------------------------
+# Opening the device and the responder, creating the log
+
+
+def open_device_and_responder(
+    make_responder: Callable[[str, ContextT], ResponderT],
+    responder_name: str,
+    context: ContextT,
+    opener: Callable[[str, Clock], DeviceT],
+    spec: str,
+    clock: Clock,
+) -> tuple[DeviceT, ResponderT]:
+    """Build the responder, then open the device; close the responder if the device fails.
+
+    Parameters
+    ----------
+    make_responder : callable
+        ``(name, context) -> responder``.
+    responder_name : str
+        Responder name (``sim``, ``keys``, ``psychopy``).
+    context : object
+        What the responder factory needs (the runner's context dataclass).
+    opener : callable
+        ``(spec, clock) -> Device``.
+    spec : str
+        Checked device spec (see :func:`check_device_spec`).
+    clock : Clock
+        The session clock, handed to the device.
+
+    Returns
+    -------
+    (Device, responder)
+        Both open; the caller must close them (:func:`close_quietly`).
+    """
+    responder = make_responder(responder_name, context)
+    try:
+        device = opener(spec, clock)
+    except BaseException:
+        responder.close()
+        raise
+    return device, responder
+
+
+@contextmanager
+def close_on_failure(device: Device, responder: Closable) -> Iterator[None]:
+    """Close ``device`` and ``responder`` if the block raises, then re-raise.
+
+    For the steps between opening them and handing them to the session loop (which closes
+    them itself), so a refused start never leaves a port or a window open.
+    """
+    try:
+        yield
+    except BaseException:
+        close_quietly(device, responder)
+        raise
+
+
+def create_log(
+    data_dir: Path, experiment: str, participant: str, header: Mapping[str, Any]
+) -> SessionLogWriter:
+    """Create a new session log under ``data_dir/<participant>/`` and write its header.
+
+    Parameters
+    ----------
+    data_dir : Path
+        The data folder.
+    experiment, participant : str
+        Name parts of the log file (see :func:`new_log_path`).
+    header : mapping
+        The header record; ``session_id`` (the file's stem) is added.
+
+    Returns
+    -------
+    SessionLogWriter
+        Open for appending; ``writer.path`` is the new log.
+    """
+    log_path = new_log_path(data_dir, experiment, participant)
+    return SessionLogWriter.create(log_path, {**dict(header), "session_id": log_path.stem})
+
+
+def new_log_path(data_dir: Path, experiment: str, participant: str) -> Path:
+    """A new log path ``data_dir/<participant>/<experiment>-<participant>-<UTC>.jsonl``.
+
+    A session started in the same second as an existing log gets ``-2``, ``-3``, … appended.
+    """
+    stamp = dt.datetime.now(dt.UTC).strftime("%Y%m%dT%H%M%SZ")
+    folder = data_dir / participant
+    base = f"{experiment}-{participant}-{stamp}"
+    path = folder / f"{base}.jsonl"
+    n = 2
+    while path.exists():  # two sessions in one second: never overwrite, number the newer one
+        path = folder / f"{base}-{n}.jsonl"
+        n += 1
+    return path
+
+
+def default_opener(device_config: Path | None) -> DeviceOpener:
+    """``(spec, clock) -> Device`` through :func:`masking_lab.device.registry.open_device`.
+
+    The factory is imported on first use, so the core runs without device drivers installed.
+    """
+
+    def opener(spec: str, clock: Clock) -> Device:
+        from masking_lab.device import registry as factory
+
+        return factory.open_device(spec, device_config, clock)
+
+    return opener

@@ -1,0 +1,456 @@
+"""The threshold session's loop: each unfinished set of the order, trial by trial.
+
+One :class:`ThresholdSession` runs the sets a process still has to run: it plans each set
+(:mod:`masking_lab.session.trials`), asks the set's procedure for the next level, plays the trial,
+logs it fsynced before the next, shows progress, rests between sets, writes the calibration
+after baseline sets, and ends each set with its AL or the reason it has none.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from masking_lab.core.clock import Clock
+from masking_lab.core.errors import (
+    CalibrationError,
+    LevelError,
+    MaskingLabError,
+)
+from masking_lab.core.seeding import draw_target_interval
+from masking_lab.core.trial import TrialPlan
+from masking_lab.device.base import Device
+from masking_lab.formats.calibration import record_al
+from masking_lab.formats.protocol import Protocol, SetSpec
+from masking_lab.formats.records import jsonable
+from masking_lab.formats.session_log import SessionLogWriter, SetRecords
+from masking_lab.procedures.staircase import Staircase, StaircaseSettings, replay
+from masking_lab.responders.base import Responder, SetInfo, TrialPresentation
+
+# EXIT_* and the signal classes were public here first; the noqa lines re-export them.
+from masking_lab.session.progress import ProgressLine, format_progress
+from masking_lab.session.shell import (
+    EXIT_COMPLETED,  # noqa: F401
+    EXIT_DEVICE_FAULT,  # noqa: F401
+    EXIT_INTERRUPTED,  # noqa: F401
+    SessionInterrupted,  # noqa: F401
+    SessionShell,
+    SessionSignals,  # noqa: F401
+    drop_none,
+    utc_now,
+)
+from masking_lab.session.threshold_plan import settings_from_record
+from masking_lab.session.trials import (
+    UNIT_LABEL,
+    SetPlan,
+    estimate_time_left_s,
+    nominal_seconds_per_trial,
+    plan_set,
+    plan_trial,
+)
+
+
+@dataclass(frozen=True)
+class SetOutcome:
+    """How one set ended.
+
+    Attributes
+    ----------
+    set_id : str
+        Set identifier.
+    status : str
+        ``completed``, ``ceiling``, ``floor``, ``trial_cap`` or ``aborted``.
+    al_db : float or None
+        AL in ``level_unit`` (None unless completed).
+    level_unit : str
+        ``db_sl`` or ``db_v``.
+    n_trials : int
+        Trials run.
+    reason : str
+        Why an aborted set was refused (empty otherwise).
+    """
+
+    set_id: str
+    status: str
+    al_db: float | None
+    level_unit: str
+    n_trials: int
+    reason: str = ""
+
+    def summary(self) -> str:
+        """One line for the experimenter: ``MV120_10  completed  AL 12.30 dB SL (57 trials)``."""
+        unit = UNIT_LABEL.get(self.level_unit, self.level_unit)
+        if self.al_db is not None:
+            what = f"AL {self.al_db:.2f} {unit}"
+        elif self.status == "aborted":
+            what = f"no AL: {self.reason}"
+        else:
+            what = "no AL (a track that ends at a bound or the trial cap is not a threshold)"
+        return f"{self.set_id:<12} {self.status:<9} {what} ({self.n_trials} trials)"
+
+
+@dataclass
+class SessionResult:
+    """What a run or resume ended with.
+
+    Attributes
+    ----------
+    log_path : Path
+        The session log.
+    exit_code : int
+        0 completed, 3 device fault, 130 interrupted.
+    outcomes : list[SetOutcome]
+        Every finished set of the session (including those finished before a resume).
+    message : str
+        Why the session stopped early, with the resume command (empty when completed).
+    """
+
+    log_path: Path
+    exit_code: int
+    outcomes: list[SetOutcome] = field(default_factory=list)
+    message: str = ""
+
+
+class ThresholdSession(SessionShell[SessionResult]):
+    """One process's part of a session: runs the unfinished sets of ``order``."""
+
+    def __init__(
+        self,
+        *,
+        protocol: Protocol,
+        participant: str,
+        data_dir: Path,
+        seed: int,
+        order: Sequence[str],
+        calibration: Mapping[str, float],
+        clock: Clock,
+        device: Device,
+        responder: Responder,
+        writer: SessionLogWriter,
+        out: ProgressLine,
+        existing: Mapping[str, SetRecords],
+    ) -> None:
+        super().__init__(clock=clock, device=device, responder=responder, writer=writer, out=out)
+        self.protocol = protocol
+        self.participant = participant
+        self.data_dir = data_dir
+        self.seed = seed
+        self.order = list(order)
+        self.calibration = dict(calibration)
+        self.responder: Responder = responder
+        self.existing = dict(existing)
+        self.outcomes: list[SetOutcome] = []
+        self.finished_trials: list[int] = []
+        self.trial_seconds: list[float] = []
+        self.where: tuple[str | None, int | None] = (None, None)
+
+    # -- top level --------------------------------------------------------------------------
+
+    def run(self) -> SessionResult:
+        return self.run_guarded(self._run_sets)
+
+    def _result(self, code: int, message: str) -> SessionResult:
+        return SessionResult(self.writer.path, code, self.outcomes, message)
+
+    def _where_text(self) -> str:
+        return f"set {self.where[0]}, trial {self.where[1]}"
+
+    def _position(self) -> tuple[str | None, int | None]:
+        return self.where
+
+    def _run_sets(self) -> None:
+        for rec in self.existing.values():
+            if rec.end is not None:
+                self.outcomes.append(_outcome_from_end(rec, self.protocol.level_unit))
+                if rec.end.get("status") in ("completed", "ceiling", "floor", "trial_cap"):
+                    self.finished_trials.append(len(rec.trials))
+        first = True
+        for k, set_id in enumerate(self.order):
+            rec = self.existing.get(set_id)
+            if rec is not None and rec.end is not None:
+                continue
+            if not first:
+                self._rest(k)
+            first = False
+            self._run_set(k, self.protocol.set_by_id(set_id), rec)
+
+    def _run_set(self, k: int, spec: SetSpec, rec: SetRecords | None) -> None:
+        unit = self.protocol.level_unit
+        self.where = (spec.id, None)
+        try:
+            plan = plan_set(spec, unit, self.calibration, self.device.identity.limits.max_drive_v)
+        except (LevelError, CalibrationError) as exc:
+            n = len(rec.trials) if rec else 0
+            self._refuse_set(spec, started=rec is not None, n_trials=n, exc=exc)
+            return
+        if rec is not None:
+            plan = dataclasses.replace(plan, staircase=settings_from_record(rec.start, spec))
+        else:
+            self._append(self._set_start_record(plan))
+        state = replay(plan.staircase, [bool(t["correct"]) for t in (rec.trials if rec else [])])
+        self.responder.start_set(
+            SetInfo(
+                set_id=spec.id,
+                set_number=k + 1,
+                n_sets=len(self.order),
+                target=spec.target,
+                masker=spec.masker,
+                masker_level_db_sl=spec.masker_level_db_sl,
+            )
+        )
+        while not state.finished:
+            try:
+                trial = plan_trial(
+                    plan,
+                    state.level_db,
+                    draw_target_interval(self.seed, plan.set_id, state.n_trials),
+                    self.protocol.timing,
+                )
+            except LevelError as exc:
+                # Only after a resume on a device with a lower limit than the set started with.
+                self._refuse_set(spec, started=True, n_trials=state.n_trials, exc=exc)
+                return
+            state = self._trial(k, plan, state, trial)
+        self._end_set(plan, state)
+
+    def _trial(self, k: int, plan: SetPlan, state: Staircase, trial: TrialPlan) -> Staircase:
+        timing = self.protocol.timing
+        index = state.n_trials
+        self.where = (plan.set_id, index)
+        level = state.level_db
+        interval = trial.target_interval
+        self._show_progress(k, plan, state)
+        t0 = self.clock.now()
+        start_s = t0
+        presentation = TrialPresentation(
+            set_id=plan.set_id,
+            trial_index=index,
+            plan=trial,
+            start_s=start_s,
+            level_db_v=plan.level_db_v(level),
+            level_db_sl=plan.level_db_sl(level),
+            masker_level_db_sl=plan.masker_level_db_sl,
+        )
+        played, response = self.responder.trial(
+            presentation, lambda: self.device.play_trial(trial, start_s)
+        )
+        # A virtual clock jumps to the end of the trial if the device did not move it there.
+        self.clock.sleep_until(start_s + trial.duration_s)
+        if self.clock.virtual:
+            # Simulated time passes while the (simulated) participant answers; a real clock
+            # has already waited for a real one.
+            self.clock.sleep_until(self.clock.now() + response.response_time_s)
+        correct = response.interval == interval
+        after = state.update(correct)
+        record = drop_none(
+            {
+                "record": "trial",
+                "set_id": plan.set_id,
+                "trial_index": index,
+                "level_db_sl": plan.level_db_sl(level),
+                "level_db_v": plan.level_db_v(level),
+                "target_interval": interval,
+                "response_interval": int(response.interval),
+                "correct": correct,
+                "reversal": len(after.reversal_levels_db) > len(state.reversal_levels_db),
+                "step_db": state.step_db,
+                "next_level_db": None if after.finished else after.level_db,
+                "at_bound": after.at_bound,
+                "planned_onsets_s": trial.planned_onsets_s(start_s),
+                "actual_onsets_s": list(played.actual_onsets_s),
+                "response_time_s": max(0.0, float(response.response_time_s)),
+                "played_target_v": played.played_target_v,
+                "played_masker_v": played.played_masker_v,
+                "finger_path": [list(p) for p in response.finger_path] or None,
+                "device_extra": jsonable(played.extra) or None,
+            }
+        )
+        # Either the record is on disk before the next trial or the trial never happened.
+        self._append(record)
+        self.clock.sleep_until(self.clock.now() + timing.inter_trial_s)
+        self.trial_seconds.append(self.clock.now() - t0)
+        return after
+
+    def _end_set(self, plan: SetPlan, state: Staircase) -> None:
+        al = state.al_db
+        if self.protocol.kind == "baseline" and al is not None:
+            # Calibration first: a crash before set_end replays the set and writes it again.
+            source = _relative(self.writer.path, self.data_dir)
+            _, previous = record_al(
+                self.data_dir, self.participant, plan.target.name, al, source, utc_now()
+            )
+            was = f" (was {previous:.2f})" if previous is not None and previous != al else ""
+            self.out.message(
+                f"calibration: {self.participant} {plan.target.name} unmasked AL "
+                f"{al:.2f} dB re 1 V{was}"
+            )
+        record = {
+            "record": "set_end",
+            "set_id": plan.set_id,
+            "status": state.status,
+            "al_db": al,
+            "al_db_v": plan.level_db_v(al) if al is not None else None,
+            "al_db_sl": plan.level_db_sl(al) if al is not None else None,
+            "n_trials": state.n_trials,
+            "reversal_levels_db": list(state.reversal_levels_db),
+            "t_s": self.clock.now(),
+        }
+        if state.status != "completed":
+            record["reason"] = _bound_reason(state, plan)
+        self._append(record)
+        self.finished_trials.append(state.n_trials)
+        outcome = SetOutcome(
+            plan.set_id, state.status, al, plan.level_unit, state.n_trials, record.get("reason", "")
+        )
+        self.outcomes.append(outcome)
+        self.out.message(f"set done: {outcome.summary()}")
+
+    def _refuse_set(
+        self, spec: SetSpec, *, started: bool, n_trials: int, exc: MaskingLabError
+    ) -> None:
+        """Log a set the device cannot play as aborted; nothing (more) is played in it."""
+        unit = self.protocol.level_unit
+        if not started:
+            self._append(
+                {
+                    "record": "set_start",
+                    "set_id": spec.id,
+                    "target": spec.target.name,
+                    "masker": spec.masker.name if spec.masker else None,
+                    "masker_level_db_sl": spec.masker_level_db_sl,
+                    "level_unit": unit,
+                    "staircase": _settings_record(spec.staircase),
+                    "t_s": self.clock.now(),
+                }
+            )
+        self._fault("level_refused", str(exc))
+        n = n_trials
+        self._append(
+            {
+                "record": "set_end",
+                "set_id": spec.id,
+                "status": "aborted",
+                "al_db": None,
+                "al_db_v": None,
+                "al_db_sl": None,
+                "n_trials": n,
+                "reversal_levels_db": [],
+                "reason": str(exc),
+                "t_s": self.clock.now(),
+            }
+        )
+        self.outcomes.append(SetOutcome(spec.id, "aborted", None, unit, n, str(exc)))
+        self.out.message(f"set {spec.id} refused, nothing played: {exc}")
+
+    # -- helpers ----------------------------------------------------------------------------
+
+    def _set_start_record(self, plan: SetPlan) -> dict[str, Any]:
+        return {
+            "record": "set_start",
+            "set_id": plan.set_id,
+            "target": plan.target.name,
+            "masker": plan.masker.name if plan.masker else None,
+            "masker_level_db_sl": plan.masker_level_db_sl,
+            "masker_level_db_v": plan.masker_level_db_v,
+            "unmasked_al_db_v": plan.unmasked_al_db_v,
+            "level_unit": plan.level_unit,
+            "max_level_db": plan.staircase.max_level_db,
+            "min_level_db": plan.staircase.min_level_db,
+            "staircase": _settings_record(plan.staircase),
+            "t_s": self.clock.now(),
+        }
+
+    def _show_progress(self, k: int, plan: SetPlan, state: Staircase) -> None:
+        if not self.out.enabled:
+            return
+        sc = plan.staircase
+        per_trial = (
+            sum(self.trial_seconds) / len(self.trial_seconds)
+            if self.trial_seconds
+            else nominal_seconds_per_trial(self.protocol.timing)
+        )
+        left = estimate_time_left_s(
+            seconds_per_trial=per_trial,
+            trials_done_in_set=state.n_trials,
+            reversals_in_set=len(state.reversal_levels_db),
+            n_reversals=sc.n_reversals,
+            max_trials=sc.max_trials,
+            sets_after_current=self._sets_after(k),
+            finished_set_trials=self.finished_trials,
+            rest_between_sets_s=self.protocol.timing.rest_between_sets_s,
+        )
+        self.out.update(
+            format_progress(
+                set_number=k + 1,
+                n_sets=len(self.order),
+                set_id=plan.set_id,
+                trial_index=state.n_trials,
+                reversals=len(state.reversal_levels_db),
+                n_reversals=sc.n_reversals,
+                level_db=state.level_db,
+                level_unit=plan.level_unit,
+                time_left_s=left,
+            )
+        )
+
+    def _sets_after(self, k: int) -> int:
+        later = self.order[k + 1 :]
+        return sum(1 for s in later if s not in self.existing or self.existing[s].end is None)
+
+    def _rest(self, k: int) -> None:
+        rest = self.protocol.timing.rest_between_sets_s
+        if rest <= 0:
+            return
+        end = self.clock.now() + rest
+        if self.clock.virtual:
+            self.clock.sleep_until(end)
+            return
+        self.out.message(
+            f"rest {rest:.0f} s before set {k + 1}/{len(self.order)} "
+            "(Ctrl-C stops the session; resume it later)"
+        )
+        while (left := end - self.clock.now()) > 0:
+            self.out.update(f"rest: {int(left // 60)}:{int(left % 60):02d} left")
+            self.clock.sleep_until(min(end, self.clock.now() + 1.0))
+
+
+def _settings_record(settings: StaircaseSettings) -> dict[str, Any]:
+    record = dataclasses.asdict(settings)
+    record["step_sizes_db"] = list(settings.step_sizes_db)
+    return record
+
+
+def _outcome_from_end(rec: SetRecords, unit: str) -> SetOutcome:
+    end = rec.end or {}
+    return SetOutcome(
+        set_id=str(end.get("set_id")),
+        status=str(end.get("status")),
+        al_db=end.get("al_db"),
+        level_unit=str(rec.start.get("level_unit", unit)),
+        n_trials=int(end.get("n_trials", len(rec.trials))),
+        reason=str(end.get("reason", "")),
+    )
+
+
+def _bound_reason(state: Staircase, plan: SetPlan) -> str:
+    unit = UNIT_LABEL[plan.level_unit]
+    sc = state.settings
+    if state.status == "ceiling":
+        return (
+            f"pinned at the upper bound {sc.max_level_db:.2f} {unit} (protocol max ∩ device "
+            f"limit {plan.target_max_v:g} V): a ceiling, not a threshold"
+        )
+    if state.status == "floor":
+        return f"pinned at the lower bound {sc.min_level_db} {unit}: a floor, not a threshold"
+    return f"reached the trial cap ({sc.max_trials} trials) before {sc.n_reversals} reversals"
+
+
+def _relative(path: Path, base: Path) -> str:
+    try:
+        return os.path.relpath(path, base)
+    except ValueError:
+        return str(path)

@@ -1,0 +1,185 @@
+"""What a threshold session needs before its first trial, and what its log header holds.
+
+The header of a new session, the sets to run, the stimuli they need calibrated, and on resume
+the protocol copy from the header, the check that logged trials replay to their logged levels,
+and where the session stopped.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+from masking_lab import __version__
+from masking_lab.core.errors import (
+    LogError,
+    ProtocolError,
+)
+from masking_lab.device.base import DeviceIdentity
+from masking_lab.device.config import load_device_config
+from masking_lab.formats.protocol import Protocol, SetSpec, protocol_from_mapping
+from masking_lab.formats.records import jsonable
+from masking_lab.formats.session_log import SessionLog, SetRecords
+from masking_lab.procedures.staircase import StaircaseSettings, start
+
+# EXIT_* and the signal classes were public here first; the noqa lines re-export them.
+from masking_lab.session.progress import ProgressLine
+from masking_lab.session.shell import (
+    EXIT_COMPLETED,  # noqa: F401
+    EXIT_DEVICE_FAULT,  # noqa: F401
+    EXIT_INTERRUPTED,  # noqa: F401
+    SessionInterrupted,  # noqa: F401
+    SessionSignals,  # noqa: F401
+    device_record,
+    utc_now,
+)
+
+
+def header_record(
+    *,
+    protocol: Protocol,
+    participant: str,
+    calibration: Mapping[str, float],
+    device: DeviceIdentity,
+    responder: str,
+    seed: int,
+    order: Sequence[str],
+    virtual: bool,
+    observer: dict[str, Any] | None,
+    device_config: Path | None,
+) -> dict[str, Any]:
+    header: dict[str, Any] = {
+        "schema_version": 1,
+        "created_utc": utc_now(),
+        "software_version": __version__,
+        "protocol": {
+            # Absolute, so resume can compare the file from any working directory.
+            "path": str(Path(protocol.path).resolve()),
+            "sha256": protocol.sha256,
+            "experiment": protocol.experiment,
+            "content": jsonable(protocol.content),
+        },
+        "participant": participant,
+        "calibration": dict(calibration),
+        "device": device_record(device),
+        "responder": responder,
+        "seed": int(seed),
+        "set_order": list(order),
+        "clock": "virtual" if virtual else "real",
+    }
+    if observer is not None:
+        header["simulated_observer"] = observer
+    if device_config is not None:
+        header["device_config"] = str(Path(device_config).resolve())
+    header["rig"] = load_device_config(device_config).rig_record()
+    return header
+
+
+def settings_from_record(start_record: Mapping[str, Any], spec: SetSpec) -> StaircaseSettings:
+    data = dict(start_record.get("staircase") or {})
+    if not data:
+        return spec.staircase
+    known = {f.name for f in dataclasses.fields(StaircaseSettings)}
+    data = {k: v for k, v in data.items() if k in known}
+    data["step_sizes_db"] = tuple(data.get("step_sizes_db", spec.staircase.step_sizes_db))
+    return StaircaseSettings(**data)
+
+
+def select_sets(protocol: Protocol, order: list[str], wanted: Sequence[str] | None) -> list[str]:
+    if not wanted:
+        return order
+    known = set(order)
+    unknown = [s for s in wanted if s not in known]
+    if unknown:
+        raise ProtocolError(
+            protocol.path,
+            "sets",
+            f"--sets names {', '.join(repr(s) for s in unknown)}, which the protocol does not "
+            f"have; its sets are {', '.join(order)}",
+        )
+    chosen = set(wanted)
+    return [s for s in order if s in chosen]
+
+
+def stimuli_of(protocol: Protocol, order: Sequence[str]) -> set[str]:
+    names: set[str] = set()
+    for set_id in order:
+        spec = protocol.set_by_id(set_id)
+        names.add(spec.target.name)
+        if spec.masker is not None:
+            names.add(spec.masker.name)
+    return names
+
+
+def protocol_from_header(
+    header: Mapping[str, Any], path: Path, allow_changed: bool, out: ProgressLine
+) -> Protocol:
+    meta = header["protocol"]
+    logged_sha = str(meta["sha256"])
+    on_disk = Path(str(meta["path"]))
+    if on_disk.is_file():
+        import hashlib
+
+        sha = hashlib.sha256(on_disk.read_bytes()).hexdigest()
+        if sha != logged_sha:
+            if not allow_changed:
+                raise LogError(
+                    f"{path}: the protocol file {on_disk} has changed since this session started "
+                    f"(sha256 {sha[:12]}… now, {logged_sha[:12]}… in the log). Restore it, or "
+                    "resume with --allow-changed-protocol to continue with the copy stored in "
+                    "the log (the file on disk is never used by resume)"
+                )
+            out.message(
+                f"note: {on_disk} has changed since the session started; continuing with the "
+                "protocol stored in the log"
+            )
+    try:
+        protocol = protocol_from_mapping(
+            dict(meta["content"]), f"{path} (protocol stored in the header)", sha256=logged_sha
+        )
+    except ProtocolError as exc:
+        raise LogError(f"{path}: the protocol stored in the header is invalid: {exc}") from exc
+    return dataclasses.replace(protocol, path=str(meta["path"]))
+
+
+def check_trials(path: Path, protocol: Protocol, existing: Mapping[str, SetRecords]) -> None:
+    """Logged trials must be contiguous and replay to their logged levels."""
+    level_key = "level_db_sl" if protocol.level_unit == "db_sl" else "level_db_v"
+    for set_id, rec in existing.items():
+        try:
+            spec = protocol.set_by_id(set_id)
+        except KeyError as exc:
+            raise LogError(f"{path}: set {set_id!r} is not in the logged protocol") from exc
+        indices = [t.get("trial_index") for t in rec.trials]
+        if indices != list(range(len(indices))):
+            raise LogError(
+                f"{path}: set {set_id}: trial indices {indices} are not 0, 1, 2, …; the log has "
+                "been edited or merged and cannot be resumed safely"
+            )
+        settings = settings_from_record(rec.start, spec)
+        state = start(settings)
+        for t in rec.trials:
+            logged = t.get(level_key)
+            if state.finished or logged is None or abs(float(logged) - state.level_db) > 1e-6:
+                raise LogError(
+                    f"{path}: set {set_id}, trial {t.get('trial_index')}: logged level {logged} "
+                    f"but replaying the logged responses gives {state.level_db}; the log does not "
+                    "match its staircase settings and cannot be resumed"
+                )
+            state = state.update(bool(t["correct"]))
+
+
+def position(log: SessionLog) -> tuple[str | None, int | None]:
+    set_id: str | None = None
+    index: int | None = None
+    for rec in log.records:
+        kind = rec.get("record")
+        if kind == "set_start":
+            set_id, index = rec.get("set_id"), 0
+        elif kind == "trial":
+            set_id, index = rec.get("set_id"), int(rec.get("trial_index", -1)) + 1
+        elif kind == "set_end":
+            set_id, index = rec.get("set_id"), None
+    return set_id, index
