@@ -223,9 +223,11 @@ channels:
 
 def test_reference_rig_limits_match_the_papers_parts():
     cfg = load_device_config()
-    # TI DRV8662: every gain setting reaches its full output from a 1.8 V peak input.
-    assert cfg.limits.max_drive_v["MV"] == 1.8
+    # TI DRV8662: every gain setting reaches its full output from a 1.8 V peak input; the
+    # reference rig reaches it from a 10 V board output through its 0.18 divider.
     mv = cfg.rig["MV"]
+    assert mv.attenuator is not None
+    assert cfg.limits.max_drive_v["MV"] * mv.attenuator.ratio == pytest.approx(1.8)
     assert mv.amplifier is not None and mv.amplifier.model == "Texas Instruments DRV8662"
     assert (mv.amplifier.gain_db, mv.amplifier.max_input_v) == (40.7, 1.8)
     assert "SQV 3/500" in cfg.rig["EV"].amplifier.model

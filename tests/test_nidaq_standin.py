@@ -102,7 +102,7 @@ def test_standin_identity_has_product_types_serials_chassis_driver_and_watchdog(
     # What the session log header records for the device.
     header = device_record(ident)
     assert "NI 9264" in header["model"] and "1D4E5F6" in header["serial_number"]
-    assert header["max_drive_v"] == {"EV": 5.0, "MV": 1.8}
+    assert header["max_drive_v"] == {"EV": 5.0, "MV": 10.0}
     assert device.details()["lines"] == {"EV": EV_LINE, "MV": MV_LINE}
 
 
@@ -115,7 +115,7 @@ def test_standin_opening_zeroes_and_arms_the_watchdog_with_0v_expiration_states(
     assert device.watchdog.armed
     # The task's range is the configured limit, so the driver refuses anything beyond it.
     chans = {c[2]: (c[3], c[4]) for c in standin.ops("add_ao_voltage_chan")}
-    assert chans == {EV_LINE: (-5.0, 5.0), MV_LINE: (-1.8, 1.8)}
+    assert chans == {EV_LINE: (-5.0, 5.0), MV_LINE: (-10.0, 10.0)}
 
 
 def test_standin_trial_is_committed_before_start_and_finishes_at_0v(device, standin):
@@ -225,7 +225,7 @@ def test_standin_driver_error_during_a_trial_is_a_device_error_and_0v(device, st
 def test_standin_over_limit_trial_never_reaches_the_driver(device, standin):
     before = len(standin.calls)
     with pytest.raises(SafetyLimitError):
-        device.play_trial(plan(masker_amplitude_v=1.81), RealClock().now())
+        device.play_trial(plan(masker_amplitude_v=10.01), RealClock().now())
     assert standin.calls[before:] == []
 
 

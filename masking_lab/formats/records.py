@@ -4,7 +4,8 @@ Every JSON Lines record a session log holds (header, ``set_start``, ``trial``, `
 ``fault``, ``resume``, ``usertest_trial``, ``session_end``; fields in
 ``data_schema/session_log.schema.json``) is written by :func:`encode_record`, whoever writes it:
 the threshold and user-test runners (through
-:class:`~masking_lab.formats.session_log.SessionLogWriter`) and the synthetic logs of :mod:`masking_lab.simulation.synthetic_logs`.
+:class:`~masking_lab.formats.session_log.SessionLogWriter`) and the synthetic logs of
+:mod:`masking_lab.simulation.synthetic_logs`.
 
 The policy for non-finite numbers, in one place:
 
