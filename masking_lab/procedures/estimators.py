@@ -28,6 +28,9 @@ from masking_lab.core.psychometric import GUESS_3IFC, LEVITT_1U3D
 
 ESTIMATORS = ("reversals", "ml")
 
+#: Local maxima of the scale profile polished at most (the best few; rarely more than 3).
+_MAX_STARTS = 4
+
 
 def reversal_mean_al(reversal_levels_db: Sequence[float], k: int) -> float:
     """Mean of the last ``k`` reversal levels, dB (same unit as the levels).
@@ -166,33 +169,52 @@ def ml_threshold(
         lam = float(params[2]) if params.size == 3 else lapse0
         return _neg_log_lik(x, r, t, math.exp(log_s), guess, lam, p_target)
 
-    # Coarse grid first (vectorised): the likelihood of a short track can have shallow local
-    # optima, and a good start makes the bounded quasi-Newton step reliable.
-    # Small scales too: a short track often fits best with a near-step function, and starting
-    # from a wide one the optimiser stops at a lower local maximum.
-    grid_t = np.linspace(t_bounds[0], t_bounds[1], 81)
-    grid_s = np.array([0.15, 0.3, 0.5, 1.0, 2.0, 4.0, 8.0])
+    # Profile first (vectorised): the best threshold on a grid for each of a dense set of
+    # scales. The likelihood of a short track can have several local maxima along the scale (a
+    # near-step function between two visited levels, a moderate slope, a shallow one), and a
+    # single quasi-Newton climb from the best grid point can stop on the wrong one (issue 13:
+    # a track stopped at scale 0.15 dB while the maximum was at 0.43 dB). So every local
+    # maximum of the profile is polished and the best polished point is kept.
+    # Thresholds close to each visited level join the regular grid: for a near-step function
+    # the likelihood is a narrow peak (a few tenths of the scale wide) next to a visited level,
+    # which a regular grid steps over.
+    near = np.unique(x)[:, None] + scale_bounds_db[0] * np.linspace(-4.0, 4.0, 17)[None, :]
+    grid_t = np.union1d(
+        np.linspace(t_bounds[0], t_bounds[1], 81),
+        np.clip(near.ravel(), t_bounds[0], t_bounds[1]),
+    )
+    grid_s = np.geomspace(scale_bounds_db[0], scale_bounds_db[1], 25)[:-1]
     tt, ss = np.meshgrid(grid_t, grid_s, indexing="ij")
-    grid_nll = _neg_log_lik_grid(x, r, tt.ravel(), ss.ravel(), guess, lapse0, p_target)
-    best = int(np.argmin(grid_nll))
-    start = (float(tt.ravel()[best]), float(np.log(ss.ravel()[best])))
-    if lapse is None:
-        x0 = np.array([start[0], start[1], 0.02])
-        bounds = [t_bounds, ls_bounds, (0.0, max_lapse)]
-    else:
-        x0 = np.array(start)
-        bounds = [t_bounds, ls_bounds]
-    if lapse is None:
-        res = minimize(nll, x0, method="L-BFGS-B", bounds=bounds)
-    else:
-        res = minimize(
-            _nll_and_grad,
-            x0,
-            args=(x, r, guess, lapse0, p_target),
-            jac=True,
-            method="L-BFGS-B",
-            bounds=bounds,
-        )
+    # On counts per distinct level (the likelihood's sufficient statistics): a staircase visits
+    # a dozen levels however many trials it runs.
+    xu, inv = np.unique(x, return_inverse=True)
+    n_at = np.bincount(inv).astype(float)
+    k_at = np.bincount(inv, weights=r.astype(float))
+    grid_nll = _neg_log_lik_grid(xu, n_at, k_at, tt.ravel(), ss.ravel(), guess, lapse0, p_target)
+    grid_nll = grid_nll.reshape(tt.shape)
+    best_t = np.argmin(grid_nll, axis=0)
+    profile = grid_nll[best_t, np.arange(grid_s.size)]
+    padded = np.concatenate([[np.inf], profile, [np.inf]])
+    local = np.flatnonzero((profile <= padded[:-2]) & (profile <= padded[2:]))
+    res = None
+    for j in local[np.argsort(profile[local])][:_MAX_STARTS]:
+        start = (float(grid_t[best_t[j]]), float(np.log(grid_s[j])))
+        if lapse is None:
+            x0 = np.array([start[0], start[1], 0.02])
+            bounds = [t_bounds, ls_bounds, (0.0, max_lapse)]
+            cand = minimize(nll, x0, method="L-BFGS-B", bounds=bounds)
+        else:
+            cand = minimize(
+                _nll_and_grad,
+                np.array(start),
+                args=(x, r, guess, lapse0, p_target),
+                jac=True,
+                method="L-BFGS-B",
+                bounds=[t_bounds, ls_bounds],
+            )
+        if res is None or cand.fun < res.fun:
+            res = cand
+    assert res is not None  # the profile always has a minimum
     t_hat, log_s_hat = float(res.x[0]), float(res.x[1])
     lam_hat = float(res.x[2]) if lapse is None else lapse0
     tol = 1e-3 * span
@@ -232,21 +254,23 @@ def _neg_log_lik(
 
 def _neg_log_lik_grid(
     x: NDArray[np.float64],
-    r: NDArray[np.bool_],
+    n: NDArray[np.float64],
+    k: NDArray[np.float64],
     thresholds: NDArray[np.float64],
     scales: NDArray[np.float64],
     guess: float,
     lapse: float,
     p_target: float,
 ) -> NDArray[np.float64]:
-    """:func:`_neg_log_lik` for many (threshold, scale) pairs at once."""
+    """:func:`_neg_log_lik` for many (threshold, scale) pairs at once, from ``n`` trials and
+    ``k`` correct answers at each distinct level ``x``."""
     q = (p_target - guess) / (1.0 - guess - lapse)
     location = thresholds - scales * math.log(q / (1.0 - q))
     z = (x[None, :] - location[:, None]) / scales[:, None]
     e = np.exp(-np.abs(z))
     f = np.where(z >= 0, 1.0 / (1.0 + e), e / (1.0 + e))
     p = np.clip(guess + (1.0 - guess - lapse) * f, 1e-12, 1.0 - 1e-12)
-    return -np.log(np.where(r[None, :], p, 1.0 - p)).sum(axis=1)
+    return -(k[None, :] * np.log(p) + (n - k)[None, :] * np.log(1.0 - p)).sum(axis=1)
 
 
 def _nll_and_grad(

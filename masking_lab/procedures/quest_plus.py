@@ -1,0 +1,569 @@
+"""QUEST+ and psi-marginal threshold tracks on a dB grid (pure: no I/O, no clock, no RNG).
+
+QUEST+ (Watson 2017) keeps a posterior over a grid of psychometric-function parameters and
+plays, on every trial, the level of a stimulus grid whose answer is expected to leave the least
+posterior entropy. Here the parameters are the threshold (dB; the level where p(correct) equals
+``p_at_threshold``, 0.794 by default, as in :class:`masking_lab.core.psychometric.Psychometric`
+and the ML estimator) and, optionally, the logistic scale and the lapse rate as nuisance
+parameters. With more than one scale or lapse value, ``entropy_over="threshold"`` (the default)
+is the psi-marginal method (Prins 2013): the expected entropy is that of the *marginal*
+posterior of the threshold, so no trials are spent pinning down the slope for its own sake;
+``entropy_over="all"`` is Watson's joint entropy. With one scale and one lapse both are the same.
+
+Model: p(correct | x) = γ + (1 − γ − λ)·F((x − α)/s), F the logistic CDF, γ = 1/``n_intervals``
+(1/3 for 3IFC), α = threshold − s·logit((p_at_threshold − γ)/(1 − γ − λ)).
+
+A :class:`QuestPlus` is an immutable snapshot; :meth:`QuestPlus.update` returns the next one.
+The posterior after a list of answers does not depend on anything else, so
+:func:`masking_lab.procedures.base.replay` rebuilds a track exactly. The likelihood table and
+the first level depend on the settings only and are computed once per settings object
+(:func:`tables`, an LRU cache keyed by the frozen, hashable settings).
+
+References: Watson A.B. (2017) QUEST+: a general multidimensional Bayesian adaptive
+psychometric method. J Vis 17(3):10. Prins N. (2013) The psi-marginal adaptive method: how to
+give nuisance parameters the attention they deserve (no more, no less). J Vis 13(7):3.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, fields, replace
+from typing import Any, Literal
+
+import numpy as np
+from numpy.typing import NDArray
+
+from masking_lab.core.errors import ProcedureError
+from masking_lab.core.psychometric import LEVITT_1U3D
+from masking_lab.procedures.base import ThresholdEstimate
+from masking_lab.procedures.base import replay as _replay
+from masking_lab.procedures.quest_plus_model import grid_db, psychometric_table
+
+Status = Literal["running", "completed", "ceiling", "floor", "trial_cap"]
+EntropyOver = Literal["threshold", "all"]
+
+#: Elements of the (tracks × stimuli × thresholds) work array per chunk in
+#: :func:`expected_entropy`; bounds its memory to ~50 MB whatever the batch size.
+_CHUNK_ELEMENTS = 6_000_000
+
+
+@dataclass(frozen=True)
+class QuestPlusSettings:
+    """Settings of a QUEST+ / psi-marginal track. All levels in dB (the session's unit).
+
+    Attributes
+    ----------
+    min_level_db, max_level_db : float
+        The stimulus range, dB (the runner passes the device limit as ``max_level_db``).
+    level_step_db : float
+        Spacing of the stimulus grid, dB (0.5 by default).
+    threshold_min_db, threshold_max_db : float or None
+        Range of the threshold grid, dB; None takes the stimulus range.
+    threshold_step_db : float or None
+        Spacing of the threshold grid, dB; None takes ``level_step_db``.
+    scales_db : tuple of float
+        Logistic scale(s) s, dB. One value: the slope is known. Several: a nuisance parameter
+        with a flat prior over these values, marginalised out of the estimate.
+    lapses : tuple of float
+        Lapse rate(s) λ, likewise.
+    n_intervals : int
+        Intervals per trial; the guess rate is 1/``n_intervals`` (3 → 1/3).
+    p_at_threshold : float
+        p(correct) that defines the threshold (Levitt's 1-up-3-down 0.794 by default, so that a
+        staircase and this track estimate the same level).
+    prior : {"flat", "normal"}
+        Prior over the threshold grid: flat, or normal with ``prior_mean_db`` and
+        ``prior_sd_db`` (truncated to the grid). Scales and lapses always have flat priors.
+    prior_mean_db, prior_sd_db : float or None
+        Parameters of the normal prior, dB.
+    entropy_over : {"threshold", "all"}
+        Which posterior's expected entropy the placement minimises: the threshold's marginal
+        (psi-marginal, Prins 2013) or the joint one (QUEST+, Watson 2017).
+    max_trials : int or None
+        Trial count stop rule. Alone, reaching it completes the track; together with
+        ``target_sd_db`` it is a cap (status ``trial_cap``).
+    target_sd_db : float or None
+        Precision stop rule: stop once the posterior SD of the threshold is ≤ this, dB.
+    min_trials : int
+        Trials run at least before the precision rule may stop the track.
+    bound_margin_db : float
+        A track that stops with its posterior mean within this distance of the top (bottom) of
+        the threshold grid ends as ``ceiling`` (``floor``): the grid did not bracket the
+        threshold, and the estimate is not a threshold.
+    """
+
+    min_level_db: float
+    max_level_db: float
+    level_step_db: float = 0.5
+    threshold_min_db: float | None = None
+    threshold_max_db: float | None = None
+    threshold_step_db: float | None = None
+    scales_db: tuple[float, ...] = (1.5,)
+    lapses: tuple[float, ...] = (0.02,)
+    n_intervals: int = 3
+    p_at_threshold: float = LEVITT_1U3D
+    prior: Literal["flat", "normal"] = "flat"
+    prior_mean_db: float | None = None
+    prior_sd_db: float | None = None
+    entropy_over: EntropyOver = "threshold"
+    max_trials: int | None = 64
+    target_sd_db: float | None = None
+    min_trials: int = 0
+    bound_margin_db: float = 1.0
+
+    def __post_init__(self) -> None:
+        for name in ("scales_db", "lapses"):
+            value = getattr(self, name)
+            items = (value,) if isinstance(value, int | float) else value
+            object.__setattr__(self, name, tuple(float(v) for v in items))
+        for name, problem in self._problems():
+            raise ProcedureError(f"quest_plus setting {name}: {problem}")
+
+    def _problems(self) -> Iterable[tuple[str, str]]:
+        def finite(v: object) -> bool:
+            return isinstance(v, int | float) and math.isfinite(v)
+
+        for name in ("min_level_db", "max_level_db", "bound_margin_db"):
+            if not finite(getattr(self, name)):
+                yield name, f"must be a finite number, got {getattr(self, name)!r}"
+        ordered = finite(self.min_level_db) and finite(self.max_level_db)
+        if ordered and not self.min_level_db < self.max_level_db:
+            yield (
+                "min_level_db",
+                f"must be below max_level_db ({self.min_level_db} ≥ {self.max_level_db})",
+            )
+        for name in ("level_step_db", "threshold_step_db"):
+            v = getattr(self, name)
+            if v is not None and not (finite(v) and v > 0):
+                yield name, f"must be a positive number of dB, got {v!r}"
+        t_lo, t_hi = self.threshold_range_db
+        if not (finite(t_lo) and finite(t_hi) and t_lo < t_hi):
+            yield (
+                "threshold_min_db",
+                f"the threshold range must be finite and increasing, got {t_lo}..{t_hi} dB",
+            )
+        if not self.scales_db:
+            yield "scales_db", "needs at least one scale"
+        for s in self.scales_db:
+            if not (math.isfinite(s) and s > 0):
+                yield "scales_db", f"every scale must be a positive number of dB, got {s}"
+        if not (isinstance(self.n_intervals, int) and self.n_intervals >= 2):
+            yield "n_intervals", f"must be an integer ≥ 2, got {self.n_intervals!r}"
+            return
+        if not self.lapses:
+            yield "lapses", "needs at least one lapse rate"
+        for lam in self.lapses:
+            if not 0.0 <= lam < 1.0 - self.guess:
+                yield "lapses", f"every lapse rate must lie in [0, {1 - self.guess:.3f}), got {lam}"
+        top = 1.0 - max(self.lapses, default=0.0)
+        if not (finite(self.p_at_threshold) and self.guess < self.p_at_threshold < top):
+            yield (
+                "p_at_threshold",
+                f"must lie between the guess rate {self.guess:.3f} and 1 − the largest lapse "
+                f"({top:.3f}), got {self.p_at_threshold!r}",
+            )
+        if self.prior not in ("flat", "normal"):
+            yield "prior", f"must be 'flat' or 'normal', got {self.prior!r}"
+        if self.prior == "normal":
+            if not finite(self.prior_mean_db):
+                yield "prior_mean_db", "a normal prior needs a finite prior_mean_db (dB)"
+            if not (finite(self.prior_sd_db) and self.prior_sd_db > 0):
+                yield "prior_sd_db", "a normal prior needs a positive prior_sd_db (dB)"
+        if self.entropy_over not in ("threshold", "all"):
+            yield "entropy_over", f"must be 'threshold' or 'all', got {self.entropy_over!r}"
+        if self.max_trials is None and self.target_sd_db is None:
+            yield "max_trials", "give max_trials, target_sd_db or both: the track needs a stop rule"
+        if self.max_trials is not None and not (
+            isinstance(self.max_trials, int) and self.max_trials >= 1
+        ):
+            yield "max_trials", f"must be an integer ≥ 1 or null, got {self.max_trials!r}"
+        if self.target_sd_db is not None and not (
+            finite(self.target_sd_db) and self.target_sd_db > 0
+        ):
+            yield (
+                "target_sd_db",
+                f"must be a positive number of dB or null, got {self.target_sd_db!r}",
+            )
+        if not (isinstance(self.min_trials, int) and self.min_trials >= 0):
+            yield "min_trials", f"must be an integer ≥ 0, got {self.min_trials!r}"
+        elif isinstance(self.max_trials, int) and self.min_trials > self.max_trials:
+            yield "min_trials", f"{self.min_trials} exceeds max_trials={self.max_trials}"
+        if finite(self.bound_margin_db) and self.bound_margin_db < 0:
+            yield "bound_margin_db", f"must be ≥ 0 dB, got {self.bound_margin_db}"
+
+    @property
+    def guess(self) -> float:
+        """Guess rate γ = 1/``n_intervals``."""
+        return 1.0 / self.n_intervals
+
+    @property
+    def threshold_range_db(self) -> tuple[float, float]:
+        """(lowest, highest) threshold on the grid, dB."""
+        lo = self.min_level_db if self.threshold_min_db is None else self.threshold_min_db
+        hi = self.max_level_db if self.threshold_max_db is None else self.threshold_max_db
+        return lo, hi
+
+    @property
+    def kind(self) -> str:
+        """The protocol's name for this procedure: ``"quest_plus"``."""
+        return "quest_plus"
+
+    def start(self) -> QuestPlus:
+        """A fresh track: the prior, and the level it places first.
+
+        Examples
+        --------
+        >>> track = QuestPlusSettings(-20.0, 45.0, target_sd_db=1.08).start()
+        >>> track.n_trials, track.finished, track.next_level() in tables(track.settings).levels_db
+        (0, False, True)
+        """
+        t = tables(self)
+        return QuestPlus(self, t.prior, t.first_level_db)
+
+    @classmethod
+    def from_mapping(cls, mapping: Mapping[str, Any]) -> QuestPlusSettings:
+        """Build settings from a protocol's ``quest_plus:`` mapping (keys = attribute names).
+
+        ``scales_db`` and ``lapses`` take a number or a list; an optional ``kind`` must be
+        ``quest_plus``. See docs/procedures.md for the keys and their defaults.
+
+        Raises
+        ------
+        ProcedureError
+            On an unknown key (the message lists the valid ones) or an invalid value.
+
+        Examples
+        --------
+        >>> s = QuestPlusSettings.from_mapping(
+        ...     {"min_level_db": -20, "max_level_db": 45, "scales_db": [1, 1.5, 2],
+        ...      "target_sd_db": 1.08, "max_trials": 80})
+        >>> s.scales_db, s.lapses
+        ((1.0, 1.5, 2.0), (0.02,))
+        """
+        data = dict(mapping)
+        kind = data.pop("kind", "quest_plus")
+        if kind != "quest_plus":
+            raise ProcedureError(f"quest_plus settings: kind must be 'quest_plus', got {kind!r}")
+        names = [f.name for f in fields(cls)]
+        unknown = sorted(set(data) - set(names))
+        if unknown:
+            raise ProcedureError(
+                f"quest_plus settings: unknown key(s) {', '.join(unknown)}; valid keys are "
+                f"{', '.join(names)}"
+            )
+        for name in ("min_level_db", "max_level_db"):
+            if name not in data:
+                raise ProcedureError(f"quest_plus settings: {name} is required (dB)")
+        for name in ("scales_db", "lapses"):
+            if name in data and not isinstance(data[name], int | float):
+                data[name] = tuple(data[name])
+        return cls(**data)
+
+
+@dataclass(frozen=True, eq=False)
+class Tables:
+    """Everything about a :class:`QuestPlusSettings` that does not depend on the answers.
+
+    Attributes
+    ----------
+    levels_db : ndarray, shape (S,)
+        The stimulus grid, dB.
+    thresholds_db : ndarray, shape (T,)
+        The threshold grid, dB.
+    nuisance : ndarray, shape (N, 2)
+        Every (scale dB, lapse) pair.
+    p_correct, p_wrong : ndarray, shape (S, T, N)
+        Likelihood of each answer at each level for each parameter point (p_wrong computed
+        without cancellation, so it stays > 0 where p_correct rounds to 1).
+    prior : ndarray, shape (T, N)
+        The prior, summing to 1.
+    first_level_db : float
+        The level the prior places first.
+    """
+
+    levels_db: NDArray[np.float64]
+    thresholds_db: NDArray[np.float64]
+    nuisance: NDArray[np.float64]
+    p_correct: NDArray[np.float64]
+    p_wrong: NDArray[np.float64]
+    prior: NDArray[np.float64]
+    first_level_db: float
+
+
+@functools.lru_cache(maxsize=16)
+def tables(settings: QuestPlusSettings) -> Tables:
+    """The grids, likelihood table and prior of ``settings`` (cached per settings object).
+
+    Examples
+    --------
+    >>> t = tables(QuestPlusSettings(0.0, 10.0, max_trials=10))
+    >>> t.levels_db.size, t.thresholds_db.size, t.p_correct.shape
+    (21, 21, (21, 21, 1))
+    """
+    s = settings
+    levels = grid_db(s.min_level_db, s.max_level_db, s.level_step_db)
+    t_lo, t_hi = s.threshold_range_db
+    thresholds = grid_db(t_lo, t_hi, s.threshold_step_db or s.level_step_db)
+    nuisance = np.array([(sc, lam) for sc in s.scales_db for lam in s.lapses], dtype=float)
+    p_c, p_w = psychometric_table(levels, thresholds, nuisance, s.guess, s.p_at_threshold)
+    if s.prior == "normal":
+        assert s.prior_mean_db is not None and s.prior_sd_db is not None
+        w = np.exp(-0.5 * ((thresholds - s.prior_mean_db) / s.prior_sd_db) ** 2)
+    else:
+        w = np.ones(thresholds.size)
+    prior = np.repeat(w[:, None], nuisance.shape[0], axis=1)
+    prior /= prior.sum()
+    partial = Tables(levels, thresholds, nuisance, p_c, p_w, prior, math.nan)
+    first = float(levels[int(np.argmin(expected_entropy(partial, prior[None], s.entropy_over)))])
+    out = replace(partial, first_level_db=first)
+    for a in (levels, thresholds, nuisance, p_c, p_w, prior):
+        a.flags.writeable = False
+    return out
+
+
+def expected_entropy(
+    t: Tables, posterior: NDArray[np.float64], entropy_over: EntropyOver = "threshold"
+) -> NDArray[np.float64]:
+    """Expected posterior entropy (nats) after one trial at each stimulus level, per track.
+
+    Parameters
+    ----------
+    t : Tables
+        From :func:`tables`.
+    posterior : ndarray, shape (R, T, N)
+        Current posteriors of R tracks (each summing to 1).
+    entropy_over : {"threshold", "all"}
+        Entropy of the threshold's marginal posterior (psi-marginal) or of the joint one.
+
+    Returns
+    -------
+    ndarray, shape (R, S)
+        Σ over answers of p(answer) · H(posterior after that answer).
+
+    Examples
+    --------
+    >>> t = tables(QuestPlusSettings(0.0, 5.0, max_trials=5))
+    >>> expected_entropy(t, t.prior[None]).shape
+    (1, 11)
+    """
+    r, n_t, n_n = posterior.shape
+    out = np.zeros((r, t.levels_db.size))
+    if n_n == 1 or entropy_over == "all":
+        # Σ j·log j over the grid with j = post·L is linear in post·log post and in post, so the
+        # entropies for all levels come from two matrix products (no (R, S, P) array).
+        flat = posterior.reshape(r, -1)
+        plogp = _xlogx(flat)
+        for like in (t.p_correct, t.p_wrong):
+            lf = like.reshape(like.shape[0], -1)
+            pk = flat @ lf.T
+            sj = plogp @ lf.T + flat @ (lf * np.log(lf)).T
+            out += pk * np.log(pk) - sj
+        return out
+    # psi-marginal: the threshold's marginal after the answer needs the (R, S, T) array.
+    per_row = max(1, _CHUNK_ELEMENTS // (t.levels_db.size * n_t))
+    for a in range(0, r, per_row):
+        post_t = np.ascontiguousarray(posterior[a : a + per_row].transpose(1, 0, 2))  # (T, R, N)
+        for like in (t.p_correct, t.p_wrong):
+            m = post_t @ like.transpose(1, 2, 0)  # (T, R, S): Σ_n post·L
+            pk = m.sum(axis=0)
+            out[a : a + per_row] += pk * np.log(pk) - _xlogx(m).sum(axis=0)
+    return out
+
+
+def _xlogx(a: NDArray[np.float64]) -> NDArray[np.float64]:
+    """a·log a with 0·log 0 = 0 (posterior cells that underflowed)."""
+    return a * np.log(np.where(a > 0, a, 1.0))
+
+
+def threshold_moments(
+    t: Tables, posterior: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Posterior mean and SD of the threshold (dB) of each of R posteriors (R, T, N)."""
+    marginal = posterior.sum(axis=2)
+    mean = marginal @ t.thresholds_db
+    var = np.einsum("rt,rt->r", marginal, (t.thresholds_db[None, :] - mean[:, None]) ** 2)
+    return mean, np.sqrt(np.maximum(var, 0.0))
+
+
+def stop_status(
+    settings: QuestPlusSettings,
+    n_trials: NDArray[np.int64],
+    mean_db: NDArray[np.float64],
+    sd_db: NDArray[np.float64],
+) -> NDArray[np.str_]:
+    """Status of R tracks after ``n_trials`` answers with these posterior moments.
+
+    ``running`` until a stop rule holds; then ``ceiling``/``floor`` if the posterior mean lies
+    within ``bound_margin_db`` of the threshold grid's top/bottom, else ``completed`` (precision
+    reached, or the trial count when that is the only rule) or ``trial_cap``.
+    """
+    s = settings
+    precise = np.zeros(n_trials.shape, dtype=bool)
+    if s.target_sd_db is not None:
+        precise = (n_trials >= s.min_trials) & (sd_db <= s.target_sd_db)
+    capped = n_trials >= s.max_trials if s.max_trials is not None else np.zeros_like(precise)
+    status = np.full(n_trials.shape, "running", dtype="<U9")
+    cap_name = "completed" if s.target_sd_db is None else "trial_cap"
+    status[capped] = cap_name
+    status[precise] = "completed"
+    lo, hi = s.threshold_range_db
+    stopped = precise | capped
+    status[stopped & (mean_db >= hi - s.bound_margin_db)] = "ceiling"
+    status[stopped & (mean_db <= lo + s.bound_margin_db)] = "floor"
+    return status
+
+
+@dataclass(frozen=True, eq=False)
+class QuestPlus:
+    """Immutable state of one QUEST+ / psi-marginal track.
+
+    Attributes
+    ----------
+    settings : QuestPlusSettings
+        The rules.
+    posterior : ndarray, shape (T, N)
+        Posterior over (threshold, nuisance) grid points, summing to 1 (read-only).
+    level_db : float
+        Level of the next trial, dB (on the stimulus grid).
+    levels_db : tuple of float
+        Level of every trial so far, dB.
+    responses : tuple of bool
+        Whether each trial was answered correctly.
+    status : {"running", "completed", "ceiling", "floor", "trial_cap"}
+        ``running`` until a stop rule holds.
+    """
+
+    settings: QuestPlusSettings
+    posterior: NDArray[np.float64]
+    level_db: float
+    levels_db: tuple[float, ...] = ()
+    responses: tuple[bool, ...] = ()
+    status: Status = "running"
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, QuestPlus):
+            return NotImplemented
+        return (
+            self.settings == other.settings
+            and self.level_db == other.level_db
+            and self.levels_db == other.levels_db
+            and self.responses == other.responses
+            and self.status == other.status
+            and np.array_equal(self.posterior, other.posterior)
+        )
+
+    __hash__ = None  # type: ignore[assignment]  # holds an array; equality is by value
+
+    @property
+    def finished(self) -> bool:
+        """True once a stop rule has ended the track."""
+        return self.status != "running"
+
+    @property
+    def n_trials(self) -> int:
+        """Trials answered so far."""
+        return len(self.responses)
+
+    def next_level(self) -> float:
+        """The level of the next trial, dB (the grid level of least expected entropy)."""
+        return self.level_db
+
+    @property
+    def threshold_posterior(self) -> NDArray[np.float64]:
+        """Marginal posterior over :attr:`Tables.thresholds_db` (sums to 1)."""
+        return self.posterior.sum(axis=1)
+
+    @property
+    def posterior_mean_db(self) -> float:
+        """Posterior mean of the threshold, dB."""
+        return float(threshold_moments(tables(self.settings), self.posterior[None])[0][0])
+
+    @property
+    def posterior_sd_db(self) -> float:
+        """Posterior SD of the threshold, dB."""
+        return float(threshold_moments(tables(self.settings), self.posterior[None])[1][0])
+
+    def update(self, correct: bool) -> QuestPlus:
+        """The track after one trial at :meth:`next_level` answered ``correct``.
+
+        Raises
+        ------
+        ProcedureError
+            If the track has finished.
+
+        Examples
+        --------
+        >>> track = QuestPlusSettings(-20.0, 45.0, max_trials=2).start()
+        >>> track.update(True).update(False).status
+        'completed'
+        """
+        if self.finished:
+            raise ProcedureError(
+                f"the QUEST+ track has finished ({self.status}); it takes no more responses"
+            )
+        t = tables(self.settings)
+        correct = bool(correct)
+        i = int(np.searchsorted(t.levels_db, self.level_db))
+        like = (t.p_correct if correct else t.p_wrong)[i]
+        post = self.posterior * like
+        post /= post.sum()
+        post.flags.writeable = False
+        n = self.n_trials + 1
+        mean, sd = threshold_moments(t, post[None])
+        status = str(stop_status(self.settings, np.array([n]), mean, sd)[0])
+        level = self.level_db
+        if status == "running":
+            ee = expected_entropy(t, post[None], self.settings.entropy_over)[0]
+            level = float(t.levels_db[int(np.argmin(ee))])
+        return QuestPlus(
+            self.settings,
+            post,
+            level,
+            (*self.levels_db, self.level_db),
+            (*self.responses, correct),
+            status,  # type: ignore[arg-type]
+        )
+
+    def estimate(self) -> ThresholdEstimate:
+        """Posterior mean and SD of the threshold; ``level_db`` None unless ``completed``.
+
+        Examples
+        --------
+        >>> QuestPlusSettings(-20.0, 45.0, max_trials=3).start().estimate().method
+        'posterior_mean'
+        """
+        level = self.posterior_mean_db if self.status == "completed" else None
+        return ThresholdEstimate(
+            level_db=level, sd_db=self.posterior_sd_db, method="posterior_mean", status=self.status
+        )
+
+    def trial_summary(self) -> dict[str, float]:
+        """Finite numbers for the per-trial log: posterior mean and SD (dB), next level (dB).
+
+        Examples
+        --------
+        >>> sorted(QuestPlusSettings(-20.0, 45.0, max_trials=3).start().trial_summary())
+        ['next_level_db', 'posterior_mean_db', 'posterior_sd_db']
+        """
+        mean, sd = threshold_moments(tables(self.settings), self.posterior[None])
+        return {
+            "posterior_mean_db": float(mean[0]),
+            "posterior_sd_db": float(sd[0]),
+            "next_level_db": float(self.level_db),
+        }
+
+
+def replay(settings: QuestPlusSettings, responses: Iterable[bool]) -> QuestPlus:
+    """Rebuild a track from its answers (see :func:`masking_lab.procedures.base.replay`).
+
+    Examples
+    --------
+    >>> s = QuestPlusSettings(-20.0, 45.0, max_trials=10)
+    >>> replay(s, [True, False]) == s.start().update(True).update(False)
+    True
+    """
+    state = _replay(settings, responses)
+    assert isinstance(state, QuestPlus)
+    return state
