@@ -113,7 +113,8 @@ def test_play_reports_onsets_on_the_device_clock(device, link):
     assert done.number("seq") == seq
     planned = [at + 0.02 + k * 0.08 for k in range(3)]  # at + lead + k·(stim + gap)
     for actual, plan in zip(done.numbers("on"), planned, strict=True):
-        assert 0 <= actual - plan < LATE_S[device.name], (done.numbers("on"), planned)
+        # times travel at 1 µs resolution: an on-time onset may print 1 µs early
+        assert -1e-6 <= actual - plan < LATE_S[device.name], (done.numbers("on"), planned)
     assert done.number("end") >= at + 0.02 + 3 * 0.05 + 2 * 0.03 - 1e-6
     assert (done.number("tamp"), done.number("mamp")) == (0.5, 0.3)
     assert_zero(link)  # a trial rests on 0 V when it ends
