@@ -21,7 +21,7 @@ import secrets
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Generic, Protocol, TextIO, TypeVar
+from typing import Any, Generic, Protocol, TextIO, TypedDict, TypeVar
 
 from masking_lab.core.clock import Clock, RealClock, VirtualClock
 from masking_lab.core.errors import DeviceTimeModeError, MaskingLabError
@@ -52,7 +52,9 @@ from masking_lab.session.resuming import (
 from masking_lab.session.shell import Closable, SessionShell
 
 __all__ = [
+    "Opened",
     "Opening",
+    "ResumeChanges",
     "ResumeOptions",
     "SessionKind",
     "SessionPlan",
@@ -108,6 +110,17 @@ class ResumeOptions:
     progress: bool | None = None
 
 
+class ResumeChanges(TypedDict, total=False):
+    """The keyword form of :class:`ResumeOptions` taken by the kinds' ``resume_*`` functions."""
+
+    device: str | None
+    responder: str | None
+    allow_changed_protocol: bool
+    device_config: Path | None
+    participant_tty: str | None
+    progress: bool | None
+
+
 @dataclass(frozen=True)
 class Opening:
     """What the frame worked out for this process, handed to the kind's plan.
@@ -141,6 +154,47 @@ class Opening:
     participant_tty: str | None
     responder: str
 
+    def context_fields(self) -> dict[str, Any]:
+        """The fields every kind's responder context takes from the opening."""
+        return {
+            "participant": self.participant,
+            "seed": self.seed,
+            "clock": self.clock,
+            "simulated_observer": self.observer,
+            "device_config": self.device_config,
+            "participant_tty": self.participant_tty,
+        }
+
+    def header_fields(self) -> dict[str, Any]:
+        """The fields every kind's log header takes from the opening."""
+        return {
+            "participant": self.participant,
+            "responder": self.responder,
+            "seed": self.seed,
+            "virtual": self.virtual,
+            "observer": self.observer,
+            "device_config": self.device_config,
+        }
+
+    def loop_fields(self, opened: Opened) -> dict[str, Any]:
+        """The session loop's common fields: the opening's plus what was opened for it."""
+        return {
+            "participant": self.participant,
+            "seed": self.seed,
+            "clock": self.clock,
+            **vars(opened),  # not asdict: that would deep-copy the device
+        }
+
+
+@dataclass(frozen=True)
+class Opened:
+    """What the frame opened for the session loop: device, responder, log writer, progress."""
+
+    device: Device
+    responder: Any
+    writer: SessionLogWriter
+    out: ProgressLine
+
 
 class SessionPlan(Protocol[ResultT]):
     """One session kind's plan for one process, made before any device or window opens."""
@@ -171,15 +225,7 @@ class SessionPlan(Protocol[ResultT]):
         """What to say when a resumed session continues."""
         ...
 
-    def session(
-        self,
-        opening: Opening,
-        *,
-        device: Device,
-        responder: Any,
-        writer: SessionLogWriter,
-        out: ProgressLine,
-    ) -> SessionShell[ResultT]:
+    def session(self, opening: Opening, opened: Opened) -> SessionShell[ResultT]:
         """The session loop for the trials still to run."""
         ...
 
@@ -299,10 +345,7 @@ def start(
         header = plan.header(opening, device)
         writer = create_log(Path(options.data_dir), plan.experiment, participant, header)
     frame.out.message(f"session log: {writer.path}")
-    session = plan.session(
-        opening, device=device, responder=responder, writer=writer, out=frame.out
-    )
-    return session.run()
+    return plan.session(opening, Opened(device, responder, writer, frame.out)).run()
 
 
 def _open_in_device_time(
@@ -381,7 +424,4 @@ def resume(
         writer, _ = SessionLogWriter.reopen(path)
     record_resume(writer, log, device.identity, frame.out, plan.position())
     frame.out.message(plan.resume_message(path))
-    session = plan.session(
-        opening, device=device, responder=responder, writer=writer, out=frame.out
-    )
-    return session.run()
+    return plan.session(opening, Opened(device, responder, writer, frame.out)).run()

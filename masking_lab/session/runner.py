@@ -20,7 +20,7 @@ from __future__ import annotations
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, TextIO
+from typing import Any, TextIO, Unpack
 
 from masking_lab.core.clock import Clock
 from masking_lab.core.errors import (
@@ -31,7 +31,7 @@ from masking_lab.device.base import Device
 from masking_lab.device.rig_limits import max_level_db_sl
 from masking_lab.formats.calibration import load_calibration, require
 from masking_lab.formats.protocol import Protocol, load_protocol
-from masking_lab.formats.session_log import SessionLog, SessionLogWriter, SetRecords
+from masking_lab.formats.session_log import SessionLog, SetRecords
 from masking_lab.responders.base import Responder
 from masking_lab.session import frame
 
@@ -181,15 +181,10 @@ def run_session(
 def resume_session(
     log_path: str | Path,
     *,
-    device: str | None = None,
-    responder: str | None = None,
-    allow_changed_protocol: bool = False,
-    device_config: Path | None = None,
-    participant_tty: str | None = None,
     open_device: DeviceOpener | None = None,
     make_responder: ResponderMaker | None = None,
     stream: TextIO | None = None,
-    progress: bool | None = None,
+    **changes: Unpack[frame.ResumeChanges],
 ) -> SessionResult:
     """Continue an interrupted session exactly where it stopped, in the same log.
 
@@ -201,8 +196,9 @@ def resume_session(
     ----------
     log_path : path
         The session log (``DATA/<participant>/<experiment>-<participant>-<UTC>.jsonl``).
-    device, responder, allow_changed_protocol, device_config, participant_tty, progress
-        As in :class:`masking_lab.session.frame.ResumeOptions`.
+    **changes
+        ``device``, ``responder``, ``allow_changed_protocol``, ``device_config``,
+        ``participant_tty``, ``progress``: as in :class:`masking_lab.session.frame.ResumeOptions`.
     open_device, make_responder, stream
         As for :func:`run_session`.
 
@@ -212,18 +208,10 @@ def resume_session(
         Finished session, protocol file changed (without ``allow_changed_protocol``), a header
         that breaks the schema, or logged trials that do not replay to their logged levels.
     """
-    options = frame.ResumeOptions(
-        device=device,
-        responder=responder,
-        allow_changed_protocol=allow_changed_protocol,
-        device_config=device_config,
-        participant_tty=participant_tty,
-        progress=progress,
-    )
     return frame.resume(
         THRESHOLD,
         log_path,
-        options,
+        frame.ResumeOptions(**changes),
         open_device=open_device,
         make_responder=make_responder,
         stream=stream,
@@ -301,15 +289,7 @@ class _ThresholdPlan:
         return self.protocol.experiment
 
     def context(self, opening: frame.Opening) -> SessionContext:
-        return SessionContext(
-            opening.participant,
-            opening.seed,
-            opening.clock,
-            self.protocol,
-            opening.observer,
-            opening.device_config,
-            opening.participant_tty,
-        )
+        return SessionContext(protocol=self.protocol, **opening.context_fields())
 
     def check_responder(self, name: str) -> None:
         return None
@@ -320,15 +300,10 @@ class _ThresholdPlan:
     def header(self, opening: frame.Opening, device: Device) -> dict[str, Any]:
         return header_record(
             protocol=self.protocol,
-            participant=opening.participant,
             calibration=self.calibration,
             device=device.identity,
-            responder=opening.responder,
-            seed=opening.seed,
             order=self.order,
-            virtual=opening.virtual,
-            observer=opening.observer,
-            device_config=opening.device_config,
+            **opening.header_fields(),
         )
 
     def position(self) -> tuple[str | None, int | None]:
@@ -337,28 +312,14 @@ class _ThresholdPlan:
     def resume_message(self, path: Path) -> str:
         return f"resuming {path}"
 
-    def session(
-        self,
-        opening: frame.Opening,
-        *,
-        device: Device,
-        responder: Responder,
-        writer: SessionLogWriter,
-        out: ProgressLine,
-    ) -> ThresholdSession:
+    def session(self, opening: frame.Opening, opened: frame.Opened) -> ThresholdSession:
         return ThresholdSession(
             protocol=self.protocol,
-            participant=opening.participant,
             data_dir=self.data_dir,
-            seed=opening.seed,
             order=self.order,
             calibration=self.calibration,
-            clock=opening.clock,
-            device=device,
-            responder=responder,
-            writer=writer,
-            out=out,
             existing=self.existing,
+            **opening.loop_fields(opened),
         )
 
 

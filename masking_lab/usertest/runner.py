@@ -33,7 +33,7 @@ import json
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, TextIO
+from typing import Any, TextIO, Unpack
 
 import yaml
 
@@ -45,7 +45,7 @@ from masking_lab.core.errors import (
 )
 from masking_lab.device.base import Device
 from masking_lab.device.rig_limits import max_level_db_sl
-from masking_lab.formats.session_log import SessionLog, SessionLogWriter
+from masking_lab.formats.session_log import SessionLog
 from masking_lab.rendering.render import Rendering
 from masking_lab.rendering.solver import MutualMasking
 from masking_lab.session import frame
@@ -235,20 +235,25 @@ def run_usertest(
 def resume_usertest(
     log_path: str | Path,
     *,
-    device: str | None = None,
-    responder: str | None = None,
-    allow_changed_protocol: bool = False,
-    device_config: Path | None = None,
-    participant_tty: str | None = None,
     open_device: DeviceOpener | None = None,
     make_responder: UserTestResponderMaker | None = None,
     stream: TextIO | None = None,
-    progress: bool | None = None,
+    **changes: Unpack[frame.ResumeChanges],
 ) -> UserTestResult:
     """Continue an interrupted user test with its next trial, in the same log.
 
     The protocol, object scenes, masking functions, calibration, seed, stream settings and the
     clipping choice come from the log's header, never from files that may have changed since.
+
+    Parameters
+    ----------
+    log_path : path
+        The user test's session log.
+    open_device, make_responder, stream
+        As for :func:`run_usertest`.
+    **changes
+        ``device``, ``responder``, ``allow_changed_protocol``, ``device_config``,
+        ``participant_tty``, ``progress``: as in :class:`masking_lab.session.frame.ResumeOptions`.
 
     Raises
     ------
@@ -258,18 +263,10 @@ def resume_usertest(
     LevelError
         The device now has lower limits, so objects exceed them, and clipping was not allowed.
     """
-    options = frame.ResumeOptions(
-        device=device,
-        responder=responder,
-        allow_changed_protocol=allow_changed_protocol,
-        device_config=device_config,
-        participant_tty=participant_tty,
-        progress=progress,
-    )
     return frame.resume(
         USERTEST,
         log_path,
-        options,
+        frame.ResumeOptions(**changes),
         open_device=open_device,
         make_responder=make_responder,
         stream=stream,
@@ -374,16 +371,7 @@ class _UserTestPlan:
         return self.design.experiment
 
     def context(self, opening: frame.Opening) -> UserTestContext:
-        return UserTestContext(
-            opening.participant,
-            opening.seed,
-            opening.clock,
-            self.design,
-            self.objects,
-            opening.observer,
-            opening.device_config,
-            opening.participant_tty,
-        )
+        return UserTestContext(design=self.design, objects=self.objects, **opening.context_fields())
 
     def check_responder(self, name: str) -> None:
         if self.design.tracking == "finger" and name == "keys":
@@ -408,14 +396,9 @@ class _UserTestPlan:
     def header(self, opening: frame.Opening, device: Device) -> dict[str, Any]:
         return header_record(
             design=self.design,
-            participant=opening.participant,
             calibration=self.calibration,
             device=device,
-            responder=opening.responder,
-            seed=opening.seed,
-            virtual=opening.virtual,
-            observer=opening.observer,
-            device_config=opening.device_config,
+            **opening.header_fields(),
             pairs=self.pairs,
             params_record=self.params_record,
             stream_settings={
@@ -435,30 +418,16 @@ class _UserTestPlan:
     def resume_message(self, path: Path) -> str:
         return f"resuming {path} at trial {len(self.logged) + 1} of {len(self.trials)}"
 
-    def session(
-        self,
-        opening: frame.Opening,
-        *,
-        device: Device,
-        responder: UserTestResponder,
-        writer: SessionLogWriter,
-        out: ProgressLine,
-    ) -> UserTestSession:
+    def session(self, opening: frame.Opening, opened: frame.Opened) -> UserTestSession:
         return UserTestSession(
             design=self.design,
             objects=self.objects,
-            participant=opening.participant,
-            seed=opening.seed,
             limits=self.limits,
             allow_clipping=self.allow_clipping,
             update_hz=self.update_hz,
             deadband_db=self.deadband_db,
-            clock=opening.clock,
-            device=device,
-            responder=responder,
-            writer=writer,
-            out=out,
             logged=self.logged,
+            **opening.loop_fields(opened),
         )
 
 
