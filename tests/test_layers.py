@@ -30,3 +30,35 @@ def test_every_module_is_at_most_600_lines_and_the_top_level_is_small():
     assert not long, f"split these modules by idea: {long}"
     top = sorted(p.name for p in package.glob("*.py"))
     assert len(top) <= 8, top
+
+
+def test_every_sub_package_says_what_it_holds_and_its_exports_resolve():
+    code = """
+import importlib, pkgutil, sys
+import masking_lab
+for info in pkgutil.iter_modules(masking_lab.__path__):
+    if not info.ispkg:
+        continue
+    pkg = importlib.import_module(f"masking_lab.{info.name}")
+    assert len((pkg.__doc__ or "").split()) >= 8, f"{info.name}: say what the package holds"
+    assert pkg.__all__ and pkg.__all__ == sorted(pkg.__all__), info.name
+    for name in pkg.__all__:
+        getattr(pkg, name)
+    assert set(pkg.__all__) <= set(dir(pkg)), info.name
+"""
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr
+
+
+def test_importing_the_packages_loads_no_heavy_library():
+    code = """
+import importlib, pkgutil, sys
+import masking_lab
+for info in pkgutil.iter_modules(masking_lab.__path__):
+    if info.ispkg:
+        importlib.import_module(f"masking_lab.{info.name}")
+print(sorted({"scipy", "pandas", "matplotlib", "psychopy"} & set(sys.modules)))
+"""
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.strip() == "[]", res.stdout

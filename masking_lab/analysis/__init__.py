@@ -20,22 +20,7 @@ The names below are loaded on first use, so importing the package stays cheap (`
 --help`` does not load pandas or SciPy).
 """
 
-from __future__ import annotations
-
-import importlib
-from typing import Any
-
-__all__ = [
-    "AnalysisSettings",
-    "ExperimentResult",
-    "ReportModel",
-    "RunSummary",
-    "analyze_shifts",
-    "build_report",
-    "render_text",
-    "run_analyze",
-    "run_fit",
-]
+from masking_lab.core.exports import lazy_exports
 
 _HOME = {
     "AnalysisSettings": "settings",
@@ -48,13 +33,5 @@ _HOME = {
     "run_analyze": "batch",
     "run_fit": "batch",
 }
-
-
-def __getattr__(name: str) -> Any:
-    if name in _HOME:
-        return getattr(importlib.import_module(f"{__name__}.{_HOME[name]}"), name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
-
-def __dir__() -> list[str]:
-    return sorted([*globals(), *__all__])
+__all__ = sorted(_HOME)
+__getattr__, __dir__ = lazy_exports(__name__, _HOME)

@@ -15,3 +15,14 @@ judged by session length (trials, minutes) and threshold accuracy (bias and SD i
 Pure except the study's command entry point; ``masking-lab plan`` (:mod:`masking_lab.commands
 .plan`) reads the protocol and writes the files.
 """
+
+from masking_lab.core.exports import lazy_exports
+
+_HOME = {
+    "PlanResult": "plan",
+    "PlanSettings": "settings",
+    "format_table": "report",
+    "run_plan": "plan",
+}
+__all__ = sorted(_HOME)
+__getattr__, __dir__ = lazy_exports(__name__, _HOME)

@@ -18,3 +18,21 @@ MV and EV levels, dB SL, per haptic interaction point) into the inputs to play.
 
 Imports point one way: ramp_inverse ← pair ← solver ← render ← figures ← outputs.
 """
+
+from masking_lab.core.exports import lazy_exports
+
+_HOME = {
+    "MutualMasking": "pair",
+    "Rendering": "render",
+    "Scene": "scene",
+    "Solution": "solver",
+    "forward": "solver",
+    "load_scene": "scene",
+    "pair_from_params": "pair",
+    "parse_scene": "scene",
+    "render_scene": "render",
+    "solve": "solver",
+    "summarize": "render",
+}
+__all__ = sorted(_HOME)
+__getattr__, __dir__ = lazy_exports(__name__, _HOME)

@@ -327,10 +327,6 @@ THRESHOLD = ThresholdKind()
 
 
 # --------------------------------------------------------------------------------------------
-# The session loop
-
-
-# --------------------------------------------------------------------------------------------
 # Defaults for devices and responders
 
 
@@ -345,9 +341,8 @@ def _default_responder(name: str, context: SessionContext) -> Responder:
     if name == "keys":
         from masking_lab.responders.keys import KeysResponder
 
-        if context.participant_tty:
-            return KeysResponder.open_tty(context.participant_tty)
-        return KeysResponder()
+        tty = context.participant_tty
+        return KeysResponder.open_tty(tty) if tty else KeysResponder()
     if name == "psychopy":
         from masking_lab.responders import psychopy_window
 

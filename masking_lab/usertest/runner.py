@@ -455,9 +455,8 @@ def default_responder(name: str, context: UserTestContext) -> UserTestResponder:
     if name == "keys":
         from masking_lab.usertest.keys_responder import UserTestKeysResponder
 
-        if context.participant_tty:
-            return UserTestKeysResponder.open_tty(context.participant_tty)
-        return UserTestKeysResponder()
+        tty = context.participant_tty
+        return UserTestKeysResponder.open_tty(tty) if tty else UserTestKeysResponder()
     if name == "psychopy":
         from masking_lab.usertest import window_responder as usertest_psychopy
 
