@@ -17,6 +17,7 @@ import serial
 from masking_lab.device import protocol as proto
 from masking_lab.device.config import load_device_config
 from masking_lab.device.emulator import FirmwareEmulator
+from masking_lab.formats.resources import shipped
 
 RIG = """\
 schema_version: 1
@@ -423,3 +424,53 @@ def test_emulate_command_reports_a_bad_config(tmp_path):
     )
     assert proc.returncode == 2
     assert str(cfg) in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_emulate_with_an_open_interlock_refuses_a_session_until_it_closes(tmp_path):
+    """The safety chain from the CLI: `emulate --interlock-open`, then SIGUSR1 closes it."""
+    cli = [sys.executable, "-m", "masking_lab.commands.cli"]
+    proc = subprocess.Popen(
+        [*cli, "emulate", "--virtual-time", "--interlock-open"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        port = proc.stdout.readline().split()[-1]
+        run = [
+            *cli,
+            "run",
+            str(shipped("protocols", "baseline.yaml")),
+            "--participant",
+            "S01",
+            "--device",
+            f"serial:{port}",
+            "--responder",
+            "sim",
+            "--data",
+            str(tmp_path / "data"),
+            "--seed",
+            "3",
+            "--sets",
+            "EV270",
+        ]
+        refused = subprocess.run(run, capture_output=True, text=True, timeout=60)
+        assert refused.returncode == 3, refused.stderr
+        assert "interlock" in refused.stderr and "Traceback" not in refused.stderr
+        assert "wristband" in refused.stderr  # says what to check
+        assert not list((tmp_path / "data").rglob("*.jsonl"))  # nothing was logged or played
+        assert "interlock open;" in proc.stderr.readline()
+        proc.send_signal(signal.SIGUSR1)
+        assert proc.stderr.readline().strip() == "interlock closed"
+        ran = subprocess.run(run, capture_output=True, text=True, timeout=120)
+        assert ran.returncode == 0, ran.stderr
+        assert len(list((tmp_path / "data").rglob("*.jsonl"))) == 1
+        proc.send_signal(signal.SIGUSR1)
+        assert proc.stderr.readline().strip() == "interlock open: outputs zeroed"
+        proc.send_signal(signal.SIGTERM)
+        proc.communicate(timeout=10)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0

@@ -14,7 +14,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="run the device firmware emulator on a pseudo-terminal (prints its port)",
         description="Start the firmware emulator on a fresh pseudo-terminal, print "
         "'emulator listening on PORT', and serve it until Ctrl-C or SIGTERM; outputs are zeroed "
-        "on exit. Connect with --device serial:PORT.",
+        "on exit. Connect with --device serial:PORT. SIGUSR1 opens or closes the emulated "
+        "interlock input.",
     )
     p.add_argument(
         "--config", metavar="FILE", help="device config (default: protocols/devices/default.yaml)"
@@ -37,6 +38,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         metavar="S",
         help="imitate a board that resets on open: ignore input for S seconds after start",
     )
+    p.add_argument(
+        "--interlock-open",
+        action="store_true",
+        help="start with the interlock input open (HV enable off, E-stop pressed, wristband "
+        "off); SIGUSR1 toggles it, to rehearse the safety chain without a rig",
+    )
     p.add_argument("--seed", type=int, default=0, help="seed of simulated onset lateness")
     p.add_argument("--log", metavar="FILE", help="also append the emulator's event log to FILE")
     p.set_defaults(handler=run)
@@ -52,8 +59,14 @@ def run(args: argparse.Namespace) -> int:
     def on_signal(signum: int, frame: object) -> None:
         stop.set()
 
+    toggle = threading.Event()
+
+    def on_toggle(signum: int, frame: object) -> None:
+        toggle.set()  # the main loop toggles it: a handler must not take the emulator's lock
+
     for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
         signal.signal(sig, on_signal)
+    signal.signal(signal.SIGUSR1, on_toggle)
     emulator = FirmwareEmulator(
         config,
         virtual_time=args.virtual_time,
@@ -61,19 +74,27 @@ def run(args: argparse.Namespace) -> int:
         boot_delay_s=args.boot_delay_s,
         seed=args.seed,
         log_path=args.log,
+        interlock_open=args.interlock_open,
     ).start()
+    interlock_open = args.interlock_open
     try:
         mode = "virtual" if args.virtual_time else "real"
         print(f"emulator listening on {emulator.port}", flush=True)
         print(
             f"  {mode} time, limits EV {emulator.limits['EV']:g} V / MV "
-            f"{emulator.limits['MV']:g} V, watchdog {emulator.watchdog_s * 1000:g} ms; "
+            f"{emulator.limits['MV']:g} V, watchdog {emulator.watchdog_s * 1000:g} ms, "
+            f"interlock {'open' if interlock_open else 'closed'}; "
             f"connect with --device serial:{emulator.port}; Ctrl-C to stop",
             file=sys.stderr,
             flush=True,
         )
-        while not stop.wait(0.5):
-            pass
+        while not stop.wait(0.05):
+            if toggle.is_set():
+                toggle.clear()
+                interlock_open = not interlock_open
+                emulator.set_interlock(interlock_open)
+                state = "open: outputs zeroed" if interlock_open else "closed"
+                print(f"interlock {state}", file=sys.stderr, flush=True)
     finally:
         emulator.close()
         print("emulator stopped: outputs zeroed, port closed", file=sys.stderr, flush=True)
