@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from masking_lab.commands.options import rating_options
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
@@ -21,12 +23,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("scene", metavar="SCENE", help="scene YAML file")
     p.add_argument("--params", metavar="FILE", help="masking_params.json from `masking-lab fit`")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder (created)")
-    p.add_argument("--max-mv-db-sl", type=float, metavar="DB", help="rated maximum MV input, dB SL")
-    p.add_argument("--max-ev-db-sl", type=float, metavar="DB", help="rated maximum EV input, dB SL")
-    p.add_argument(
-        "--device-config",
-        metavar="FILE",
-        help="rig config whose channels.<EV|MV>.max_level_db_sl are the rated maxima unless "
+    rating_options(
+        p,
+        "rig config whose channels.<EV|MV>.max_level_db_sl are the rated maxima unless "
         "--max-* say otherwise (default: the reference rig, protocols/devices/default.yaml)",
     )
     p.add_argument("--no-figure", action="store_true", help="skip figure4.png")

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import argparse
 
+from masking_lab.commands.options import session_options
+
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from masking_lab.commands.run import _progress_flags
-
     p = sub.add_parser(
         "resume",
         help="continue an interrupted session in its own log",
@@ -28,22 +28,16 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="who answers (default: the log's)",
     )
     p.add_argument(
-        "--device-config",
-        metavar="FILE",
-        help="rig config (default: the one the session started with)",
-    )
-    p.add_argument(
-        "--participant-tty",
-        metavar="PATH",
-        help="with --responder keys: the participant's terminal (default: this terminal)",
-    )
-    p.add_argument(
         "--allow-changed-protocol",
         action="store_true",
         help="resume although the protocol file changed since the session started (the copy "
         "stored in the log is used either way)",
     )
-    _progress_flags(p)
+    session_options(
+        p,
+        device_config_help="rig config (default: the one the session started with)",
+        tty_help="with --responder keys: the participant's terminal (default: this terminal)",
+    )
     p.set_defaults(handler=run)
 
 

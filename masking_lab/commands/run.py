@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 import sys
 
+from masking_lab.commands.options import session_options
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
@@ -52,18 +54,6 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="ground truth of the simulated observer (default: protocols/simulation/"
         "ground_truth.yaml)",
     )
-    p.add_argument(
-        "--device-config",
-        metavar="FILE",
-        help="rig config: drive limits, serial settings, display (default: "
-        "protocols/devices/default.yaml)",
-    )
-    p.add_argument(
-        "--participant-tty",
-        metavar="PATH",
-        help="with --responder keys: the participant's terminal (e.g. /dev/pts/3); default: "
-        "this terminal",
-    )
     usertest = p.add_argument_group("user tests (protocols with kind: usertest)")
     usertest.add_argument(
         "--params",
@@ -76,22 +66,14 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="play inputs above the rig's limits clipped to them (logged per trial) instead of "
         "refusing the session",
     )
-    _progress_flags(p)
+    session_options(
+        p,
+        device_config_help="rig config: drive limits, serial settings, display (default: "
+        "protocols/devices/default.yaml)",
+        tty_help="with --responder keys: the participant's terminal (e.g. /dev/pts/3); "
+        "default: this terminal",
+    )
     p.set_defaults(handler=run)
-
-
-def _progress_flags(p: argparse.ArgumentParser) -> None:
-    group = p.add_mutually_exclusive_group()
-    group.add_argument(
-        "--progress",
-        dest="progress",
-        action="store_const",
-        const=True,
-        help="show the progress line even when stderr is not a terminal",
-    )
-    group.add_argument(
-        "--no-progress", dest="progress", action="store_const", const=False, help="hide it"
-    )
 
 
 def run(args: argparse.Namespace) -> int:

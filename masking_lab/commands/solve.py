@@ -7,6 +7,8 @@ import json
 import math
 from typing import Any
 
+from masking_lab.commands.options import rating_options
+
 EPILOG = """\
 examples:
   masking-lab solve --mv-masked-by-ev 1.39,1.09 --ev-masked-by-mv=-6.22,0.66 \\
@@ -50,12 +52,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--ev-target", required=True, metavar="DB", help="wanted perceived EV, dB SL (list: a,b,c)"
     )
-    p.add_argument("--max-mv-db-sl", type=float, metavar="DB", help="rated maximum MV input")
-    p.add_argument("--max-ev-db-sl", type=float, metavar="DB", help="rated maximum EV input")
-    p.add_argument(
-        "--device-config",
-        metavar="FILE",
-        help="take the rated maxima from this rig config's channels.<EV|MV>.max_level_db_sl "
+    rating_options(
+        p,
+        "take the rated maxima from this rig config's channels.<EV|MV>.max_level_db_sl "
         "(without it and without --max-*: no rating check)",
     )
     p.add_argument("--json", action="store_true", help="print one JSON object (for programs)")

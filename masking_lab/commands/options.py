@@ -1,0 +1,74 @@
+"""Options that several commands share, declared once so their names and help agree."""
+
+from __future__ import annotations
+
+import argparse
+
+__all__ = ["progress_flags", "rating_options", "session_options"]
+
+
+def rating_options(p: argparse.ArgumentParser, device_config_help: str) -> None:
+    """``--max-mv-db-sl``, ``--max-ev-db-sl`` and ``--device-config`` (render, solve).
+
+    Parameters
+    ----------
+    p : argparse.ArgumentParser
+        The command's parser.
+    device_config_help : str
+        What the rig config means for this command (its default differs).
+
+    Examples
+    --------
+    >>> p = argparse.ArgumentParser()
+    >>> rating_options(p, "rig config")
+    >>> p.parse_args(["--max-mv-db-sl", "30"]).max_mv_db_sl
+    30.0
+    """
+    p.add_argument("--max-mv-db-sl", type=float, metavar="DB", help="rated maximum MV input, dB SL")
+    p.add_argument("--max-ev-db-sl", type=float, metavar="DB", help="rated maximum EV input, dB SL")
+    p.add_argument("--device-config", metavar="FILE", help=device_config_help)
+
+
+def session_options(p: argparse.ArgumentParser, device_config_help: str, tty_help: str) -> None:
+    """``--device-config``, ``--participant-tty`` and the progress flags (run, resume).
+
+    Parameters
+    ----------
+    p : argparse.ArgumentParser
+        The command's parser.
+    device_config_help, tty_help : str
+        Help texts (a resumed session defaults to the config it started with).
+
+    Examples
+    --------
+    >>> p = argparse.ArgumentParser()
+    >>> session_options(p, "rig config", "terminal")
+    >>> p.parse_args(["--no-progress"]).progress
+    False
+    """
+    p.add_argument("--device-config", metavar="FILE", help=device_config_help)
+    p.add_argument("--participant-tty", metavar="PATH", help=tty_help)
+    progress_flags(p)
+
+
+def progress_flags(p: argparse.ArgumentParser) -> None:
+    """``--progress`` / ``--no-progress``: force the progress line on or off (default: on a tty).
+
+    Examples
+    --------
+    >>> p = argparse.ArgumentParser()
+    >>> progress_flags(p)
+    >>> p.parse_args([]).progress is None
+    True
+    """
+    group = p.add_mutually_exclusive_group()
+    group.add_argument(
+        "--progress",
+        dest="progress",
+        action="store_const",
+        const=True,
+        help="show the progress line even when stderr is not a terminal",
+    )
+    group.add_argument(
+        "--no-progress", dest="progress", action="store_const", const=False, help="hide it"
+    )
