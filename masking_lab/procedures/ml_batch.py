@@ -28,6 +28,7 @@ tenths of a dB, at likelihoods equal to 1e-6); the threshold is then only known 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TypedDict, Unpack
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -48,6 +49,7 @@ __all__ = [
     "LevelCounts",
     "LevelIndex",
     "MLFit",
+    "MLOptions",
     "index_levels",
     "level_counts",
     "log_likelihood",
@@ -89,17 +91,20 @@ class MLFit:
     log_likelihood: NDArray[np.float64]
 
 
+class MLOptions(TypedDict, total=False):
+    """The model and fit options of :func:`ml_threshold_from_counts`, by keyword."""
+
+    scale_db: float
+    lapse: float
+    guess: float
+    p_target: float
+    fit_scale: bool
+    scale_bounds_db: tuple[float, float]
+    min_trials: int
+
+
 def ml_threshold_db(
-    levels_db: ArrayLike,
-    correct: ArrayLike,
-    *,
-    scale_db: float = 1.5,
-    lapse: float = 0.02,
-    guess: float = GUESS_3IFC,
-    p_target: float = LEVITT_1U3D,
-    fit_scale: bool = True,
-    scale_bounds_db: tuple[float, float] = (0.1, 20.0),
-    min_trials: int = 10,
+    levels_db: ArrayLike, correct: ArrayLike, **options: Unpack[MLOptions]
 ) -> MLFit:
     """Maximum-likelihood threshold of every track (see the module docstring).
 
@@ -109,6 +114,34 @@ def ml_threshold_db(
         Trial levels in dB (NaN = no trial).
     correct : array of bool, shape (R, T)
         Answers.
+    **options
+        As for :func:`ml_threshold_from_counts`.
+
+    Raises
+    ------
+    AnalysisError
+        If the model parameters are impossible.
+    """
+    return ml_threshold_from_counts(level_counts(levels_db, correct), **options)
+
+
+def ml_threshold_from_counts(
+    counts: LevelCounts,
+    *,
+    scale_db: float = 1.5,
+    lapse: float = 0.02,
+    guess: float = GUESS_3IFC,
+    p_target: float = LEVITT_1U3D,
+    fit_scale: bool = True,
+    scale_bounds_db: tuple[float, float] = (0.1, 20.0),
+    min_trials: int = 10,
+) -> MLFit:
+    """:func:`ml_threshold_db` on counts from :func:`level_counts` or :meth:`LevelIndex.counts`.
+
+    Parameters
+    ----------
+    counts : LevelCounts
+        Trials and correct answers per distinct level of every track.
     scale_db : float
         Logistic scale s in dB: fixed (``fit_scale=False``) or where the search starts.
     lapse : float
@@ -129,30 +162,6 @@ def ml_threshold_db(
     AnalysisError
         If the model parameters are impossible.
     """
-    return ml_threshold_from_counts(
-        level_counts(levels_db, correct),
-        scale_db=scale_db,
-        lapse=lapse,
-        guess=guess,
-        p_target=p_target,
-        fit_scale=fit_scale,
-        scale_bounds_db=scale_bounds_db,
-        min_trials=min_trials,
-    )
-
-
-def ml_threshold_from_counts(
-    counts: LevelCounts,
-    *,
-    scale_db: float = 1.5,
-    lapse: float = 0.02,
-    guess: float = GUESS_3IFC,
-    p_target: float = LEVITT_1U3D,
-    fit_scale: bool = True,
-    scale_bounds_db: tuple[float, float] = (0.1, 20.0),
-    min_trials: int = 10,
-) -> MLFit:
-    """:func:`ml_threshold_db` on counts from :func:`level_counts` or :meth:`LevelIndex.counts`."""
     model = logistic_model(guess, lapse, p_target)
     s_lo, s_hi = (float(v) for v in scale_bounds_db)
     if not (0 < s_lo < s_hi and np.isfinite(s_hi)):
