@@ -145,12 +145,13 @@ def index_levels(levels_db: ArrayLike, correct: ArrayLike) -> LevelIndex:
 def level_counts(levels_db: ArrayLike, correct: ArrayLike) -> LevelCounts:
     """Reduce tracks to counts per distinct level (the likelihood's sufficient statistics).
 
-    Parameters
-    ----------
-    levels_db : array, shape (R, T)
-        Trial levels in dB; NaN marks no trial (past a track's end).
-    correct : array of bool, shape (R, T)
-        Answers.
+    Takes the arrays of :func:`index_levels` (levels in dB, NaN past a track's end).
+
+    Examples
+    --------
+    >>> c = level_counts([[-20.0, -20.0, -22.0, float("nan")]], [[True, True, False, False]])
+    >>> c.level_db.tolist(), c.n_trials.tolist(), c.n_correct.tolist()
+    ([[-22.0, -20.0]], [[1.0, 2.0]], [[0.0, 2.0]])
     """
     return index_levels(levels_db, correct).counts()
 
