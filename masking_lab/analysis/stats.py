@@ -185,11 +185,38 @@ def rm_design(
 ) -> RMDesign:
     """Pivot a long table to participants × A × B, dropping participants with missing cells.
 
+    Parameters
+    ----------
+    table : DataFrame
+        One row per participant and cell; ``dv`` in its unit (AL shift in dB).
+    subject, factor_a, factor_b, dv : str
+        Column names of the participant, the two factors and the dependent variable.
+
+    Returns
+    -------
+    RMDesign
+
     Raises
     ------
     AnalysisError
         If a cell has no data from any participant, a participant has two values for one cell,
         or fewer than two participants have every cell.
+
+    Examples
+    --------
+    AL shifts (dB) of three participants at two masker frequencies (Hz) × two levels (dB SL);
+    P3 lacks the last cell and is left out:
+
+    >>> shifts = {"P1": [6.3, 9.8, 3.3, 4.7], "P2": [6.9, 9.4, 2.6, 6.5], "P3": [5.5, 10.2, 3.9]}
+    >>> cells = [(120, 10), (120, 20), (240, 10), (240, 20)]
+    >>> table = pd.DataFrame(
+    ...     [(p, f, x, s) for p, v in shifts.items() for (f, x), s in zip(cells, v)],
+    ...     columns=["participant", "frequency_hz", "level_db_sl", "shift_db"],
+    ... )
+    >>> d = rm_design(table, subject="participant", factor_a="frequency_hz",
+    ...               factor_b="level_db_sl", dv="shift_db")
+    >>> d.data.shape, d.subjects, d.dropped
+    ((2, 2, 2), ('P1', 'P2'), (('P3', 'no value for 240@20'),))
     """
     for col in (subject, factor_a, factor_b, dv):
         if col not in table.columns:
@@ -263,6 +290,18 @@ def rm_anova(data: ArrayLike, names: Sequence[str] = EFFECT_NAMES) -> list[Effec
     AnalysisError
         Fewer than two participants, non-finite data, no factor with two levels, or an effect
         whose error variance is zero (F undefined).
+
+    Examples
+    --------
+    AL shifts (dB) of 3 participants × 2 masker frequencies × 2 masker levels:
+
+    >>> data = np.array([[[6.3, 9.8], [3.3, 4.7]], [[6.9, 9.4], [2.6, 6.5]],
+    ...                  [[5.5, 10.2], [3.9, 5.6]]])
+    >>> for e in rm_anova(data):
+    ...     print(f"{e.name:15} F({e.df1},{e.df2}) = {e.F:6.2f}  p = {e.p:.4f}")
+    frequency       F(1,2) = 170.57  p = 0.0058
+    level           F(1,2) = 139.24  p = 0.0071
+    frequency:level F(1,2) =   0.84  p = 0.4551
     """
     y = np.asarray(data, dtype=float)
     if y.ndim != 3:
@@ -330,7 +369,23 @@ def rm_anova(data: ArrayLike, names: Sequence[str] = EFFECT_NAMES) -> list[Effec
 
 
 def gg_epsilon(cov: ArrayLike) -> float:
-    """Greenhouse–Geisser ε from the d × d covariance of orthonormal contrasts (1/d ≤ ε ≤ 1)."""
+    """Greenhouse–Geisser ε from the d × d covariance of orthonormal contrasts (1/d ≤ ε ≤ 1).
+
+    Parameters
+    ----------
+    cov : array_like, shape (d, d)
+        Sample covariance of the contrast scores, dB².
+
+    Returns
+    -------
+    float
+        ε (dimensionless); 1 for spherical data or d ≤ 1.
+
+    Examples
+    --------
+    >>> gg_epsilon(np.eye(3)), gg_epsilon(np.diag([1.0, 0.0]))
+    (1.0, 0.5)
+    """
     s = np.atleast_2d(np.asarray(cov, dtype=float))
     d = s.shape[0]
     if d <= 1:
@@ -364,6 +419,12 @@ def mauchly(
         p with the second-order correction of Anderson (2003) as in R's ``mauchly.test``.
         For d = 1: W = 1, p = 1. When ``df_resid < d`` the covariance is singular and the test
         does not exist: W, χ², p are None and ``note`` says so.
+
+    Examples
+    --------
+    >>> w, chi2, df, p, note = mauchly(np.eye(2), df_resid=5, k=4)
+    >>> w, df, p, note
+    (1.0, 2, 1.0, None)
     """
     s = np.atleast_2d(np.asarray(cov, dtype=float))
     d = s.shape[0]
@@ -441,6 +502,17 @@ def paired_comparisons(marginal: ArrayLike, labels: Sequence[object]) -> list[Pa
     ------
     AnalysisError
         With fewer than two participants or two levels.
+
+    Examples
+    --------
+    Marginal mean shifts (dB) of 4 participants under three maskers:
+
+    >>> m = [[8.0, 4.0, 5.0], [8.2, 4.5, 5.5], [7.9, 4.7, 5.1], [7.0, 4.6, 4.9]]
+    >>> for r in paired_comparisons(m, ["MV120", "EV270", "MV120am40"]):
+    ...     print(f"{r.a} - {r.b}: {r.mean_diff:+.2f} dB, p_bonf = {r.p_bonf:.4f}")
+    MV120 - EV270: +3.32 dB, p_bonf = 0.0074
+    MV120 - MV120am40: +2.65 dB, p_bonf = 0.0025
+    EV270 - MV120am40: -0.68 dB, p_bonf = 0.1122
     """
     m = np.asarray(marginal, dtype=float)
     if m.ndim != 2 or m.shape[1] != len(labels):
@@ -469,6 +541,34 @@ def one_sample_t(values: ArrayLike, popmean: float = 0.0) -> OneSampleT:
 
     Undefined cases (fewer than two values, zero variance) return a result with ``t`` and ``p``
     None and a ``note``; they never raise or return NaN.
+
+    Parameters
+    ----------
+    values : array_like
+        Finite values, dB (e.g. one AL shift per participant).
+    popmean : float
+        Hypothesised mean, dB.
+
+    Returns
+    -------
+    OneSampleT
+
+    Raises
+    ------
+    AnalysisError
+        If there are no values or some are NaN or ±inf.
+
+    Examples
+    --------
+    Is the AL shift of four participants different from 0 dB?
+
+    >>> tidy = pd.DataFrame({"participant": ["P1", "P2", "P3", "P4"],
+    ...                      "shift_db": [2.1, 3.4, 1.8, 2.9]})
+    >>> r = one_sample_t(tidy["shift_db"])
+    >>> print(f"mean {r.mean:.2f} dB, t({r.df}) = {r.t:.2f}, p = {r.p:.4f}")
+    mean 2.55 dB, t(3) = 6.96, p = 0.0061
+    >>> one_sample_t([2.0]).note
+    'one value only: no test'
     """
     v = np.asarray(values, dtype=float).ravel()
     if not np.isfinite(v).all():

@@ -25,7 +25,15 @@ class Clock(Protocol):
 
 
 class RealClock:
-    """Wall-clock monotonic time (``time.perf_counter``)."""
+    """Wall-clock monotonic time (``time.perf_counter``), s since construction.
+
+    Examples
+    --------
+    >>> clock = RealClock()
+    >>> clock.sleep_until(clock.now() + 0.005)
+    >>> clock.now() >= 0.005
+    True
+    """
 
     virtual = False
 
@@ -46,7 +54,19 @@ class RealClock:
 
 
 class VirtualClock:
-    """Simulated time that advances only when asked to; starts at ``start`` s."""
+    """Simulated time that advances only when asked to; starts at ``start`` s.
+
+    Examples
+    --------
+    >>> clock = VirtualClock()
+    >>> clock.sleep_until(2.5)
+    >>> clock.advance(0.5)
+    >>> clock.now()
+    3.0
+    >>> clock.sleep_until(1.0)  # never goes backwards
+    >>> clock.now()
+    3.0
+    """
 
     virtual = True
 
@@ -60,7 +80,13 @@ class VirtualClock:
         self._t = max(self._t, float(t))
 
     def advance(self, dt: float) -> None:
-        """Move time forward by ``dt`` s (≥ 0)."""
+        """Move time forward by ``dt`` s (≥ 0).
+
+        Raises
+        ------
+        ValueError
+            If ``dt`` is negative.
+        """
         if dt < 0:
             raise ValueError(f"virtual time cannot go backwards (dt={dt} s)")
         self._t += dt

@@ -35,6 +35,22 @@ class Psychometric:
         Lapse rate λ, 0 ≤ λ < 1 − γ.
     p_at_threshold : float
         p(correct) that defines ``threshold_db``; must lie strictly between γ and 1 − λ.
+
+    Raises
+    ------
+    ValueError
+        For a non-positive scale, or a guess, lapse or ``p_at_threshold`` out of range.
+
+    Examples
+    --------
+    A 3IFC observer with an AL of −30 dB re 1 V: far below it p(correct) is the guess rate 1/3,
+    at it Levitt's 0.794, far above it 1 − λ:
+
+    >>> psy = Psychometric(threshold_db=-30.0)
+    >>> np.round(psy.p_correct([-1e6, -30.0, 1e6]), 3).tolist()
+    [0.333, 0.794, 0.98]
+    >>> round(psy.level_at(LEVITT_1U3D), 6)
+    -30.0
     """
 
     threshold_db: float
@@ -58,12 +74,37 @@ class Psychometric:
 
     @property
     def location_db(self) -> float:
-        """α in dB: the logistic's midpoint."""
+        """α in dB: the logistic's midpoint (below ``threshold_db`` for Levitt's target).
+
+        Examples
+        --------
+        >>> round(Psychometric(threshold_db=-30.0, scale_db=1.5).location_db, 3)
+        -31.357
+        """
         q = (self.p_at_threshold - self.guess) / (1.0 - self.guess - self.lapse)
         return self.threshold_db - self.scale_db * float(np.log(q / (1.0 - q)))
 
     def p_correct(self, level_db: ArrayLike) -> NDArray[np.float64]:
-        """p(correct) at ``level_db`` (dB, same reference as ``threshold_db``); −inf gives γ."""
+        """p(correct) at ``level_db`` (dB, same reference as ``threshold_db``); −inf gives γ.
+
+        Parameters
+        ----------
+        level_db : array_like
+            Stimulus level(s) in dB.
+
+        Returns
+        -------
+        ndarray
+            Probability of a correct answer, in [γ, 1 − λ], same shape as ``level_db``.
+
+        Examples
+        --------
+        >>> psy = Psychometric(threshold_db=-30.0)
+        >>> round(float(psy.p_correct(float("-inf"))), 4)
+        0.3333
+        >>> round(float(psy.p_correct(-20.0)), 3)
+        0.98
+        """
         x = np.asarray(level_db, dtype=float)
         z = (x - self.location_db) / self.scale_db
         # expit without overflow warnings at ±1e6 dB
@@ -72,7 +113,28 @@ class Psychometric:
         return self.guess + (1.0 - self.guess - self.lapse) * f
 
     def level_at(self, p: float) -> float:
-        """Inverse: the level in dB at which p(correct) = ``p`` (γ < p < 1 − λ)."""
+        """Inverse: the level in dB at which p(correct) = ``p`` (γ < p < 1 − λ).
+
+        Parameters
+        ----------
+        p : float
+            Probability correct, strictly between γ and 1 − λ.
+
+        Returns
+        -------
+        float
+            Level in dB (same reference as ``threshold_db``).
+
+        Raises
+        ------
+        ValueError
+            If ``p`` is outside (γ, 1 − λ).
+
+        Examples
+        --------
+        >>> round(Psychometric(threshold_db=-30.0).level_at(0.9), 2)
+        -28.42
+        """
         if not self.guess < p < 1 - self.lapse:
             raise ValueError(f"p={p} is outside ({self.guess}, {1 - self.lapse})")
         q = (p - self.guess) / (1.0 - self.guess - self.lapse)

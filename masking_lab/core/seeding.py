@@ -31,6 +31,23 @@ def trial_rng(seed: int, set_id: str, trial_index: int, stream: str) -> np.rando
         0-based trial index within the set.
     stream : str
         What the draws are for (``STREAM_TARGET_INTERVAL``, ``STREAM_RESPONDER``).
+
+    Returns
+    -------
+    numpy.random.Generator
+        A fresh generator; equal inputs give equal draws in any process.
+
+    Raises
+    ------
+    ValueError
+        If ``seed`` or ``trial_index`` is negative.
+
+    Examples
+    --------
+    >>> a = trial_rng(7, "A", 0, STREAM_RESPONDER).integers(0, 100, 3)
+    >>> b = trial_rng(7, "A", 0, STREAM_RESPONDER).integers(0, 100, 3)
+    >>> bool((a == b).all())
+    True
     """
     if seed < 0 or trial_index < 0:
         raise ValueError(f"seed and trial_index must be ≥ 0, got {seed}, {trial_index}")
@@ -39,7 +56,32 @@ def trial_rng(seed: int, set_id: str, trial_index: int, stream: str) -> np.rando
 
 
 def draw_target_interval(seed: int, set_id: str, trial_index: int, n_intervals: int = 3) -> int:
-    """The interval (1 … ``n_intervals``) that carries the target in this trial."""
+    """The interval (1 … ``n_intervals``) that carries the target in this trial.
+
+    Parameters
+    ----------
+    seed : int
+        The session seed (≥ 0).
+    set_id : str
+        Set identifier.
+    trial_index : int
+        0-based trial index within the set.
+    n_intervals : int
+        Intervals per trial (3 for 3IFC).
+
+    Returns
+    -------
+    int
+        The target interval, 1-based.
+
+    Examples
+    --------
+    >>> draws = [draw_target_interval(7, "A", i) for i in range(200)]
+    >>> sorted(set(draws))
+    [1, 2, 3]
+    >>> draws[:5] == [draw_target_interval(7, "A", i) for i in range(5)]
+    True
+    """
     rng = trial_rng(seed, set_id, trial_index, STREAM_TARGET_INTERVAL)
     return int(rng.integers(1, n_intervals + 1))
 

@@ -33,6 +33,18 @@ class Stimulus:
         Carrier frequency in Hz.
     envelope_hz : float or None
         Amplitude-modulation frequency in Hz, or None for an unmodulated carrier.
+
+    Raises
+    ------
+    ValueError
+        For an unknown channel or a non-positive frequency.
+
+    Examples
+    --------
+    >>> Stimulus("MV", 120.0, envelope_hz=40.0).name
+    'MV120am40'
+    >>> str(Stimulus("EV", 270.0))
+    'EV270'
     """
 
     channel: Channel
@@ -49,7 +61,13 @@ class Stimulus:
 
     @property
     def name(self) -> str:
-        """Canonical name, e.g. ``"MV120am40"``."""
+        """Canonical name, e.g. ``"MV120am40"`` (frequencies in Hz).
+
+        Examples
+        --------
+        >>> Stimulus("EV", 270.0).name
+        'EV270'
+        """
         name = f"{self.channel}{_num(self.carrier_hz)}"
         if self.envelope_hz is not None:
             name += f"am{_num(self.envelope_hz)}"
@@ -61,6 +79,25 @@ class Stimulus:
 
 def parse_stimulus(name: str) -> Stimulus:
     """Parse a stimulus name such as ``"EV270"`` or ``"MV120am40"``.
+
+    Parameters
+    ----------
+    name : str
+        ``<EV|MV><carrier Hz>[am<envelope Hz>]``; surrounding spaces are ignored.
+
+    Returns
+    -------
+    Stimulus
+        Channel, carrier in Hz and envelope in Hz (or None).
+
+    Examples
+    --------
+    >>> parse_stimulus("MV120am40")
+    Stimulus(channel='MV', carrier_hz=120.0, envelope_hz=40.0)
+    >>> parse_stimulus("LRA170")
+    Traceback (most recent call last):
+    ...
+    ValueError: 'LRA170' is not a stimulus name: write <EV|MV><carrier Hz>[am<envelope Hz>], ...
 
     Raises
     ------
@@ -78,7 +115,23 @@ def parse_stimulus(name: str) -> Stimulus:
 
 
 def is_stimulus_name(name: str) -> bool:
-    """True if ``name`` parses as a stimulus name."""
+    """True if ``name`` parses as a stimulus name.
+
+    Parameters
+    ----------
+    name : str
+        Candidate name.
+
+    Returns
+    -------
+    bool
+        Whether :func:`parse_stimulus` would accept it.
+
+    Examples
+    --------
+    >>> is_stimulus_name("EV270"), is_stimulus_name("MV120am40"), is_stimulus_name("EV")
+    (True, True, False)
+    """
     return bool(_NAME.match(str(name).strip()))
 
 

@@ -35,6 +35,17 @@ class TrialPlan:
         Silence between intervals, s.
     lead_in_s : float
         Silence before the first interval, s.
+    n_intervals : int
+        Intervals per trial (3 for 3IFC).
+
+    Examples
+    --------
+    EV270 at 50 mV peak in interval 2, masked by MV120 at 0.2 V in all three:
+
+    >>> from masking_lab.core.stimulus import parse_stimulus
+    >>> plan = TrialPlan(parse_stimulus("EV270"), 0.05, 2, parse_stimulus("MV120"), 0.2)
+    >>> plan.duration_s
+    7.2
     """
 
     target: Stimulus
@@ -48,7 +59,25 @@ class TrialPlan:
     n_intervals: int = 3
 
     def planned_onsets_s(self, start_s: float) -> list[float]:
-        """Planned interval onsets in s for a trial starting at ``start_s``."""
+        """Planned interval onsets in s for a trial starting at ``start_s``.
+
+        Parameters
+        ----------
+        start_s : float
+            Trial start on the session clock, s.
+
+        Returns
+        -------
+        list of float
+            One onset per interval, s.
+
+        Examples
+        --------
+        >>> from masking_lab.core.stimulus import parse_stimulus
+        >>> plan = TrialPlan(parse_stimulus("EV270"), 0.05, 1)
+        >>> [round(t, 3) for t in plan.planned_onsets_s(10.0)]
+        [10.6, 13.0, 15.4]
+        """
         return [
             start_s + self.lead_in_s + k * (self.stimulus_s + self.gap_s)
             for k in range(self.n_intervals)
@@ -56,7 +85,14 @@ class TrialPlan:
 
     @property
     def duration_s(self) -> float:
-        """Total trial duration in s (lead-in, intervals and the gaps between them)."""
+        """Total trial duration in s (lead-in, intervals and the gaps between them).
+
+        Examples
+        --------
+        >>> from masking_lab.core.stimulus import parse_stimulus
+        >>> TrialPlan(parse_stimulus("EV270"), 0.05, 1, stimulus_s=1.0, gap_s=0.5).duration_s
+        4.6
+        """
         n = self.n_intervals
         return self.lead_in_s + n * self.stimulus_s + (n - 1) * self.gap_s
 
@@ -77,6 +113,14 @@ class PlayResult:
         Masker peak amplitude the device actually played, V.
     extra : dict
         Back-end specific diagnostics (kept in the log).
+
+    Examples
+    --------
+    How late each interval started, ms:
+
+    >>> result = PlayResult([0.6, 3.0, 5.4], [0.6002, 3.0001, 5.4003], 0.05, 0.2)
+    >>> [round(1000 * (a - p), 1) for p, a in zip(result.planned_onsets_s, result.actual_onsets_s)]
+    [0.2, 0.1, 0.3]
     """
 
     planned_onsets_s: list[float]

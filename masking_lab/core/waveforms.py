@@ -38,6 +38,21 @@ def ramp_window(n_samples: int, ramp_samples: int) -> NDArray[np.float64]:
         Window length, samples (≥ 3).
     ramp_samples : int
         Samples from 0 to 1 (and back); shortened to fit when ``n_samples`` is small.
+
+    Returns
+    -------
+    ndarray
+        Gain in [0, 1] (dimensionless), length ``n_samples``.
+
+    Raises
+    ------
+    ValueError
+        If ``n_samples`` < 3.
+
+    Examples
+    --------
+    >>> np.round(ramp_window(7, 2), 6).tolist()
+    [0.0, 0.5, 1.0, 1.0, 1.0, 0.5, 0.0]
     """
     if n_samples < 3:
         raise ValueError(
@@ -78,11 +93,24 @@ def tone(
     ramp_s : float
         Raised-cosine onset and offset duration, s (> 0).
 
+    Returns
+    -------
+    ndarray
+        Drive in V, ``round(duration_s·fs) + 1`` samples, first and last exactly 0 V.
+
     Raises
     ------
     ValueError
         For non-finite or negative amplitudes, frequencies at or above Nyquist, a non-positive
         ramp, or a tone shorter than 3 samples.
+
+    Examples
+    --------
+    100 ms of EV270 at 0.5 V peak, sampled at 10 kHz:
+
+    >>> x = tone(270.0, 0.5, 0.1, 10_000.0)
+    >>> len(x), float(np.max(np.abs(x))), abs(float(x[0])), abs(float(x[-1]))
+    (1001, 0.5, 0.0, 0.0)
     """
     _check_rate(sample_rate_hz)
     if not (math.isfinite(amplitude_v) and amplitude_v >= 0):
@@ -117,7 +145,33 @@ def stimulus_tone(
     *,
     ramp_s: float = DEFAULT_RAMP_S,
 ) -> NDArray[np.float64]:
-    """:func:`tone` for a :class:`~masking_lab.core.stimulus.Stimulus` (carrier and envelope)."""
+    """:func:`tone` for a :class:`~masking_lab.core.stimulus.Stimulus` (carrier and envelope).
+
+    Parameters
+    ----------
+    stimulus : Stimulus
+        Supplies the carrier and envelope frequencies, Hz.
+    amplitude_v : float
+        Peak amplitude, V.
+    duration_s : float
+        Time from the first to the last sample, s.
+    sample_rate_hz : float
+        Sample rate, Hz.
+    ramp_s : float
+        Raised-cosine onset and offset duration, s.
+
+    Returns
+    -------
+    ndarray
+        Drive in V whose largest sample is exactly ``amplitude_v``.
+
+    Examples
+    --------
+    >>> from masking_lab.core.stimulus import parse_stimulus
+    >>> x = stimulus_tone(parse_stimulus("MV120am40"), 0.2, 0.5, 5_000.0)
+    >>> len(x), float(np.max(np.abs(x)))
+    (2501, 0.2)
+    """
     return tone(
         stimulus.carrier_hz,
         amplitude_v,
@@ -140,6 +194,12 @@ class TrialBuffers:
         Drive of the EV and MV channels, V, same length; both end on exactly 0 V.
     onset_samples : tuple[int, ...]
         Sample index of each interval onset.
+
+    Examples
+    --------
+    >>> buffers = TrialBuffers(1000.0, np.zeros(5), np.ones(5), (0,))
+    >>> buffers.stacked().shape, buffers.duration_s, float(buffers.channel("MV")[2])
+    ((2, 5), 0.004, 1.0)
     """
 
     sample_rate_hz: float
@@ -177,6 +237,33 @@ def trial_buffers(
         Sample rate, Hz.
     ramp_s : float
         Raised-cosine ramp of every tone, s.
+
+    Returns
+    -------
+    TrialBuffers
+        EV and MV drive in V from the trial start, and the interval onsets in samples.
+
+    Raises
+    ------
+    ValueError
+        For a target interval outside 1..``n_intervals`` or a bad sample rate.
+
+    Examples
+    --------
+    EV270 at 50 mV in interval 2 under an MV120 masker at 0.2 V, sampled at 1 kHz: the EV
+    channel is silent in interval 1 and the masker plays in every interval.
+
+    >>> from masking_lab.core.stimulus import parse_stimulus
+    >>> from masking_lab.core.trial import TrialPlan
+    >>> plan = TrialPlan(parse_stimulus("EV270"), 0.05, 2, parse_stimulus("MV120"), 0.2)
+    >>> b = trial_buffers(plan, 1000.0)
+    >>> b.onset_samples, b.duration_s
+    ((600, 3000, 5400), 7.2)
+    >>> first, second = slice(600, 2400), slice(3000, 4800)
+    >>> float(np.max(np.abs(b.ev_v[first]))), float(np.max(np.abs(b.ev_v[second])))
+    (0.0, 0.05)
+    >>> float(np.max(np.abs(b.mv_v[first])))
+    0.2
     """
     _check_rate(sample_rate_hz)
     if not 1 <= plan.target_interval <= plan.n_intervals:

@@ -22,6 +22,11 @@ class DeviceLimits:
     ----------
     max_drive_v : dict[str, float]
         Largest peak drive amplitude accepted per channel (``"EV"``, ``"MV"``), V.
+
+    Examples
+    --------
+    >>> DeviceLimits({"EV": 1.0, "MV": 0.5}).max_drive_v["MV"]
+    0.5
     """
 
     max_drive_v: dict[str, float]
@@ -44,7 +49,13 @@ class DeviceIdentity:
     port : str or None
         Serial port path, if any.
     limits : DeviceLimits
-        Limits in force (host config ∩ firmware-reported).
+        Limits in force (host config ∩ firmware-reported), V.
+
+    Examples
+    --------
+    >>> ident = DeviceIdentity("sim", "sim", "n/a", "0.1", None, DeviceLimits({"EV": 1.0}))
+    >>> ident.backend, ident.limits.max_drive_v
+    ('sim', {'EV': 1.0})
     """
 
     backend: str

@@ -38,6 +38,14 @@ class OutputSnapshot:
         False after the port was closed (unplugged or emulator closed).
     interlock_open : bool
         True while the interlock input is open (outputs forced to 0 V).
+
+    Examples
+    --------
+    >>> silent = MappingProxyType({"EV": 0.0, "MV": 0.0})
+    >>> OutputSnapshot(silent, False, silent, True).zero
+    True
+    >>> OutputSnapshot(MappingProxyType({"EV": 0.2, "MV": 0.0}), True, silent, True).zero
+    False
     """
 
     amplitude_v: MappingProxyType[str, float]
@@ -93,6 +101,14 @@ class OnsetLateness:
         Any integer (reduced mod 2**32).
     max_us : int
         Largest lateness, µs (``emulator.onset_jitter_s`` rounded to µs).
+
+    Examples
+    --------
+    The same seed gives the same onset lateness as the C firmware, µs:
+
+    >>> gen = OnsetLateness(seed=42, max_us=500)
+    >>> [gen.lateness_us() for _ in range(5)]
+    [111, 101, 365, 100, 73]
     """
 
     def __init__(self, seed: int, max_us: int) -> None:
@@ -101,7 +117,13 @@ class OnsetLateness:
         self.max_us = max(0, int(max_us))
 
     def next(self) -> int:
-        """The next 32-bit draw."""
+        """The next 32-bit draw.
+
+        Examples
+        --------
+        >>> OnsetLateness(seed=0, max_us=0).next()
+        1085196063
+        """
         x = self.state
         x ^= (x << 13) & _MASK32
         x ^= x >> 17
@@ -115,17 +137,45 @@ class OnsetLateness:
 
 
 def interlock_text(is_open: bool) -> str:
-    """The wire value of the interlock state (``il=`` in HELLO and DIAG)."""
+    """The wire value of the interlock state (``il=`` in HELLO and DIAG).
+
+    Examples
+    --------
+    >>> interlock_text(True), interlock_text(False)
+    ('open', 'closed')
+    """
     return "open" if is_open else "closed"
 
 
 def to_us(seconds: float) -> int:
-    """A wire time (≤ 6 decimals) as exact integer µs."""
+    """A wire time (≤ 6 decimals) as exact integer µs.
+
+    Parameters
+    ----------
+    seconds : float
+        Time, s.
+
+    Returns
+    -------
+    int
+        The same time, µs (rounded to the nearest µs).
+
+    Examples
+    --------
+    >>> to_us(1.8), to_us(0.000002)
+    (1800000, 2)
+    """
     return round(seconds * 1_000_000)
 
 
 def channel(frame: proto.Frame, key: str) -> str:
-    """Field ``key`` as ``"EV"``/``"MV"``; ValueError otherwise."""
+    """Field ``key`` as ``"EV"``/``"MV"``; ValueError otherwise.
+
+    Examples
+    --------
+    >>> channel(proto.decode(proto.encode_command(1, "AMP", {"ch": "MV"})), "ch")
+    'MV'
+    """
     ch = frame.fields.get(key)
     if ch not in CHANNELS:
         raise ValueError(f"{key}={ch!r} is not EV or MV")
@@ -133,14 +183,44 @@ def channel(frame: proto.Frame, key: str) -> str:
 
 
 def check_frequency(carrier: float, env: float | None, sample_rate_hz: float) -> None:
-    """ValueError unless ``0 < carrier < fs/2`` and ``0 <= env < fs/2`` (Hz)."""
+    """ValueError unless ``0 < carrier < fs/2`` and ``0 <= env < fs/2`` (Hz).
+
+    Examples
+    --------
+    >>> check_frequency(270.0, None, 1000.0)
+    >>> check_frequency(600.0, None, 1000.0)
+    Traceback (most recent call last):
+    ...
+    ValueError: frequencies must be in (0, 500) Hz
+    """
     nyquist = sample_rate_hz / 2
     if not 0 < carrier < nyquist or (env is not None and not 0 <= env < nyquist):
         raise ValueError(f"frequencies must be in (0, {nyquist:g}) Hz")
 
 
 def plan_from(frame: proto.Frame, sample_rate_hz: float) -> TrialPlan:
-    """The TrialPlan of a PLAY frame; FrameError/ValueError (→ ``ERR ARGS``) if a field is bad."""
+    """The TrialPlan of a PLAY frame; FrameError/ValueError (→ ``ERR ARGS``) if a field is bad.
+
+    Parameters
+    ----------
+    frame : Frame
+        A decoded PLAY command (carriers and envelopes in Hz, amplitudes in V, times in s).
+    sample_rate_hz : float
+        The emulator's sample rate, Hz (frequencies must lie below half of it).
+
+    Returns
+    -------
+    TrialPlan
+
+    Examples
+    --------
+    >>> play = proto.decode(proto.encode_command(7, "PLAY", {
+    ...     "tch": "EV", "tcar": 270, "tenv": 0, "tamp": 0.05, "ti": 2, "n": 3, "mch": "MV",
+    ...     "mcar": 120, "menv": 0, "mamp": 0.2, "stim": 1.8, "gap": 0.6, "lead": 0.6}))
+    >>> plan = plan_from(play, 10_000.0)
+    >>> plan.target.name, plan.target_amplitude_v, plan.masker.name, plan.duration_s
+    ('EV270', 0.05, 'MV120', 7.2)
+    """
     target = Stimulus(channel(frame, "tch"), frame.number("tcar"), frame.number("tenv") or None)
     check_frequency(target.carrier_hz, target.envelope_hz, sample_rate_hz)
     masker = None
@@ -176,6 +256,17 @@ def virtual_play(plan: TrialPlan, start_us: int, lateness: OnsetLateness) -> tup
         ``start + lead + k·(stim + gap)`` plus one lateness draw each, µs.
     end_us : int
         ``start + lead + n·stim + (n − 1)·gap``, µs.
+
+    Examples
+    --------
+    A default 3IFC trial (0.6 s lead-in, 1.8 s intervals, 0.6 s gaps) starting at 1 s:
+
+    >>> from masking_lab.core.stimulus import parse_stimulus
+    >>> plan = TrialPlan(parse_stimulus("EV270"), 0.05, 2)
+    >>> virtual_play(plan, 1_000_000, OnsetLateness(seed=42, max_us=0))
+    ([1600000, 4000000, 6400000], 8200000)
+    >>> virtual_play(plan, 1_000_000, OnsetLateness(seed=42, max_us=500))[0]
+    [1600111, 4000101, 6400365]
     """
     lead, stim, gap = to_us(plan.lead_in_s), to_us(plan.stimulus_s), to_us(plan.gap_s)
     n = plan.n_intervals

@@ -38,6 +38,20 @@ def check_amplitude(channel: str, amplitude_v: float, limits: DeviceLimits, *, w
         Limits in force.
     what : str
         Names the request in the message (``"target EV270"``).
+
+    Raises
+    ------
+    SafetyLimitError
+        For an unknown channel, a non-finite or negative amplitude, or one above the limit.
+
+    Examples
+    --------
+    >>> limits = DeviceLimits({"EV": 1.0, "MV": 0.5})
+    >>> check_amplitude("EV", 0.8, limits, what="target EV270")  # within 1 V: no error
+    >>> check_amplitude("MV", 0.6, limits, what="masker MV120")
+    Traceback (most recent call last):
+    ...
+    masking_lab.core.errors.SafetyLimitError: masker MV120: 0.6 V exceeds the MV limit of 0.5 V; ...
     """
     if channel not in limits.max_drive_v:
         raise SafetyLimitError(f"{what}: no limit configured for channel {channel!r}; not played")
@@ -58,6 +72,32 @@ def check_plan(plan: TrialPlan, limits: DeviceLimits) -> None:
     """Check every drive of a trial against ``limits`` (V); same-channel drives add.
 
     Also refuses a plan whose timing or target interval cannot be played.
+
+    Parameters
+    ----------
+    plan : TrialPlan
+        Stimuli, peak amplitudes (V) and timing (s) of the trial.
+    limits : DeviceLimits
+        Limits in force, V per channel.
+
+    Raises
+    ------
+    SafetyLimitError
+        If any drive (or the sum of two on one channel) exceeds its limit, or the plan's timing
+        or target interval cannot be played; nothing is played.
+
+    Examples
+    --------
+    Two 0.3 V drives on the MV channel add to 0.6 V, over its 0.5 V limit:
+
+    >>> from masking_lab.core.stimulus import parse_stimulus
+    >>> limits = DeviceLimits({"EV": 1.0, "MV": 0.5})
+    >>> plan = TrialPlan(parse_stimulus("MV120am40"), 0.3, 1, parse_stimulus("MV120"), 0.3)
+    >>> check_plan(plan, limits)
+    Traceback (most recent call last):
+    ...
+    masking_lab.core.errors.SafetyLimitError: target MV120am40 + masker MV120 on one channel: ...
+    >>> check_plan(TrialPlan(parse_stimulus("EV270"), 0.3, 1, parse_stimulus("MV120"), 0.3), limits)
     """
     if not 1 <= plan.target_interval <= plan.n_intervals:
         raise SafetyLimitError(
@@ -87,7 +127,24 @@ def check_plan(plan: TrialPlan, limits: DeviceLimits) -> None:
 
 
 def stricter_limits(host: DeviceLimits, device: DeviceLimits) -> DeviceLimits:
-    """Per channel, the smaller of the host-config and the firmware-reported limit (V)."""
+    """Per channel, the smaller of the host-config and the firmware-reported limit (V).
+
+    Parameters
+    ----------
+    host : DeviceLimits
+        Limits from the rig config, V; its channels are the result's channels.
+    device : DeviceLimits
+        Limits the firmware reported in its handshake, V.
+
+    Returns
+    -------
+    DeviceLimits
+
+    Examples
+    --------
+    >>> stricter_limits(DeviceLimits({"EV": 1.0, "MV": 0.5}), DeviceLimits({"EV": 0.8, "MV": 2.0}))
+    DeviceLimits(max_drive_v={'EV': 0.8, 'MV': 0.5})
+    """
     return DeviceLimits(
         {ch: min(v, device.max_drive_v.get(ch, v)) for ch, v in host.max_drive_v.items()}
     )
@@ -104,7 +161,16 @@ _previous: dict[int, Any] = {}
 
 
 def zero_on_exit(device: _Stoppable) -> None:
-    """Zero ``device`` (call its ``stop()``) at interpreter exit and on SIGTERM/SIGHUP."""
+    """Zero ``device`` (call its ``stop()``) at interpreter exit and on SIGTERM/SIGHUP.
+
+    Shell: installs an ``atexit`` hook and, from the main thread, signal handlers once per
+    process; a handler chains to the one it replaced, or exits with 128 + the signal number.
+
+    Parameters
+    ----------
+    device : object with ``stop()``
+        An open device; held weakly, so a device that is garbage-collected is forgotten.
+    """
     global _installed
     with _lock:
         _registry.add(device)
@@ -119,13 +185,25 @@ def zero_on_exit(device: _Stoppable) -> None:
 
 
 def forget(device: _Stoppable) -> None:
-    """Stop watching ``device`` (after it was closed)."""
+    """Stop watching ``device`` (after it was closed).
+
+    Parameters
+    ----------
+    device : object with ``stop()``
+        A device passed to :func:`zero_on_exit` (unknown devices are ignored).
+    """
     with _lock:
         _registry.discard(device)
 
 
 def zero_all(reason: str) -> None:
-    """Call ``stop()`` on every registered device, ignoring failures (best effort)."""
+    """Call ``stop()`` on every registered device, ignoring failures (best effort).
+
+    Parameters
+    ----------
+    reason : str
+        Why (``"exit"`` or a signal name), for the log.
+    """
     with _lock:
         devices = list(_registry)
     for device in devices:

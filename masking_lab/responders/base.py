@@ -31,6 +31,13 @@ class SetInfo:
         Stimuli of the set.
     masker_level_db_sl : float or None
         Masker level, dB SL.
+
+    Examples
+    --------
+    >>> from masking_lab.core.stimulus import parse_stimulus
+    >>> info = SetInfo("A", 1, 4, parse_stimulus("EV270"), parse_stimulus("MV120"), 10.0)
+    >>> f"set {info.set_number}/{info.n_sets}: {info.target} under {info.masker}"
+    'set 1/4: EV270 under MV120'
     """
 
     set_id: str
@@ -61,6 +68,16 @@ class TrialPresentation:
         Target level, dB SL (None in a baseline session).
     masker_level_db_sl : float or None
         Masker level, dB SL.
+
+    Examples
+    --------
+    The first trial of set A: EV270 at −26 dB re 1 V (0.05 V peak), 8.5 dB above the AL:
+
+    >>> from masking_lab.core.stimulus import parse_stimulus
+    >>> plan = TrialPlan(parse_stimulus("EV270"), 0.05, target_interval=2)
+    >>> shown = TrialPresentation("A", 0, plan, 0.0, -26.0, 8.5, None)
+    >>> shown.plan.target_interval, shown.level_db_sl
+    (2, 8.5)
     """
 
     set_id: str
@@ -84,6 +101,11 @@ class Response:
         From the end of the last interval to the answer, s.
     finger_path : list of (t_s, x_mm, y_mm)
         Touch positions during the trial, if the window reports them.
+
+    Examples
+    --------
+    >>> Response(interval=2, response_time_s=0.85)
+    Response(interval=2, response_time_s=0.85, finger_path=[])
     """
 
     interval: int

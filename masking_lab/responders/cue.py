@@ -41,6 +41,21 @@ class DisplayGeometry:
         Resolution, px.
     source : str
         Where the numbers came from (config file path or command-line options), for messages.
+
+    Raises
+    ------
+    ProtocolError
+        For a width that is not a positive number of mm or a resolution that is not whole px.
+
+    Examples
+    --------
+    A 200 mm wide panel at 1280 × 800 px:
+
+    >>> screen = DisplayGeometry(width_mm=200.0, width_px=1280, height_px=800)
+    >>> screen.mm_per_px, screen.height_mm
+    (0.15625, 125.0)
+    >>> screen.mm_to_px(50.0, -10.0)
+    (320.0, -64.0)
     """
 
     width_mm: float
@@ -72,6 +87,13 @@ class DisplayGeometry:
     @classmethod
     def from_mapping(cls, mapping: Mapping[str, Any], source: str) -> DisplayGeometry:
         """Build from a config's ``display:`` mapping (keys width_mm, width_px, height_px).
+
+        Examples
+        --------
+        >>> DisplayGeometry.from_mapping({"width_mm": 200.0, "width_px": 1280}, "rig.yaml")
+        Traceback (most recent call last):
+        ...
+        masking_lab.core.errors.ProtocolError: rig.yaml: display.height_px: is missing; ...
 
         Raises
         ------
@@ -113,11 +135,23 @@ class DisplayGeometry:
         return self.height_px * self.mm_per_px
 
     def mm_to_px(self, x_mm: float, y_mm: float) -> tuple[float, float]:
-        """Screen position in mm → px (both centre-origin, y up)."""
+        """Screen position in mm → px (both centre-origin, y up).
+
+        Examples
+        --------
+        >>> DisplayGeometry(200.0, 1280, 800).mm_to_px(10.0, 5.0)
+        (64.0, 32.0)
+        """
         return x_mm * self.px_per_mm, y_mm * self.px_per_mm
 
     def px_to_mm(self, x_px: float, y_px: float) -> tuple[float, float]:
-        """Screen position in px → mm (both centre-origin, y up)."""
+        """Screen position in px → mm (both centre-origin, y up).
+
+        Examples
+        --------
+        >>> DisplayGeometry(200.0, 1280, 800).px_to_mm(64.0, -32.0)
+        (10.0, -5.0)
+        """
         return x_px * self.mm_per_px, y_px * self.mm_per_px
 
 
@@ -135,6 +169,14 @@ class TrialTiming:
         Between intervals, s.
     n_intervals : int
         Intervals per trial (3).
+
+    Examples
+    --------
+    The paper's trial: 0.6 s lead-in, three 1.8 s intervals, 0.6 s gaps:
+
+    >>> timing = TrialTiming(lead_in_s=0.6, stimulus_s=1.8, gap_s=0.6)
+    >>> timing.onset_s(2), timing.offset_s(2), round(timing.duration_s, 6)
+    (3.0, 4.8, 7.2)
     """
 
     lead_in_s: float
@@ -154,7 +196,15 @@ class TrialTiming:
 
     @classmethod
     def from_plan(cls, plan: Any) -> TrialTiming:
-        """Take the timing of a :class:`~masking_lab.device.base.TrialPlan`."""
+        """Take the timing of a :class:`~masking_lab.device.base.TrialPlan` (s).
+
+        Examples
+        --------
+        >>> from masking_lab.core.stimulus import parse_stimulus
+        >>> from masking_lab.core.trial import TrialPlan
+        >>> TrialTiming.from_plan(TrialPlan(parse_stimulus("EV270"), 0.05, 1))
+        TrialTiming(lead_in_s=0.6, stimulus_s=1.8, gap_s=0.6, n_intervals=3)
+        """
         return cls(plan.lead_in_s, plan.stimulus_s, plan.gap_s, plan.n_intervals)
 
     def onset_s(self, interval: int) -> float:
@@ -231,6 +281,16 @@ class CueLayout:
         Cue speed, mm/s (51 mm/s in the paper).
     lane_spacing_mm : float
         Vertical distance between neighbouring lanes, mm.
+
+    Examples
+    --------
+    At 51 mm/s a 1.8 s interval sweeps 91.8 mm; lane 1 is on top:
+
+    >>> layout = CueLayout(TrialTiming(lead_in_s=0.6, stimulus_s=1.8, gap_s=0.6))
+    >>> round(layout.sweep_mm, 6), [layout.lane_y_mm(k) for k in (1, 2, 3)]
+    (91.8, [30.0, 0.0, -30.0])
+    >>> [(m.interval, m.onset_s, m.offset_s) for m in layout.interval_marks()][:2]
+    [(1, 0.6, 2.4), (2, 3.0, 4.8)]
     """
 
     timing: TrialTiming
@@ -284,6 +344,35 @@ class CueLayout:
 
         The cue moves only while an interval plays; otherwise it waits at the start of the lane
         that plays next, or, once the last interval is over, at the end of the last lane.
+
+        Parameters
+        ----------
+        t_s : float
+            Time since the trial start, s.
+
+        Returns
+        -------
+        CueState
+            Phase, interval and position in mm.
+
+        Raises
+        ------
+        ValueError
+            If ``t_s`` is NaN.
+
+        Examples
+        --------
+        Halfway through interval 1 the cue is at the lane's centre; in the gap it waits at the
+        start of lane 2:
+
+        >>> layout = CueLayout(TrialTiming(lead_in_s=0.6, stimulus_s=1.8, gap_s=0.6))
+        >>> for t_s in (0.0, 1.5, 2.7, 8.0):
+        ...     s = layout.state_at(t_s)
+        ...     print(s.phase, s.interval, round(s.x_mm, 2), s.y_mm, s.moving)
+        lead_in 1 -45.9 30.0 False
+        interval 1 0.0 30.0 True
+        gap 2 -45.9 0.0 False
+        response 3 45.9 -30.0 False
         """
         if math.isnan(t_s):
             raise ValueError("t_s must be a number of s, got NaN")
@@ -303,7 +392,25 @@ class CueLayout:
     def extent_mm(
         self, label_room_mm: float = 0.0, cue_radius_mm: float = 0.0
     ) -> tuple[float, float]:
-        """Width and height the lanes need on screen, mm, with room for labels and the cue."""
+        """Width and height the lanes need on screen, mm, with room for labels and the cue.
+
+        Parameters
+        ----------
+        label_room_mm : float
+            Room left of and right of each lane for its label, mm.
+        cue_radius_mm : float
+            Radius of the cue, mm.
+
+        Returns
+        -------
+        width_mm, height_mm : float
+
+        Examples
+        --------
+        >>> layout = CueLayout(TrialTiming(0.6, 1.8, 0.6))
+        >>> [round(v, 6) for v in layout.extent_mm(label_room_mm=10.0, cue_radius_mm=5.0)]
+        [121.8, 70.0]
+        """
         width = self.sweep_mm + 2 * (label_room_mm + cue_radius_mm)
         height = (self.timing.n_intervals - 1) * self.lane_spacing_mm + 2 * cue_radius_mm
         return width, height
@@ -312,6 +419,13 @@ class CueLayout:
         self, display: DisplayGeometry, label_room_mm: float = 0.0, cue_radius_mm: float = 0.0
     ) -> None:
         """Raise if the lanes do not fit on ``display``.
+
+        Examples
+        --------
+        >>> CueLayout(TrialTiming(0.6, 1.8, 0.6)).check_fits(DisplayGeometry(80.0, 800, 480))
+        Traceback (most recent call last):
+        ...
+        masking_lab.core.errors.ProtocolError: display settings: display.width_mm: the cue ...
 
         Raises
         ------
@@ -341,6 +455,25 @@ def finger_sample(t_s: float, x_px: float, y_px: float, display: DisplayGeometry
     """One logged finger position: time and pointer position in px → ``(t_s, x_mm, y_mm)``.
 
     Rounded to 0.1 ms and 0.01 mm: finer than a touch panel resolves, and it keeps logs small.
+
+    Parameters
+    ----------
+    t_s : float
+        Session-clock time, s.
+    x_px, y_px : float
+        Pointer position, px (centre-origin, y up).
+    display : DisplayGeometry
+        The screen, for the px → mm conversion.
+
+    Returns
+    -------
+    FingerSample
+        ``(t_s, x_mm, y_mm)``.
+
+    Examples
+    --------
+    >>> finger_sample(1.23456789, 100.0, -50.0, DisplayGeometry(200.0, 1280, 800))
+    (1.2346, 15.62, -7.81)
     """
     x_mm, y_mm = display.px_to_mm(x_px, y_px)
     return (round(float(t_s), 4), round(float(x_mm), 2), round(float(y_mm), 2))
@@ -359,6 +492,15 @@ def should_record(
     without a touch (a touch panel that only sends motion, or a mouse) is recorded when it moved
     at least ``min_move_mm`` mm since the ``previous_mm`` reading; a pointer that sits still, or
     whose first reading of the trial is all we have, says nothing about a finger.
+
+    Examples
+    --------
+    >>> should_record(None, 0.0, 0.0, pressed=True)
+    True
+    >>> should_record((0.0, 0.0), 0.03, 0.0, pressed=False)  # moved 0.03 mm < 0.05 mm
+    False
+    >>> should_record((0.0, 0.0), 0.1, 0.0, pressed=False)
+    True
     """
     if pressed:
         return True

@@ -46,6 +46,15 @@ def parse_keys(data: bytes) -> tuple[list[str], bytes]:
         Enter, or ``""`` for anything to ignore (escape sequences, other control keys, non-ASCII).
     tail : bytes
         An escape sequence cut off at the end of ``data``; prepend it to the next read.
+
+    Examples
+    --------
+    F5 (``ESC [ 1 5 ~``) is one ignored key, not a ``1``; a cut-off sequence is kept for later:
+
+    >>> parse_keys(b"9\\x1b[15~2")
+    (['9', '', '2'], b'')
+    >>> parse_keys(b"1\\x1b[")
+    (['1'], b'\\x1b[')
     """
     keys: list[str] = []
     i = 0
@@ -102,6 +111,17 @@ class KeysResponder:
     ------
     ResponderError
         If ``in_fd`` is not a terminal.
+
+    Examples
+    --------
+    A trial answered on a real pseudo-terminal is in ``tests/test_keys_responder.py`` (a
+    doctest would race the flush of keys typed while the stimuli play). Opening a pty:
+
+    >>> participant, rig = os.openpty()
+    >>> keys = KeysResponder(rig, rig, wait_for_start=False)
+    >>> keys.name
+    'keys'
+    >>> keys.close(); os.close(rig); os.close(participant)
     """
 
     name = "keys"
@@ -135,6 +155,13 @@ class KeysResponder:
         ------
         ResponderError
             If the path cannot be opened or is not a terminal.
+
+        Examples
+        --------
+        >>> KeysResponder.open_tty("/dev/null")
+        Traceback (most recent call last):
+        ...
+        masking_lab.core.errors.ResponderError: the keys responder reads ... is not one; ...
         """
         try:
             fd = os.open(path, os.O_RDWR | os.O_NOCTTY)
@@ -170,6 +197,13 @@ class KeysResponder:
 
         The response time runs from the moment ``play()`` returns (the end of the last
         interval), s. Keys pressed while the trial plays are discarded.
+
+        Raises
+        ------
+        ResponderError
+            If the terminal goes away or cannot be written to.
+        KeyboardInterrupt
+            On Ctrl-C.
         """
         with self._keypad_mode():
             self._write(f"\nTrial {presentation.trial_index + 1}: feel the three intervals...\n")

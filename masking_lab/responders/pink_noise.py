@@ -60,6 +60,21 @@ def pink_noise(
     ValueError
         If the buffer is too short, the sample rate not positive, or no FFT bin lies between
         ``f_min_hz`` and the Nyquist frequency.
+
+    Examples
+    --------
+    One second at 44.1 kHz: unit RMS, and the power spectral density falls about 3 dB per
+    octave (measured from the 100–200 Hz octave to the 1.6–3.2 kHz one, four octaves up):
+
+    >>> x = pink_noise(44100, np.random.default_rng(0))
+    >>> round(float(np.sqrt(np.mean(x**2))), 6)
+    1.0
+    >>> power = np.abs(np.fft.rfft(x)) ** 2
+    >>> f_hz = np.fft.rfftfreq(x.size, d=1 / 44100)
+    >>> def psd(lo_hz):
+    ...     return power[(f_hz >= lo_hz) & (f_hz < 2 * lo_hz)].mean()
+    >>> round(float(10 * np.log10(psd(1600) / psd(100)) / 4))
+    -3
     """
     n = int(n_samples)
     if n < 2:
@@ -88,7 +103,23 @@ def pink_noise(
 
 
 def rms_db_fs(signal: NDArray[np.floating]) -> float:
-    """RMS level of ``signal`` in dB re digital full scale (RMS 1.0 = 0 dB); silence is −inf."""
+    """RMS level of ``signal`` in dB re digital full scale (RMS 1.0 = 0 dB); silence is −inf.
+
+    Parameters
+    ----------
+    signal : ndarray
+        Samples, digital units.
+
+    Returns
+    -------
+    float
+        RMS level, dB FS.
+
+    Examples
+    --------
+    >>> round(rms_db_fs(np.full(4, 0.1)), 6), rms_db_fs(np.zeros(3))
+    (-20.0, -inf)
+    """
     rms = math.sqrt(float(np.mean(np.square(signal, dtype=np.float64))))
     return -math.inf if rms == 0 else 20.0 * math.log10(rms)
 
@@ -112,6 +143,21 @@ def normalize_rms(
     LevelError
         If the target is not finite, the signal is silent or not finite, or the scaled signal
         would exceed ``max_peak`` (it would clip: lower the level).
+
+    Returns
+    -------
+    ndarray of float64
+        The scaled samples, digital units.
+
+    Examples
+    --------
+    >>> noise = pink_noise(44100, np.random.default_rng(0))
+    >>> round(rms_db_fs(normalize_rms(noise, -20.0)), 6)
+    -20.0
+    >>> normalize_rms(noise, 0.0)
+    Traceback (most recent call last):
+    ...
+    masking_lab.core.errors.LevelError: pink noise at 0 dB FS RMS would clip (peak 4.16 > 1); ...
     """
     if not math.isfinite(target_rms_db_fs):
         raise LevelError(f"noise level must be a finite dB FS value, got {target_rms_db_fs!r}")
@@ -166,6 +212,12 @@ def loop_buffer(
         For a duration or sample rate that gives fewer than 2 samples.
     LevelError
         For a level that is not finite or would clip.
+
+    Examples
+    --------
+    >>> loop = loop_buffer(0.5, np.random.default_rng(1), level_db_fs=-20.0)
+    >>> loop.dtype, loop.shape, round(rms_db_fs(loop), 2)
+    (dtype('float32'), (22050,), -20.0)
     """
     if not (math.isfinite(duration_s) and duration_s > 0):
         raise ValueError(f"duration_s must be > 0 s, got {duration_s!r}")

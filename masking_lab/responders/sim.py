@@ -48,6 +48,25 @@ class SimResponder:
         The session seed; with the set id and trial index it seeds each answer.
     source : str
         Where the ground truth came from (for messages).
+
+    Examples
+    --------
+    Far below its AL the simulated participant guesses (1/3 correct in 3IFC); far above it,
+    it is right except for lapses:
+
+    >>> from masking_lab.core.levels import db_v_to_volts
+    >>> from masking_lab.core.stimulus import parse_stimulus
+    >>> from masking_lab.core.trial import TrialPlan
+    >>> sim = SimResponder.from_ground_truth(None, "P01", seed=7)
+    >>> al_db_v = sim.participant.unmasked_al_db_v["EV270"]
+    >>> def fraction_correct(level_db_sl, n=300):
+    ...     level_db_v = al_db_v + level_db_sl
+    ...     plan = TrialPlan(parse_stimulus("EV270"), db_v_to_volts(level_db_v), 2)
+    ...     shown = [TrialPresentation("A", i, plan, 0.0, level_db_v, level_db_sl, None)
+    ...              for i in range(n)]
+    ...     return round(sum(sim.answer(p).interval == 2 for p in shown) / n, 2)
+    >>> fraction_correct(-20.0), fraction_correct(20.0)
+    (0.35, 0.97)
     """
 
     name = "sim"
@@ -69,6 +88,32 @@ class SimResponder:
 
         ``population_seed`` (not the session seed) fixes the participant's true ALs, so the same
         simulated participant sits the baseline and every masked session.
+
+        Parameters
+        ----------
+        path : str, Path or None
+            Ground-truth YAML or JSON file; None for the packaged one.
+        participant_id : str
+            Participant to draw (e.g. ``"P01"``).
+        seed : int
+            Session seed for the answers.
+        population_seed : int
+            Seed of the participant's true ALs (dB re 1 V).
+
+        Returns
+        -------
+        SimResponder
+
+        Raises
+        ------
+        ProtocolError
+            If the file cannot be read or is malformed.
+
+        Examples
+        --------
+        >>> sim = SimResponder.from_ground_truth(None, "P01", seed=7)
+        >>> sim.name, "EV270" in sim.participant.unmasked_al_db_v
+        ('sim', True)
         """
         try:
             truth = load_ground_truth(path)
@@ -82,7 +127,13 @@ class SimResponder:
         return cls(participant, seed, str(path) if path is not None else "")
 
     def start_set(self, info: SetInfo) -> None:
-        """Check that the ground truth knows the set's stimuli (before any trial is played)."""
+        """Check that the ground truth knows the set's stimuli (before any trial is played).
+
+        Raises
+        ------
+        ProtocolError
+            If the ground truth has no unmasked AL (dB re 1 V) for the target or the masker.
+        """
         for stim in (info.target, info.masker):
             if stim is not None and stim.name not in self.participant.unmasked_al_db_v:
                 raise ProtocolError(
@@ -93,7 +144,28 @@ class SimResponder:
                 )
 
     def answer(self, presentation: TrialPresentation) -> Response:
-        """The simulated answer to ``presentation`` (pure given the seed)."""
+        """The simulated answer to ``presentation`` (pure given the seed).
+
+        Parameters
+        ----------
+        presentation : TrialPresentation
+            The trial; its target level in dB re 1 V and the masker's drive in V are used.
+
+        Returns
+        -------
+        Response
+            The chosen interval and a response time in s (≥ 0.4 s).
+
+        Examples
+        --------
+        >>> from masking_lab.core.stimulus import parse_stimulus
+        >>> from masking_lab.core.trial import TrialPlan
+        >>> sim = SimResponder.from_ground_truth(None, "P01", seed=7)
+        >>> shown = TrialPresentation(
+        ...     "A", 0, TrialPlan(parse_stimulus("EV270"), 0.05, 2), 0.0, -26.0, None, None)
+        >>> sim.answer(shown) == sim.answer(shown)  # the same seed, set and trial: same answer
+        True
+        """
         plan = presentation.plan
         rng = trial_rng(self.seed, presentation.set_id, presentation.trial_index, STREAM_RESPONDER)
         masker_sl = -math.inf

@@ -56,6 +56,28 @@ def render_objects(
         Listing every pair without masking functions.
     SolverError
         If an object has points without a unique compensated input.
+
+    Returns
+    -------
+    dict of (geometry, texture) → Rendering
+
+    Examples
+    --------
+    The shipped user test: 4 geometries × 3 textures, every MV texture paired with EV270
+    (ramps f(e) = max(0, −2 + 0.5·e), g(m) = max(0, −1 + 0.4·m) for the example):
+
+    >>> from masking_lab.formats.resources import shipped
+    >>> from masking_lab.usertest.design import load_usertest
+    >>> design = load_usertest(str(shipped("protocols", "usertest.yaml")))
+    >>> pairs = {pair: MutualMasking(-2.0, 0.5, -1.0, 0.4, mv=pair[0], ev=pair[1])
+    ...          for pair in design.stimulus_pairs()}
+    >>> objects = render_objects(design, pairs)
+    >>> len(objects), design.stimulus_pairs()[1]
+    (12, ('MV180', 'EV270'))
+    >>> render_objects(design, {})
+    Traceback (most recent call last):
+    ...
+    masking_lab.rendering.pair.MissingMaskingError: ...: no masking functions for MV120am40 ...
     """
     missing = [pr for pr in design.stimulus_pairs() if pr not in pairs]
     if missing:
@@ -89,7 +111,18 @@ def render_objects(
 
 
 def path_position_mm(design: UserTestDesign, t_s: float) -> float | None:
-    """Where the cue is along the path at trial time ``t_s`` s, mm; None when silent."""
+    """Where the cue is along the path at trial time ``t_s`` s, mm; None when silent.
+
+    Examples
+    --------
+    After the 1.2 s lead-in the cue moves at 51 mm/s; 0.9 s later it is halfway along:
+
+    >>> from masking_lab.formats.resources import shipped
+    >>> from masking_lab.usertest.design import load_usertest
+    >>> design = load_usertest(str(shipped("protocols", "usertest.yaml")))
+    >>> round(path_position_mm(design, 1.2 + 0.9), 6), path_position_mm(design, 0.5)
+    (45.9, None)
+    """
     at = design.timing.presentation_at(t_s)
     if at is None:
         return None
@@ -101,6 +134,14 @@ def path_x_from_screen_mm(design: UserTestDesign, x_screen_mm: float) -> float:
     path mm.
 
     The cue's lane is centred on the screen, so the path starts at ``−sweep/2``.
+
+    Examples
+    --------
+    >>> from masking_lab.formats.resources import shipped
+    >>> from masking_lab.usertest.design import load_usertest
+    >>> design = load_usertest(str(shipped("protocols", "usertest.yaml")))
+    >>> path_x_from_screen_mm(design, -45.9), path_x_from_screen_mm(design, 0.0)
+    (0.0, 45.9)
     """
     return x_screen_mm + design.sweep_mm / 2
 
@@ -109,6 +150,22 @@ def levels_at(r: Rendering, x_mm: float, *, compensated: bool) -> tuple[float, f
     """``(ev_db_sl, mv_db_sl)`` inputs at path position ``x_mm`` mm (linear between points).
 
     Off the path (or NaN) both channels are silent (``-inf``).
+
+    Examples
+    --------
+    >>> from masking_lab.formats.resources import shipped
+    >>> from masking_lab.usertest.design import load_usertest
+    >>> design = load_usertest(str(shipped("protocols", "usertest.yaml")))
+    >>> pairs = {pair: MutualMasking(-2.0, 0.5, -1.0, 0.4, mv=pair[0], ev=pair[1])
+    ...          for pair in design.stimulus_pairs()}
+    >>> objects = render_objects(design, pairs)
+    >>> bump_rough = objects[("bump", "rough")]
+    >>> [round(v, 2) for v in levels_at(bump_rough, 41.0, compensated=True)]
+    [16.25, 18.12]
+    >>> [round(v, 2) for v in levels_at(bump_rough, 41.0, compensated=False)]
+    [10.0, 12.0]
+    >>> levels_at(bump_rough, -1.0, compensated=True)
+    (-inf, -inf)
     """
     x = float(x_mm)
     if not (r.x_mm[0] <= x <= r.x_mm[-1]):
@@ -153,6 +210,27 @@ def trial_levels_db_v(
     ------
     SolverError
         Finger tracking without a finger position, or a stimulus missing from the calibration.
+
+    Examples
+    --------
+    A compensated bump_rough trial 0.8 s into its first presentation (41 mm along the path),
+    for a participant with ALs of −20 (EV270) and −30 (MV180) dB re 1 V:
+
+    >>> from masking_lab.formats.resources import shipped
+    >>> from masking_lab.usertest.design import load_usertest
+    >>> design = load_usertest(str(shipped("protocols", "usertest.yaml")))
+    >>> pairs = {pair: MutualMasking(-2.0, 0.5, -1.0, 0.4, mv=pair[0], ev=pair[1])
+    ...          for pair in design.stimulus_pairs()}
+    >>> objects = render_objects(design, pairs)
+    >>> from masking_lab.usertest.design import trial_list
+    >>> trial = next(t for t in trial_list(design, seed=7)
+    ...              if t.object == ("bump", "rough") and t.compensated)
+    >>> als = {"EV270": -20.0, "MV180": -30.0}
+    >>> ev, mv = trial_levels_db_v(design, objects, trial, als, t_s=1.2 + 41.0 / 51.0)
+    >>> round(ev, 2), round(mv, 2)
+    (-3.75, -11.88)
+    >>> trial_levels_db_v(design, objects, trial, als, t_s=0.5)  # lead-in: silent
+    (-inf, -inf)
     """
     if design.timing.presentation_at(t_s) is None:
         return SILENT

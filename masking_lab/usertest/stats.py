@@ -99,6 +99,33 @@ def analyze_usertest(
     AnalysisError
         No records, a record without a required field, an unknown geometry/texture/condition,
         or an answer key out of range — naming the record.
+
+    Returns
+    -------
+    UserTestAnalysis
+
+    Examples
+    --------
+    Three participants, four objects per condition; geometry is identified better when the
+    masking is compensated (P1: 4 of 4 against 2 of 4), textures always:
+
+    >>> objects = [("bump", "smooth"), ("bump", "rough"), ("hole", "smooth"), ("hole", "rough")]
+    >>> def trials(participant, condition, n_right):
+    ...     return [dict(participant=participant, condition=condition, geometry=g, texture=t,
+    ...                  geometry_answer=(1 if g == "bump" else 2) if k < n_right else
+    ...                  (2 if g == "bump" else 1), texture_answer=1 if t == "smooth" else 2)
+    ...             for k, (g, t) in enumerate(objects)]
+    >>> records = [rec for p, comp, unc in [("P1", 4, 2), ("P2", 3, 1), ("P3", 4, 3)]
+    ...            for rec in trials(p, "compensated", comp) + trials(p, "uncompensated", unc)]
+    >>> result = analyze_usertest(records, ["bump", "hole"], ["smooth", "rough"])
+    >>> both, geometry, texture = result.tests
+    >>> print(f"geometry: {geometry.mean_compensated:.2f} vs {geometry.mean_uncompensated:.2f}, "
+    ...       f"t({geometry.n - 1}) = {geometry.t:.2f}, p = {geometry.p:.4f}")
+    geometry: 0.92 vs 0.50, t(2) = 5.00, p = 0.0377
+    >>> texture.note
+    "every participant's difference is the same; the paired t-test is undefined"
+    >>> result.confusion["uncompensated"]["geometry"].to_numpy().tolist()
+    [[5, 1, 0], [5, 1, 0]]
     """
     import pandas as pd
     from scipy import stats

@@ -66,6 +66,17 @@ class StimulusLimit:
         The rig config's ``max_level_db_sl`` for the channel, dB SL (None: not set).
     max_drive_v : float
         The device's drive limit for the channel, V.
+
+    Examples
+    --------
+    With an AL of −30 dB re 1 V, a 1 V drive limit is 30 dB SL, stricter than a 40 dB SL rig
+    limit:
+
+    >>> limit = StimulusLimit("MV180", "MV", -30.0, rig_max_db_sl=40.0, max_drive_v=1.0)
+    >>> limit.drive_max_db_sl, limit.max_db_sl, limit.max_db_v
+    (30.0, 30.0, 0.0)
+    >>> limit.binding
+    "the MV max_drive_v 1 V at this participant's AL"
     """
 
     stimulus: str
@@ -118,10 +129,22 @@ def stimulus_limits(
     max_drive_v : mapping channel → V
         The device's drive limits in force.
 
+    Returns
+    -------
+    dict of str to StimulusLimit
+        By stimulus name, sorted.
+
     Raises
     ------
     CalibrationError
         A stimulus without an unmasked AL.
+
+    Examples
+    --------
+    >>> limits = stimulus_limits(["MV180", "EV270"], {"MV180": -30.0, "EV270": -20.0},
+    ...                          {"MV": 15.0}, {"EV": 1.0, "MV": 1.0})
+    >>> {name: lim.max_db_sl for name, lim in limits.items()}
+    {'EV270': 20.0, 'MV180': 15.0}
     """
     out: dict[str, StimulusLimit] = {}
     for name in sorted(set(stimuli)):
@@ -201,6 +224,39 @@ def exceedances(
 
     Linear interpolation between interaction points never exceeds the larger neighbour, so
     checking the points covers every position a cue or a finger can reach.
+
+    Parameters
+    ----------
+    design : UserTestDesign
+        Supplies the conditions.
+    objects : mapping (geometry, texture) → Rendering
+        Rendered objects.
+    limits : mapping stimulus → StimulusLimit
+        From :func:`stimulus_limits`.
+
+    Returns
+    -------
+    list of Exceedance
+
+    Examples
+    --------
+    Compensating the bump's masking asks for MV180 at 18.1 dB SL, over a 15 dB SL rig limit:
+
+    >>> from masking_lab.formats.resources import shipped
+    >>> from masking_lab.rendering.pair import MutualMasking
+    >>> from masking_lab.rendering.render import render_scene
+    >>> from masking_lab.rendering.scene import GeometrySpec, PathSpec, Scene, TextureSpec
+    >>> from masking_lab.usertest.design import load_usertest
+    >>> design = load_usertest(str(shipped("protocols", "usertest.yaml")))
+    >>> scene = Scene("bump_rough", PathSpec(), GeometrySpec("bump"),
+    ...               TextureSpec("rough", "MV180", 12.0))
+    >>> pair = MutualMasking(a_db=-2.0, b=0.5, c_db=-1.0, d=0.4, mv="MV180", ev="EV270")
+    >>> limits = stimulus_limits(["MV180", "EV270"], {"MV180": -30.0, "EV270": -20.0},
+    ...                          {"MV": 15.0}, {"EV": 1.0, "MV": 1.0})
+    >>> found = exceedances(design, {("bump", "rough"): render_scene(scene, pair)}, limits)
+    >>> print(found[0].describe())  # doctest: +NORMALIZE_WHITESPACE
+    bump_rough compensated: MV180 needs up to 18.1 dB SL, above its limit of 15.0 dB SL (the
+    rig's MV max_level_db_sl) at 284 of 919 points (17.5-45.8 mm)
     """
     found: list[Exceedance] = []
     for (g, t), r in objects.items():
@@ -230,7 +286,15 @@ def exceedances(
 
 
 def object_stimuli(r: Rendering) -> dict[Channel, str | None]:
-    """``{"EV": name or None, "MV": name or None}`` of a rendered object."""
+    """``{"EV": name or None, "MV": name or None}`` of a rendered object.
+
+    Examples
+    --------
+    >>> from masking_lab.rendering.render import render_scene
+    >>> from masking_lab.rendering.scene import GeometrySpec, PathSpec, Scene
+    >>> object_stimuli(render_scene(Scene("bump", PathSpec(), GeometrySpec("bump"), None), None))
+    {'EV': 'EV270', 'MV': None}
+    """
     return {"EV": _stimulus(r, "EV"), "MV": _stimulus(r, "MV")}
 
 
@@ -246,7 +310,26 @@ def _stimulus(r: Rendering, channel: Channel) -> str | None:
 
 
 def tick_offsets_s(stimulus_s: float, update_hz: float = UPDATE_HZ) -> NDArray[np.float64]:
-    """Tick times within one presentation, s from its onset: ``0, 1/f, 2/f, … < stimulus_s``."""
+    """Tick times within one presentation, s from its onset: ``0, 1/f, 2/f, … < stimulus_s``.
+
+    Parameters
+    ----------
+    stimulus_s : float
+        Presentation length, s.
+    update_hz : float
+        Look-ups per second, Hz.
+
+    Returns
+    -------
+    ndarray
+        Tick times, s.
+
+    Examples
+    --------
+    >>> ticks = tick_offsets_s(1.8)  # 100 Hz
+    >>> len(ticks), float(ticks[1]), float(ticks[-1])
+    (180, 0.01, 1.79)
+    """
     if not (math.isfinite(update_hz) and update_hz > 0):
         raise ValueError(f"update_hz must be a positive number of Hz, got {update_hz!r}")
     # 1 ns slack: 1.8 s × 100 Hz is 180 ticks, not 181 from float noise.
@@ -260,8 +343,19 @@ def path_levels_db_sl(
     """``(ev_db_sl, mv_db_sl)`` inputs at path positions ``x_mm`` mm (vectorised).
 
     The same rule as :func:`masking_lab.usertest.design.levels_at`: linear between interaction
-    points,
-    silent (``-inf``) off the path or where the position is NaN (finger lifted).
+    points, silent (``-inf``) off the path or where the position is NaN (finger lifted).
+
+    Examples
+    --------
+    >>> from masking_lab.rendering.pair import MutualMasking
+    >>> from masking_lab.rendering.render import render_scene
+    >>> from masking_lab.rendering.scene import GeometrySpec, PathSpec, Scene, TextureSpec
+    >>> scene = Scene("bump_rough", PathSpec(), GeometrySpec("bump"),
+    ...               TextureSpec("rough", "MV180", 12.0))
+    >>> r = render_scene(scene, MutualMasking(-2.0, 0.5, -1.0, 0.4, mv="MV180", ev="EV270"))
+    >>> ev, mv = path_levels_db_sl(r, [41.0, float("nan"), 100.0], compensated=True)
+    >>> np.round(ev, 2).tolist(), np.round(mv, 2).tolist()  # lifted finger, off the path
+    ([16.25, -inf, -inf], [18.12, -inf, -inf])
     """
     x = np.atleast_1d(np.asarray(x_mm, dtype=float))
     mv_in, ev_in = r.inputs(compensated)
@@ -278,14 +372,27 @@ def path_levels_db_sl(
 
 
 def to_db_v(level_db_sl: NDArray[np.float64], unmasked_al_db_v: float) -> NDArray[np.float64]:
-    """dB SL → dB re 1 V (``-inf`` stays ``-inf``: silence)."""
+    """dB SL → dB re 1 V (``-inf`` stays ``-inf``: silence).
+
+    Examples
+    --------
+    >>> to_db_v(np.array([10.0, -np.inf]), unmasked_al_db_v=-30.0).tolist()
+    [-20.0, -inf]
+    """
     return np.asarray(level_db_sl, dtype=float) + float(unmasked_al_db_v)
 
 
 def clip_db_v(
     level_db_v: NDArray[np.float64], max_db_v: float
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Clip drive levels at ``max_db_v``; return the clipped levels and the excess, dB (≥ 0)."""
+    """Clip drive levels at ``max_db_v``; return the clipped levels and the excess, dB (≥ 0).
+
+    Examples
+    --------
+    >>> clipped, excess = clip_db_v(np.array([-25.0, -15.0, -np.inf]), max_db_v=-20.0)
+    >>> clipped.tolist(), excess.tolist()
+    ([-25.0, -20.0, -inf], [0.0, 5.0, 0.0])
+    """
     level = np.asarray(level_db_v, dtype=float)
     clipped = np.minimum(level, max_db_v)
     with np.errstate(invalid="ignore"):
@@ -328,6 +435,21 @@ class Streamer:
         Smallest change of a sounding channel's level that is sent, dB (≥ 0).
     refresh_s : float
         Re-send the held level after this long without a frame while an output is on, s.
+
+    Examples
+    --------
+    A 0.2 dB step is inside the 0.5 dB dead-band; 0.6 dB is sent; after 0.125 s of quiet the
+    held level is re-sent for the watchdog:
+
+    >>> s = Streamer()
+    >>> for t_s, level in [(0.0, -20.0), (0.01, -19.8), (0.02, -19.4), (0.15, -19.4)]:
+    ...     for f in s.tick(t_s, {"EV": level}):
+    ...         print(f.t_s, f.channel, f.level_db_v, f.kind)
+    0.0 EV -20.0 update
+    0.02 EV -19.4 update
+    0.15 EV -19.4 refresh
+    >>> s.silence(1.8)
+    [Frame(t_s=1.8, channel='EV', level_db_v=-inf, kind='zero')]
     """
 
     def __init__(self, deadband_db: float = DEADBAND_DB, refresh_s: float = REFRESH_S) -> None:
@@ -341,7 +463,13 @@ class Streamer:
         self._last_frame_s = -math.inf
 
     def tick(self, t_s: float, levels_db_v: Mapping[Channel, float]) -> list[Frame]:
-        """Frames to send at ``t_s`` s for the wanted ``levels_db_v`` (``-inf``: silent)."""
+        """Frames to send at ``t_s`` s for the wanted ``levels_db_v`` (``-inf``: silent).
+
+        Raises
+        ------
+        ValueError
+            If a level is NaN.
+        """
         frames: list[Frame] = []
         for ch in CHANNELS:
             new = float(levels_db_v.get(ch, SILENT))
@@ -422,6 +550,22 @@ def plan_presentation(
         Clip levels above these (``+inf``: no clipping); the excess is reported per tick.
     deadband_db, refresh_s : float
         As for :class:`Streamer`.
+
+    Returns
+    -------
+    PresentationPlan
+
+    Examples
+    --------
+    Five 10 ms ticks of EV, clipped at −20 dB re 1 V:
+
+    >>> ticks = tick_offsets_s(0.05)
+    >>> plan = plan_presentation({"EV": [-30.0, -29.8, -29.0, -15.0, -15.0]}, ticks,
+    ...                          ticks * 51.0, 0.05, max_db_v={"EV": -20.0})
+    >>> [(f.t_s, f.level_db_v, f.kind) for f in plan.frames]
+    [(0.0, -30.0, 'update'), (0.02, -29.0, 'update'), (0.03, -20.0, 'update'), (0.05, -inf, 'zero')]
+    >>> plan.excess_db["EV"].tolist()
+    [0.0, 0.0, 0.0, 5.0, 5.0]
     """
     streamer = Streamer(deadband_db, refresh_s)
     clipped: dict[Channel, NDArray[np.float64]] = {}
