@@ -106,7 +106,7 @@ def test_bad_commands_get_the_same_error_codes(device, link, name, fields, code)
 
 def test_play_reports_onsets_on_the_device_clock(device, link):
     t = link.call("TIME").number("t")
-    at = t + 0.1
+    at = t + 0.3  # room for a loaded host to deliver PLAY before its start time
     seq = link.send("PLAY", at=at, **PLAY)
     assert link.reply(seq).number("start") == pytest.approx(at, abs=1e-6)
     done = link.event("DONE", timeout=10, keepalive=True)

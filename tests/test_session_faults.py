@@ -355,4 +355,5 @@ def test_watchdog_trips_when_the_host_goes_quiet_mid_trial(tmp_path, lab):
     (fault,) = of_kind(recs, "fault")
     assert fault["kind"] == "watchdog" and "watchdog tripped" in fault["message"]
     assert fault["set_id"] == "A10" and fault["trial_index"] == len(trials(recs))
-    assert f"resume with: masking-lab resume {log}" in err
+    # resume never opens the port a header names, so the hint repeats it
+    assert f"resume with: masking-lab resume {log} --device serial:{emulator.port}" in err

@@ -26,6 +26,7 @@ from typing import Any, Generic, Protocol, TextIO, TypedDict, TypeVar
 from masking_lab.core.clock import Clock, RealClock, VirtualClock
 from masking_lab.core.errors import DeviceTimeModeError, MaskingLabError
 from masking_lab.device.base import Device
+from masking_lab.formats.log_lock import LogLock
 from masking_lab.formats.session_log import SessionLog, SessionLogWriter, read_log
 from masking_lab.session.opening import (
     DeviceOpener,
@@ -36,6 +37,7 @@ from masking_lab.session.opening import (
     default_opener,
     observer_record,
     open_device_and_responder,
+    sync_policy,
     use_virtual_clock,
 )
 from masking_lab.session.progress import ProgressLine
@@ -43,13 +45,14 @@ from masking_lab.session.resuming import (
     check_header,
     device_spec_from_header,
     record_resume,
+    refuse_damaged,
     refuse_finished,
     resume_clock,
     resume_device_config,
     resume_observer,
     resume_responder_name,
 )
-from masking_lab.session.shell import Closable, SessionShell
+from masking_lab.session.shell import Closable, SessionShell, resume_command
 
 __all__ = [
     "Opened",
@@ -343,9 +346,15 @@ def start(
     with close_on_failure(device, responder):
         plan.check_device(device, frame.out)
         header = plan.header(opening, device)
-        writer = create_log(Path(options.data_dir), plan.experiment, participant, header)
+        writer = create_log(
+            Path(options.data_dir),
+            plan.experiment,
+            participant,
+            header,
+            sync=sync_policy(opening.virtual),
+        )
     frame.out.message(f"session log: {writer.path}")
-    return plan.session(opening, Opened(device, responder, writer, frame.out)).run()
+    return _run(plan, opening, Opened(device, responder, writer, frame.out), options.device)
 
 
 def _open_in_device_time(
@@ -398,12 +407,29 @@ def resume(
     """
     frame = _Frame(kind, open_device, make_responder, ProgressLine(stream, force=options.progress))
     path = Path(log_path)
+    # Locked before it is read: a second resume of this log is refused here, before anything
+    # opens. The lock passes to the writer and lives as long as the session.
+    lock = LogLock.acquire(path)
+    try:
+        return _resume_locked(kind, frame, path, lock, options)
+    finally:
+        lock.release()
+
+
+def _resume_locked(
+    kind: SessionKind[ResultT],
+    frame: _Frame[ResultT],
+    path: Path,
+    lock: LogLock,
+    options: ResumeOptions,
+) -> ResultT:
     log = read_log(path)
     header = log.header
     check_header(header, path)
     kind.check_log(header, path)
     refuse_finished(log, path)
     plan = kind.plan_resume(header, log, path, options, frame.out)
+    refuse_damaged(log, path)  # after the kind's own replay checks, which say more
     responder_name = resume_responder_name(header, options.responder, kind.responders)
     plan.check_responder(responder_name)
     config_path = resume_device_config(options.device_config, header)
@@ -421,7 +447,13 @@ def resume(
     device, responder = frame.open(plan, opening, spec)
     with close_on_failure(device, responder):
         plan.check_device(device, frame.out)
-        writer, _ = SessionLogWriter.reopen(path)
+        writer, _ = SessionLogWriter.reopen(path, lock=lock, sync=sync_policy(opening.virtual))
     record_resume(writer, log, device.identity, frame.out, plan.position())
     frame.out.message(plan.resume_message(path))
-    return plan.session(opening, Opened(device, responder, writer, frame.out)).run()
+    return _run(plan, opening, Opened(device, responder, writer, frame.out), spec)
+
+
+def _run(plan: SessionPlan[ResultT], opening: Opening, opened: Opened, spec: str) -> ResultT:
+    session = plan.session(opening, opened)
+    session.resume_command = resume_command(opened.writer.path, spec, opening.device_config)
+    return session.run()

@@ -13,15 +13,17 @@ Exit codes: :data:`EXIT_COMPLETED` 0, :data:`EXIT_DEVICE_FAULT` 3, :data:`EXIT_I
 from __future__ import annotations
 
 import datetime as dt
+import shlex
 import signal
 import sys
 import threading
 from collections.abc import Callable
+from pathlib import Path
 from types import FrameType
 from typing import Any, Generic, Protocol, TypeVar
 
 from masking_lab.core.clock import Clock
-from masking_lab.core.errors import DeviceError, MaskingLabError
+from masking_lab.core.errors import DeviceError, LogWriteError, MaskingLabError
 from masking_lab.device.base import Device, DeviceIdentity
 from masking_lab.formats.session_log import SessionLogWriter
 from masking_lab.session.progress import ProgressLine
@@ -38,6 +40,36 @@ class Closable(Protocol):
 
 
 ResultT = TypeVar("ResultT")
+
+
+def resume_command(log_path: Path, device_spec: str, device_config: Path | None) -> str:
+    """The command that resumes a session, with what resume cannot take from the log.
+
+    A log header is data: resume never opens the serial port or the rig config it names, so
+    the hint repeats them (quoted for a POSIX shell).
+
+    Parameters
+    ----------
+    log_path : Path
+        The session log.
+    device_spec : str
+        The device spec the session runs on.
+    device_config : Path or None
+        The rig config in force (None: the packaged reference rig).
+
+    Examples
+    --------
+    >>> print(resume_command(Path("S01.jsonl"), "serial:/dev/ttyACM0", Path("my rig.yaml")))
+    masking-lab resume S01.jsonl --device serial:/dev/ttyACM0 --device-config 'my rig.yaml'
+    >>> resume_command(Path("log.jsonl"), "emulator", None)
+    'masking-lab resume log.jsonl'
+    """
+    words = ["masking-lab", "resume", str(log_path)]
+    if device_spec.startswith("serial:"):
+        words += ["--device", device_spec]
+    if device_config is not None:
+        words += ["--device-config", str(device_config)]
+    return " ".join(shlex.quote(w) for w in words)
 
 
 # --------------------------------------------------------------------------------------------
@@ -72,6 +104,7 @@ class SessionShell(Generic[ResultT]):
         self.writer = writer
         self.out = out
         self.signals = SessionSignals()
+        self.resume_command = f"masking-lab resume {shlex.quote(str(writer.path))}"
 
     # -- what a subclass says ---------------------------------------------------------------
 
@@ -96,7 +129,6 @@ class SessionShell(Generic[ResultT]):
         outputs and logging a ``fault``; any other error is logged and re-raised. The device,
         the responder and the log are closed in every case.
         """
-        path = self.writer.path
         try:
             with self.signals:
                 body()
@@ -117,7 +149,7 @@ class SessionShell(Generic[ResultT]):
             message = (
                 f"device fault ({kind}) in {self._where_text()}: {exc}. "
                 f"{note[0].upper() + note[1:]}. Check the device and cable, then resume with: "
-                f"masking-lab resume {path}"
+                f"{self.resume_command}"
             )
             self.out.message(message)
             return self._result(EXIT_DEVICE_FAULT, message)
@@ -131,14 +163,14 @@ class SessionShell(Generic[ResultT]):
             self._fault("interrupted", f"interrupted by {name}; outputs zeroed")
             message = (
                 f"interrupted in {self._where_text()}; nothing logged is lost. "
-                f"Resume with: masking-lab resume {path}"
+                f"Resume with: {self.resume_command}"
             )
             self.out.message(message)
             return self._result(EXIT_INTERRUPTED, message)
         except MaskingLabError as exc:
             self._stop_device()
-            self._fault("error", str(exc))
-            self.out.message(f"stopped: {exc}. Fix it, then resume with: masking-lab resume {path}")
+            self._fault("log_write" if isinstance(exc, LogWriteError) else "error", str(exc))
+            self.out.message(f"stopped: {exc}. Fix it, then resume with: {self.resume_command}")
             raise
         except BaseException as exc:
             self._stop_device()
@@ -168,7 +200,7 @@ class SessionShell(Generic[ResultT]):
         )
         try:
             self.writer.append(record)
-        except (OSError, ValueError) as exc:  # the disk itself failed: say so, keep going down
+        except (OSError, ValueError, LogWriteError) as exc:  # the disk failed: say so, go on
             print(f"could not log the fault ({exc}): {message}", file=sys.stderr)
 
     def _stop_device(self) -> bool:
