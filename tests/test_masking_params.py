@@ -100,7 +100,7 @@ def test_writing_is_deterministic_and_rounds_floats(tmp_path):
 
 
 def test_non_finite_numbers_are_refused():
-    with pytest.raises((AnalysisError, ValueError)):
+    with pytest.raises(MaskingParamsError, match=r"adj_r2: must be a finite number"):
         masking_params_json(_doc(_entry(adj_r2=float("nan"))))
 
 

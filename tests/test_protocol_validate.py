@@ -12,6 +12,7 @@ import pytest
 from masking_lab.commands.cli import main
 from masking_lab.core.errors import ProtocolError
 from masking_lab.formats.protocol import load_protocol, parse_protocol
+from masking_lab.formats.resources import shipped
 
 ROOT = Path(__file__).resolve().parents[1]
 PAPER = sorted((ROOT / "protocols").glob("*.yaml"))
@@ -128,7 +129,10 @@ def test_malformed_protocol_is_named(case, tmp_path, capsys):
     path = tmp_path / f"{case}.yaml"
     path.write_text(GOOD.replace(old, new, 1), encoding="utf-8")
     rig = tmp_path / "rig.yaml"
-    rig.write_text("channels:\n  EV: {max_level_db_sl: 30}\n  MV: {max_level_db_sl: 40}\n")
+    # A whole rig config (validate checks it in full): the reference rig with MV at 40 dB SL.
+    reference = shipped("protocols", "devices/default.yaml").read_text(encoding="utf-8")
+    head, mv = reference.split("  MV:\n", 1)
+    rig.write_text(head + "  MV:\n" + mv.replace("max_level_db_sl: 30", "max_level_db_sl: 40", 1))
     assert main(["validate", "--device-config", str(rig), str(path)]) == 1
     err = capsys.readouterr().err
     assert str(path) in err

@@ -119,10 +119,10 @@ def test_defaults_fill_in(tmp_path):
     "old, new, where, message",
     [
         ("scene: demo\n", "", "(top level)", "'scene' is a required property"),
-        ("shape: hole", "shape: ridge", "geometry", "is not valid"),
+        ("shape: hole", "shape: ridge", "geometry.shape", "must be one of"),
         ("stimulus: MV270", "stimulus: EV270", "texture.stimulus", "texture is rendered by MV"),
         ("shape: hole,", "shape: hole, stimulus: MV180,", "geometry.stimulus", "rendered by EV"),
-        ("stimulus: MV270", "stimulus: vib270", "texture", "is not valid"),
+        ("stimulus: MV270", "stimulus: vib270", "texture.stimulus", "is not a stimulus name"),
         ("position_mm: 25", "position_mm: 80", "geometry.position_mm", "off the 50 mm path"),
         ("position_mm: 25", "position_mm: 25, perceived_db_sl: [10, 0]", "perceived", "lo < hi"),
         ("n_points: 101", "n_points: 1", "path.n_points", "must be ≥ 2, got 1"),

@@ -11,6 +11,7 @@ from params_support import masking_entry
 
 from masking_lab.commands.cli import main
 from masking_lab.formats.masking_params import write_masking_params
+from masking_lab.formats.resources import shipped
 
 DIRECT = ["--mv-masked-by-ev", "1.39,1.09", "--ev-masked-by-mv=-6.22,0.66"]
 
@@ -160,7 +161,11 @@ def test_params_file_with_one_mv_stimulus_needs_no_name(tmp_path, capsys):
 
 def test_device_config_supplies_the_rating(tmp_path, capsys):
     cfg = tmp_path / "rig.yaml"
-    cfg.write_text("channels:\n  MV: {max_level_db_sl: 20}\n  EV: {max_level_db_sl: 25}\n")
+    # A whole rig config (it is validated in full): the reference rig with MV 20, EV 25 dB SL.
+    reference = shipped("protocols", "devices/default.yaml").read_text(encoding="utf-8")
+    head, mv = reference.split("  MV:\n", 1)
+    head = head.replace("max_level_db_sl: 30", "max_level_db_sl: 25", 1)
+    cfg.write_text(head + "  MV:\n" + mv.replace("max_level_db_sl: 30", "max_level_db_sl: 20", 1))
     code, out = run_json(
         capsys, *DIRECT, "--mv-target", "12", "--ev-target", "0", "--device-config", str(cfg)
     )

@@ -379,9 +379,9 @@ def test_protocol_faults(tmp_path):
     p.write_text(good.replace("repeats: 5", "repeats: 0"))
     with pytest.raises(ProtocolError) as info:
         load_usertest(p)
-    assert info.value.where == "repeats" and "minimum of 1" in info.value.message
+    assert info.value.where == "repeats (line 14)" and "must be ≥ 1, got 0" in info.value.message
     p.write_text(good.replace("kind: usertest", "kind: masked"))
-    with pytest.raises(ProtocolError, match="'usertest' was expected"):
+    with pytest.raises(ProtocolError, match=r"kind \(line 5\): must be 'usertest', got 'masked'"):
         load_usertest(p)
     p.write_text(good.replace("[smooth, rough, coarse]", "[smooth, rough, silky]"))
     with pytest.raises(ProtocolError, match="no scene for geometry 'bump' with texture 'silky'"):

@@ -17,6 +17,7 @@ from typing import Any
 from masking_lab.core.errors import DeviceConfigError, ProtocolError
 from masking_lab.device.base import DeviceLimits
 from masking_lab.formats.protocol import _describe, _safe_yaml, _where
+from masking_lab.formats.reader import decode_utf8, excerpt, read_limited
 from masking_lab.formats.resources import shipped
 from masking_lab.formats.schemas import key_path, load_schema, schema_errors
 
@@ -267,13 +268,8 @@ def load_device_config(path: str | Path | None = None) -> DeviceConfig:
         ref = shipped("protocols", "devices/default.yaml")
         return parse_device_config(ref.read_text(encoding="utf-8"), DEFAULT_CONFIG)
     p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise DeviceConfigError(
-            str(p), "", f"cannot read the device config ({exc.strerror or exc}); check the path"
-        ) from exc
-    return parse_device_config(text, str(p))
+    raw = read_limited(p, what="device config", error=DeviceConfigError)
+    return parse_device_config(decode_utf8(raw, str(p), error=DeviceConfigError), str(p))
 
 
 def parse_device_config(text: str, source: str) -> DeviceConfig:
@@ -335,7 +331,10 @@ def _schema_problems(data: Any, lines: Mapping[str, int]) -> Iterator[tuple[str,
                         ),
                     )
                     continue
-                yield _where(child, lines), f"unknown key {key!r}; known keys: {', '.join(known)}"
+                yield (
+                    _where(child, lines),
+                    f"unknown key {excerpt(key)}; known keys: {', '.join(known)}",
+                )
             continue
         if err.validator == "required":
             missing = err.message.split("'")[1] if "'" in err.message else err.message
@@ -345,28 +344,29 @@ def _schema_problems(data: Any, lines: Mapping[str, int]) -> Iterator[tuple[str,
             yield (
                 _where(path, lines),
                 f"schema_version must be 1 (the device config format this version of "
-                f"masking-lab reads), got {err.instance!r}",
+                f"masking-lab reads), got {excerpt(err.instance)}",
             )
             continue
         if err.validator == "maximum" and path.endswith("max_drive_v"):
             yield (
                 _where(path, lines),
-                f"{err.instance!r} V is above {err.validator_value} V, the largest drive any "
-                "back-end can produce; lower it to what your amplifier input is rated for",
+                f"{excerpt(err.instance)} V is above {err.validator_value} V, the largest drive "
+                "any back-end can produce; lower it to what your amplifier input is rated for",
             )
             continue
         if path.endswith("attenuator.ratio") and err.validator in ("maximum", "exclusiveMinimum"):
             yield (
                 _where(path, lines),
-                f"ratio {err.instance!r} is not in (0, 1]: it is the volts at the amplifier input "
-                "per volt at the board output; a stage that amplifies belongs under amplifier",
+                f"ratio {excerpt(err.instance)} is not in (0, 1]: it is the volts at the amplifier "
+                "input per volt at the board output; a stage that amplifies belongs under "
+                "amplifier",
             )
             continue
         if err.validator == "pattern" and path.startswith("nidaq.channels"):
             yield (
                 _where(path, lines),
-                f"{err.instance!r} is not an analog output: write DEVICE/aoN as NI MAX names it, "
-                "e.g. cDAQ1Mod1/ao0",
+                f"{excerpt(err.instance)} is not an analog output: write DEVICE/aoN as NI MAX "
+                "names it, e.g. cDAQ1Mod1/ao0",
             )
             continue
         yield _where(path, lines), _describe(err, schema)
@@ -399,7 +399,8 @@ def _build(data: Mapping[str, Any], source: str, lines: Mapping[str, int]) -> De
             raise DeviceConfigError(
                 source,
                 _where("nidaq.channels", lines),
-                f"EV and MV are both wired to {ev!r}; give each channel its own analog output",
+                f"EV and MV are both wired to {excerpt(ev)}; give each channel its own analog "
+                "output",
             )
     display = DisplaySettings(**data["display"]) if data.get("display") else None
     return DeviceConfig(

@@ -39,6 +39,15 @@ _KEY = re.compile(r"^[a-z][a-z0-9_]*$")
 _VALUE = re.compile(r"^[!-~]+$")  # printable, no space
 _SEQ = re.compile(r"^(0|[1-9][0-9]{0,4})$")
 _HEX4 = re.compile(r"^[0-9A-F]{4}$")
+# Numbers on the wire are plain decimals (fmt_number); an exponent is tolerated, but not
+# "nan", "inf", "0x10" or "1_000", which Python's float() would take.
+_NUMBER = re.compile(r"^[-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][-+]?[0-9]{1,3})?$")
+_INTEGER = re.compile(r"^(0|[1-9][0-9]{0,9})$")
+
+#: HELLO ranges the host accepts (anything outside is a firmware bug or a foreign device).
+MAX_WATCHDOG_MS = 60_000
+MAX_LIMIT_V = 1000.0
+MAX_ONSETS = 16
 
 
 class FrameError(ValueError):
@@ -79,31 +88,204 @@ class Frame:
 
     def number(self, key: str) -> float:
         """Field ``key`` as a finite float; FrameError if missing or not a number."""
-        raw = self.fields.get(key)
-        if raw is None:
-            raise FrameError(f"{self.name} frame #{self.seq} lacks field {key!r}")
-        try:
-            value = float(raw)
-        except ValueError:
-            raise FrameError(f"{self.name} #{self.seq}: {key}={raw!r} is not a number") from None
-        if not math.isfinite(value):
-            raise FrameError(f"{self.name} #{self.seq}: {key}={raw!r} is not finite")
-        return value
+        return _to_number(self._raw(key), self, key)
 
     def numbers(self, key: str) -> list[float]:
         """Comma-separated field ``key`` as finite floats."""
+        return [_to_number(x, self, key, " list") for x in self._raw(key).split(",")]
+
+    def integer(self, key: str, lo: int = 0, hi: int = SEQ_MODULO - 1) -> int:
+        """Field ``key`` as a whole number in ``lo..hi`` (no sign, fraction or exponent)."""
+        raw = self._raw(key)
+        if not _INTEGER.match(raw) or not lo <= int(raw) <= hi:
+            raise FrameError(
+                f"{self.name} #{self.seq}: {key}={raw[:20]!r} is not a whole number in {lo}..{hi}"
+            )
+        return int(raw)
+
+    def _raw(self, key: str) -> str:
         raw = self.fields.get(key)
         if raw is None:
             raise FrameError(f"{self.name} frame #{self.seq} lacks field {key!r}")
-        try:
-            values = [float(x) for x in raw.split(",")]
-        except ValueError:
+        return raw
+
+
+def _to_number(raw: str, frame: Frame, key: str, what: str = "") -> float:
+    here = f"{frame.name} #{frame.seq}: {key}={raw[:20]!r}"
+    if raw.strip("+-").lower() in ("nan", "inf", "infinity"):
+        raise FrameError(f"{here} is not finite")
+    if not _NUMBER.match(raw):
+        raise FrameError(f"{here} is not a number{what}")
+    value = float(raw)
+    if not math.isfinite(value):
+        raise FrameError(f"{here} is not finite")
+    return value
+
+
+# --------------------------------------------------------------------------------------------
+# Typed frames: every field the host uses, validated into a value or a FrameError
+
+
+@dataclass(frozen=True)
+class Hello:
+    """The device's HELLO reply.
+
+    Attributes
+    ----------
+    version : int
+        Protocol version (whole number).
+    max_v : Mapping[str, float]
+        The firmware's own peak limits per channel (``"EV"``, ``"MV"``), V, in (0, 1000].
+    watchdog_ms : int
+        Watchdog period, ms (0: none; at most :data:`MAX_WATCHDOG_MS`).
+    virtual : bool
+        The device runs in virtual time (``vt=1``).
+    interlock_open : bool
+        The interlock input is open (``il=open``).
+    model, serial_number, firmware : str
+        Identity, as reported (``"unknown"``/``"n/a"`` when absent).
+    """
+
+    version: int
+    max_v: Mapping[str, float]
+    watchdog_ms: int
+    virtual: bool
+    interlock_open: bool
+    model: str
+    serial_number: str
+    firmware: str
+
+
+@dataclass(frozen=True)
+class Done:
+    """A ``DONE`` event: PLAY ``seq`` ended; onsets (device s) and amplitudes played (V)."""
+
+    seq: int
+    onsets_s: tuple[float, ...]
+    target_v: float
+    masker_v: float
+
+
+@dataclass(frozen=True)
+class Aborted:
+    """An ``ABORTED`` event: PLAY ``seq`` was cut short, ``why`` (a code word or ``"?"``)."""
+
+    seq: int
+    why: str
+
+
+def parse_hello(frame: Frame) -> Hello:
+    """Validate a HELLO reply into a :class:`Hello`.
+
+    Raises
+    ------
+    FrameError
+        A missing field, a fractional or negative version or watchdog period, a limit that is
+        not in (0, 1000] V, or ``vt``/``il`` values other than ``0``/``1`` and ``open``/``closed``.
+
+    Examples
+    --------
+    >>> f = decode(encode_ok(1, {"proto": 1, "max_ev": 5.0, "max_mv": 10.0, "wd_ms": 500}))
+    >>> parse_hello(f).watchdog_ms
+    500
+    """
+    version = frame.integer("proto", 0, 65535)
+    limits = {"EV": frame.number("max_ev"), "MV": frame.number("max_mv")}
+    for channel, value in limits.items():
+        if not 0 < value <= MAX_LIMIT_V:
             raise FrameError(
-                f"{self.name} #{self.seq}: {key}={raw!r} is not a number list"
-            ) from None
-        if not all(math.isfinite(v) for v in values):
-            raise FrameError(f"{self.name} #{self.seq}: {key}={raw!r} has a non-finite value")
-        return values
+                f"HELLO: max_{channel.lower()}={value:g} V: a limit must be > 0 V and ≤ 1000 V"
+            )
+    watchdog_ms = frame.integer("wd_ms", 0, MAX_WATCHDOG_MS)
+    vt = frame.fields.get("vt", "0")
+    il = frame.fields.get("il", "closed")
+    if vt not in ("0", "1"):
+        raise FrameError(f"HELLO: vt={vt[:20]!r} must be 0 or 1")
+    if il not in ("open", "closed"):
+        raise FrameError(f"HELLO: il={il[:20]!r} must be open or closed")
+    return Hello(
+        version=version,
+        max_v=limits,
+        watchdog_ms=watchdog_ms,
+        virtual=vt == "1",
+        interlock_open=il == "open",
+        model=frame.fields.get("model", "unknown"),
+        serial_number=frame.fields.get("sn", "n/a"),
+        firmware=frame.fields.get("fw", "unknown"),
+    )
+
+
+def parse_time(frame: Frame) -> float:
+    """The device clock of a TIME reply, s (finite, ≥ 0).
+
+    Examples
+    --------
+    >>> parse_time(decode(encode_ok(2, {"t": 1.25})))
+    1.25
+    """
+    t = frame.number("t")
+    if t < 0:
+        raise FrameError(f"TIME: t={t:g} s is negative")
+    return t
+
+
+def parse_done(frame: Frame) -> Done:
+    """Validate a DONE event into a :class:`Done`.
+
+    Examples
+    --------
+    >>> f = decode(encode_event(4, "DONE", {"seq": 12, "on": [1.0, 2.0, 3.0], "tamp": 0.5,
+    ...                                      "mamp": 0.0}))
+    >>> parse_done(f).onsets_s
+    (1.0, 2.0, 3.0)
+    """
+    seq = frame.integer("seq")
+    onsets = frame.numbers("on")
+    if not 1 <= len(onsets) <= MAX_ONSETS:
+        raise FrameError(f"DONE: {len(onsets)} onsets (expected 1..{MAX_ONSETS})")
+    target, masker = frame.number("tamp"), frame.number("mamp")
+    if target < 0 or masker < 0:
+        raise FrameError("DONE: a played amplitude is negative")
+    return Done(seq, tuple(onsets), target, masker)
+
+
+def parse_aborted(frame: Frame) -> Aborted:
+    """Validate an ABORTED event into an :class:`Aborted`.
+
+    Examples
+    --------
+    >>> parse_aborted(decode(encode_event(5, "ABORTED", {"seq": 3, "why": "STOP"}))).why
+    'STOP'
+    """
+    why = frame.fields.get("why", "?")
+    if why != "?" and not _WORD.match(why):
+        raise FrameError(f"ABORTED: why={why[:20]!r} is not a code word")
+    return Aborted(frame.integer("seq"), why)
+
+
+def check_event(frame: Frame) -> None:
+    """Validate the fields of any event the host acts on (unknown events pass: newer firmware).
+
+    Raises
+    ------
+    FrameError
+        For a DONE, ABORTED, WATCHDOG, FAULT or INTERLOCK event with a missing or malformed
+        field.
+
+    Examples
+    --------
+    >>> check_event(decode(encode_event(1, "WATCHDOG", {"quiet_ms": 510})))
+    """
+    if frame.name == "DONE":
+        parse_done(frame)
+    elif frame.name == "ABORTED":
+        parse_aborted(frame)
+    elif frame.name == "WATCHDOG" and "quiet_ms" in frame.fields:
+        frame.integer("quiet_ms", 0, 10**9)
+    elif frame.name == "FAULT" and not _WORD.match(frame.fields.get("code", "FRAME")):
+        raise FrameError("FAULT: code is not a code word")
+    elif frame.name == "INTERLOCK" and frame.fields.get("state") not in ("open", "closed"):
+        raise FrameError("INTERLOCK: state must be open or closed")
 
 
 def crc16(data: bytes) -> int:

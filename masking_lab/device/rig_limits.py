@@ -9,33 +9,24 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import yaml
-
-from masking_lab.core.errors import ProtocolError
-from masking_lab.formats.resources import shipped
+from masking_lab.device.config import load_device_config
 
 
 def max_level_db_sl(config_path: str | Path | None = None) -> dict[str, float]:
     """Return ``{"EV": dB SL, "MV": dB SL}`` limits from a device config (packaged default if None).
 
+    The config is read and validated in full (``device.config.load_device_config``), so a NaN,
+    infinite or mistyped limit is refused rather than letting every level through.
     Channels without ``max_level_db_sl`` are unlimited here (the drive limit still applies).
+
+    Raises
+    ------
+    DeviceConfigError
+        If the config is unreadable or invalid (a :class:`~masking_lab.core.errors.ProtocolError`).
+
+    Examples
+    --------
+    >>> sorted(max_level_db_sl())
+    ['EV', 'MV']
     """
-    if config_path is None:
-        ref = shipped("protocols", "devices/default.yaml")
-        if not ref.is_file():
-            return {}
-        text, source = ref.read_text(encoding="utf-8"), "protocols/devices/default.yaml"
-    else:
-        try:
-            text, source = Path(config_path).read_text(encoding="utf-8"), str(config_path)
-        except OSError as exc:
-            raise ProtocolError(str(config_path), "", f"cannot read ({exc.strerror})") from exc
-    try:
-        data = yaml.safe_load(text) or {}
-    except yaml.YAMLError as exc:
-        raise ProtocolError(source, "", f"malformed YAML: {exc}") from exc
-    out: dict[str, float] = {}
-    for channel, spec in (data.get("channels") or {}).items():
-        if isinstance(spec, dict) and spec.get("max_level_db_sl") is not None:
-            out[str(channel)] = float(spec["max_level_db_sl"])
-    return out
+    return dict(load_device_config(config_path).max_level_db_sl)

@@ -93,7 +93,7 @@ class SerialDevice:
         self._buf = bytearray()
         self._garbage_run = 0
         self._last_garbage = b""
-        self._done: dict[int, proto.Frame] = {}
+        self._done: dict[int, proto.Done] = {}
         self._aborted: dict[int, proto.Frame] = {}
         self._streams: dict[str, tuple[float, float | None]] = {}
         self._offset_s = 0.0
@@ -228,13 +228,13 @@ class SerialDevice:
         self._command("PLAY", fields)
         seq = self._seq
         done = self._wait_done(seq, plan, start_s)
-        onsets = [t - self._offset_s for t in done.numbers("on")]
+        onsets = [t - self._offset_s for t in done.onsets_s]
         if len(onsets) != plan.n_intervals:
             raise DeviceProtocolError(
                 f"device on {self.port} reported {len(onsets)} onsets for PLAY #{seq}, expected "
                 f"{plan.n_intervals}: firmware bug; stop and check the firmware version"
             )
-        played_t, played_m = done.number("tamp"), done.number("mamp")
+        played_t, played_m = done.target_v, done.masker_v
         if abs(played_t - plan.target_amplitude_v) > _AMP_TOLERANCE_V or (
             abs(played_m - (plan.masker_amplitude_v if masker else 0.0)) > _AMP_TOLERANCE_V
         ):
@@ -251,7 +251,7 @@ class SerialDevice:
             extra={"device_seq": seq, "garbage_lines": self.garbage_lines},
         )
 
-    def _wait_done(self, seq: int, plan: TrialPlan, start_s: float) -> proto.Frame:
+    def _wait_done(self, seq: int, plan: TrialPlan, start_s: float) -> proto.Done:
         """Wait for DONE of PLAY ``seq``, PINGing to keep the watchdog fed."""
         margin = self._settings.done_margin_s
         if self.clock.virtual:
@@ -284,8 +284,14 @@ class SerialDevice:
     def _open(self) -> serial.Serial:
         poll = min(0.02, self._settings.reply_timeout_s / 4)
         try:
+            # A write that blocks (a board that never reads fills the link's buffer) times
+            # out rather than hanging the host.
             return serial.Serial(
-                self.port, baudrate=self._settings.baud_rate, timeout=poll, exclusive=True
+                self.port,
+                baudrate=self._settings.baud_rate,
+                timeout=poll,
+                write_timeout=self._write_timeout_s,
+                exclusive=True,
             )
         except (serial.SerialException, OSError, ValueError) as exc:
             busy = "lock" in str(exc).lower()
@@ -304,7 +310,7 @@ class SerialDevice:
                 self._ser.reset_input_buffer()  # bytes left by a previous session are stale
             except (serial.SerialException, OSError) as exc:
                 raise self._disconnected("opening", exc) from exc
-            boot = max(s.boot_timeout_s, s.reply_timeout_s)
+            boot = max(s.boot_timeout_s, s.reply_timeout_s)  # the whole handshake's budget
             give_up = time.monotonic() + boot
             per_try = s.hello_retry_s if s.boot_timeout_s > 0 else s.reply_timeout_s
             sent: set[int] = set()
@@ -312,6 +318,8 @@ class SerialDevice:
             last_problem: DeviceError | None = None
             while hello is None:
                 try:
+                    left = max(0.01, give_up - time.monotonic())  # no write outlasts the budget
+                    self._set_write_timeout(min(self._write_timeout_s, left))
                     hello = self._command(
                         "HELLO",
                         timeout=min(per_try, max(0.01, give_up - time.monotonic())),
@@ -322,6 +330,7 @@ class SerialDevice:
                     last_problem = exc
                     if time.monotonic() >= give_up:
                         break
+            self._set_write_timeout(self._write_timeout_s)
             if hello is None:
                 if self._last_garbage:
                     raise DeviceProtocolError(
@@ -337,16 +346,12 @@ class SerialDevice:
                 ) from last_problem
         return self._identity_from(hello, backend)
 
-    def _identity_from(self, hello: proto.Frame, backend: str) -> DeviceIdentity:
+    def _identity_from(self, frame: proto.Frame, backend: str) -> DeviceIdentity:
         try:
-            version = int(hello.number("proto"))
-            fw_limits = {"EV": hello.number("max_ev"), "MV": hello.number("max_mv")}
-            wd_ms = hello.number("wd_ms")
-            virtual = hello.fields.get("vt", "0") == "1"
+            hello = proto.parse_hello(frame)
         except proto.FrameError as exc:
-            raise DeviceProtocolError(
-                f"device on {self.port} gave an incomplete HELLO ({exc}): update its firmware"
-            ) from exc
+            raise serial_faults.malformed_error(self.port, "HELLO", exc) from exc
+        version, fw_limits, virtual = hello.version, dict(hello.max_v), hello.virtual
         if version != proto.PROTOCOL_VERSION:
             raise DeviceProtocolError(
                 f"device on {self.port} speaks protocol version {version}; this host speaks "
@@ -364,15 +369,15 @@ class SerialDevice:
                 f"{'without' if virtual else 'with'} --virtual-time, or switch the session clock",
                 device_virtual=virtual,
             )
-        if hello.fields.get("il") == "open":
+        if hello.interlock_open:
             raise serial_faults.interlock_error(self.port, "at HELLO (session not started)")
-        self.watchdog_s = wd_ms / 1000.0
+        self.watchdog_s = hello.watchdog_ms / 1000.0
         limits = safety.stricter_limits(self.config.limits, DeviceLimits(fw_limits))
         return DeviceIdentity(
             backend=backend,
-            model=hello.fields.get("model", "unknown"),
-            serial_number=hello.fields.get("sn", "n/a"),
-            firmware_version=hello.fields.get("fw", "unknown"),
+            model=hello.model,
+            serial_number=hello.serial_number,
+            firmware_version=hello.firmware,
             port=self.port,
             limits=limits,
         )
@@ -385,8 +390,12 @@ class SerialDevice:
             t0 = self.clock.now()
             frame = self._command("TIME")
             t1 = self.clock.now()
+            try:
+                device_t = proto.parse_time(frame)
+            except proto.FrameError as exc:
+                raise serial_faults.malformed_error(self.port, "TIME reply", exc) from exc
             if t1 - t0 < best_rtt:
-                best_rtt, best_offset = t1 - t0, frame.number("t") - (t0 + t1) / 2
+                best_rtt, best_offset = t1 - t0, device_t - (t0 + t1) / 2
         # A slow round trip (scheduler hiccup) gives a poor estimate: keep the previous one.
         if best_rtt <= 2 * self._sync_rtt_s + 0.0005 or not math.isfinite(self._sync_rtt_s):
             self._offset_s = best_offset
@@ -433,11 +442,12 @@ class SerialDevice:
         if frame.kind == "reply":
             self.stale_replies += 1
             return
-        if frame.name == "DONE":
-            self._done[int(frame.number("seq"))] = frame
+        if frame.name == "DONE":  # fields validated in _read_frame (proto.check_event)
+            done = proto.parse_done(frame)
+            self._done[done.seq] = done
             return
         if frame.name == "ABORTED":
-            self._aborted[int(frame.number("seq"))] = frame
+            self._aborted[proto.parse_aborted(frame).seq] = frame
             return
         if events == "ignore":
             return
@@ -482,6 +492,14 @@ class SerialDevice:
                 self._garbage(line, str(exc), what)
                 continue
             self._garbage_run = 0
+            if frame.kind == "event":
+                try:
+                    proto.check_event(frame)
+                except proto.FrameError as exc:
+                    # A valid checksum around a malformed field is not line noise: the
+                    # firmware is wrong, so the session stops with a device fault.
+                    what = f"{frame.name} event (waiting for {what})"
+                    raise serial_faults.malformed_error(self.port, what, exc) from exc
             return frame
 
     def _garbage(self, line: bytes, why: str, what: str) -> None:
@@ -516,9 +534,20 @@ class SerialDevice:
                 raise self._disconnected("reading", exc) from exc
             self._buf += chunk
 
+    @property
+    def _write_timeout_s(self) -> float:
+        """Longest a write may block, s (the reply timeout: a device reads what it answers)."""
+        return max(0.05, self._settings.reply_timeout_s)
+
+    def _set_write_timeout(self, seconds: float) -> None:
+        if self._ser.write_timeout != seconds:
+            self._ser.write_timeout = seconds
+
     def _write(self, data: bytes) -> None:
         try:
             self._ser.write(data)
+        except serial.SerialTimeoutException as exc:
+            raise serial_faults.write_timeout_error(self.port, self._ser.write_timeout) from exc
         except (serial.SerialException, OSError, TypeError) as exc:
             raise self._disconnected("writing", exc) from exc
 

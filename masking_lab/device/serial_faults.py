@@ -8,7 +8,13 @@ with a message that names the port and says what to check. The ``kind`` attribut
 
 from __future__ import annotations
 
-from masking_lab.core.errors import DeviceError, DeviceFaultError, SafetyLimitError
+from masking_lab.core.errors import (
+    DeviceError,
+    DeviceFaultError,
+    DeviceProtocolError,
+    DeviceTimeoutError,
+    SafetyLimitError,
+)
 from masking_lab.device import protocol as proto
 
 RESUME_HINT = "then `masking-lab resume LOG` to continue the session"
@@ -102,3 +108,33 @@ def refusal_error(port: str, name: str, frame: proto.Frame) -> DeviceError:
     if frame.code == "INTERLOCK":
         return interlock_error(port, f"(it refused {name} #{frame.seq})")
     return DeviceError(f"{text}; both outputs were zeroed")
+
+
+def malformed_error(port: str, what: str, exc: Exception) -> DeviceProtocolError:
+    """A frame with a valid checksum but a missing, malformed or out-of-range field.
+
+    Examples
+    --------
+    >>> str(malformed_error("/dev/ttyACM0", "TIME reply", ValueError("lacks field 't'")))[:44]
+    'device on /dev/ttyACM0 sent a malformed TIME'
+    """
+    return DeviceProtocolError(
+        f"device on {port} sent a malformed {what} (an incomplete {what} or a field out of "
+        f"range: {exc}): its firmware does not follow "
+        f"docs/device-protocol.md; update it, {RESUME_HINT}"
+    )
+
+
+def write_timeout_error(port: str, seconds: float | None) -> DeviceTimeoutError:
+    """A write that stayed blocked ``seconds`` s: the board does not read the link.
+
+    Examples
+    --------
+    >>> "does not read" in str(write_timeout_error("/dev/pts/3", 0.5))
+    True
+    """
+    return DeviceTimeoutError(
+        f"device on {port} does not read what the host sends (a write blocked for "
+        f"{seconds or 0:.2g} s): check that the board runs masking-lab firmware and is not "
+        f"stuck; {RESUME_HINT}"
+    )

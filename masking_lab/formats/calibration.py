@@ -19,7 +19,8 @@ from typing import Any
 from masking_lab.core.errors import CalibrationError
 from masking_lab.core.stimulus import is_stimulus_name
 from masking_lab.formats.fileio import write_text_atomic
-from masking_lab.formats.schemas import key_path, schema_errors
+from masking_lab.formats.reader import excerpt, load_document, where
+from masking_lab.formats.schemas import describe, key_path, most_relevant, schema_errors
 
 FILENAME = "calibration.json"
 
@@ -103,7 +104,9 @@ def with_al(
     return replace(calibration, unmasked_al_db_v=als, sources=sources, updated_utc=updated_utc)
 
 
-def parse_calibration(data: Any, source: str) -> Calibration:
+def parse_calibration(
+    data: Any, source: str, lines: Mapping[str, int] | None = None
+) -> Calibration:
     """Build a :class:`Calibration` from the parsed JSON of ``source``.
 
     Raises
@@ -113,10 +116,10 @@ def parse_calibration(data: Any, source: str) -> Calibration:
     """
     errors = schema_errors(data, "calibration")
     if errors:
-        first = errors[0]
+        first = most_relevant(errors)
         raise CalibrationError(
-            f"{source}: {key_path(first)}: {first.message}; fix the file or delete it and re-run "
-            "the baseline protocol for this participant"
+            f"{source}: {where(key_path(first), lines or {})}: {describe(first)}; fix the file or "
+            "delete it and re-run the baseline protocol for this participant"
         )
     return Calibration(
         participant=data["participant"],
@@ -134,19 +137,16 @@ def read_calibration(path: str | Path) -> Calibration:
     CalibrationError
         If the file cannot be read, is not JSON or breaks the schema.
     """
-    p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise CalibrationError(f"{p}: cannot read the calibration ({exc.strerror or exc})") from exc
-    try:
-        data = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise CalibrationError(
-            f"{p}: line {exc.lineno}: not valid JSON ({exc.msg}); fix the file or delete it and "
-            "re-run the baseline protocol for this participant"
-        ) from exc
-    return parse_calibration(data, str(p))
+    doc = load_document(path, what="calibration", fmt="json", error=_calibration_error)
+    return parse_calibration(doc.data, doc.source, doc.lines)
+
+
+def _calibration_error(file: str, where: str, message: str) -> CalibrationError:
+    head = f"{file}: {where}: " if where else f"{file}: "
+    return CalibrationError(
+        f"{head}{message}; fix the file or delete it and re-run the baseline protocol for this "
+        "participant"
+    )
 
 
 def load_calibration(data_dir: str | Path, participant: str) -> Calibration:
@@ -163,7 +163,7 @@ def load_calibration(data_dir: str | Path, participant: str) -> Calibration:
     cal = read_calibration(path)
     if cal.participant != participant:
         raise CalibrationError(
-            f"{path}: participant is {cal.participant!r} but the folder is {participant!r}; "
+            f"{path}: participant is {excerpt(cal.participant)} but the folder is {participant!r}; "
             "the file was copied from another participant — move it back or delete it"
         )
     return cal

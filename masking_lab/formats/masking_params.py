@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -18,7 +19,8 @@ from typing import Any
 from masking_lab.core.errors import AnalysisError, ProtocolError
 from masking_lab.core.masking import MaskingFunction
 from masking_lab.formats.fileio import write_text_atomic
-from masking_lab.formats.schemas import key_path, schema_errors
+from masking_lab.formats.reader import load_document, where
+from masking_lab.formats.schemas import describe, key_path, most_relevant, schema_errors
 
 SCHEMA = "masking_params"
 
@@ -102,7 +104,9 @@ class MaskingParamsEntry:
         return MaskingFunction(self.target, self.masker, self.intercept_db, self.slope)
 
 
-def validate_masking_params(doc: Any, source: str = "masking_params.json") -> None:
+def validate_masking_params(
+    doc: Any, source: str = "masking_params.json", lines: Mapping[str, int] | None = None
+) -> None:
     """Check a parsed document against the schema and the one-entry-per-pair rule.
 
     Raises
@@ -112,12 +116,12 @@ def validate_masking_params(doc: Any, source: str = "masking_params.json") -> No
     """
     errors = schema_errors(doc, SCHEMA)
     if errors:
-        err = errors[0]
+        err = most_relevant(errors)
         more = f" (and {len(errors) - 1} more problems)" if len(errors) > 1 else ""
         raise MaskingParamsError(
             source,
-            key_path(err),
-            f"{err.message}{more}; regenerate the file with `masking-lab analyze` or "
+            where(key_path(err), lines or {}),
+            f"{describe(err)}{more}; regenerate the file with `masking-lab analyze` or "
             "`masking-lab fit`",
         )
     seen: dict[tuple[str, str], int] = {}
@@ -157,21 +161,9 @@ def read_masking_params(path: str | Path) -> dict[str, Any]:
     MaskingParamsError
         If the file cannot be read, is not JSON, or breaks the schema.
     """
-    p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise MaskingParamsError(
-            str(p), "", f"cannot read the file ({exc.strerror or exc})"
-        ) from exc
-    try:
-        doc = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise MaskingParamsError(
-            str(p), f"line {exc.lineno}", f"not valid JSON ({exc.msg}); is the file truncated?"
-        ) from exc
-    validate_masking_params(doc, str(p))
-    return doc
+    doc = load_document(path, what="file", fmt="json", error=MaskingParamsError)
+    validate_masking_params(doc.data, doc.source, doc.lines)
+    return doc.data
 
 
 def load_masking_params(path: str | Path) -> dict[tuple[str, str], MaskingParamsEntry]:

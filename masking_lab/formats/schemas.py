@@ -7,6 +7,7 @@ The schemas are installed as the package ``masking_lab.data_schema`` so that a p
 from __future__ import annotations
 
 import json
+import math
 from functools import cache
 from typing import Any
 
@@ -28,11 +29,77 @@ def load_schema(name: str) -> dict[str, Any]:
     return json.loads(text)
 
 
+def _finite_number(checker: Any, instance: Any) -> bool:
+    # NaN passes every JSON Schema bound (each comparison with it is false) and inf passes
+    # "minimum": a number in our files is always meant to be finite.
+    if isinstance(instance, bool) or not isinstance(instance, int | float):
+        return False
+    return math.isfinite(instance) if isinstance(instance, float) else abs(instance) <= 1e308
+
+
+def _finite_integer(checker: Any, instance: Any) -> bool:
+    if isinstance(instance, float):
+        return math.isfinite(instance) and instance.is_integer()
+    return _finite_number(checker, instance)
+
+
+@cache
+def _validator(name: str) -> Any:
+    schema = load_schema(name)
+    base = jsonschema.validators.validator_for(schema)
+    types = base.TYPE_CHECKER.redefine_many({"number": _finite_number, "integer": _finite_integer})
+    cls = jsonschema.validators.extend(base, type_checker=types)
+    return cls(schema, format_checker=jsonschema.FormatChecker())
+
+
 def schema_errors(instance: Any, name: str) -> list[jsonschema.ValidationError]:
-    """All validation errors of ``instance`` against schema ``name``, in document order."""
-    validator_cls = jsonschema.validators.validator_for(load_schema(name))
-    validator = validator_cls(load_schema(name), format_checker=jsonschema.FormatChecker())
-    return sorted(validator.iter_errors(instance), key=lambda e: [str(p) for p in e.absolute_path])
+    """All validation errors of ``instance`` against schema ``name``, in document order.
+
+    ``number`` and ``integer`` mean *finite* numbers here: NaN, ±inf and integers beyond
+    float range (about 1.8e308) fail the ``type`` check, whatever bounds the schema states.
+
+    Examples
+    --------
+    >>> cal = {"participant": "P1", "sources": [], "unmasked_al_db_v": {"EV270": float("nan")}}
+    >>> [e.validator for e in schema_errors(cal, "calibration")]
+    ['type']
+    """
+    return sorted(
+        _validator(name).iter_errors(instance), key=lambda e: [str(p) for p in e.absolute_path]
+    )
+
+
+def most_relevant(errors: list[jsonschema.ValidationError]) -> jsonschema.ValidationError:
+    """The error to report first: for ``oneOf``/``anyOf`` the failing branch's own error (its
+    key path and a short message), not the whole-instance "not valid under any" message.
+
+    Examples
+    --------
+    >>> cal = {"participant": "P1", "sources": [], "unmasked_al_db_v": {"EV270": "x"}}
+    >>> key_path(most_relevant(schema_errors(cal, "calibration")))
+    'unmasked_al_db_v.EV270'
+    """
+    return jsonschema.exceptions.best_match(errors) or errors[0]
+
+
+def describe_type_error(error: jsonschema.ValidationError) -> str | None:
+    """``"must be a finite number, got nan"`` for a non-finite number failing ``type``, else None.
+
+    Examples
+    --------
+    >>> cal = {"participant": "P1", "sources": [], "unmasked_al_db_v": {"EV270": float("inf")}}
+    >>> err = schema_errors(cal, "calibration")[0]
+    >>> describe_type_error(err)
+    'must be a finite number, got inf'
+    """
+    inst = error.instance
+    if error.validator != "type" or isinstance(inst, bool):
+        return None
+    if isinstance(inst, float) and not math.isfinite(inst):
+        return f"must be a finite number, got {inst!r}"
+    if isinstance(inst, int) and abs(inst) > 1e308:
+        return f"must be a finite number, got a {len(str(inst))}-digit integer"
+    return None
 
 
 def key_path(error: jsonschema.ValidationError) -> str:
@@ -41,3 +108,37 @@ def key_path(error: jsonschema.ValidationError) -> str:
     for part in error.absolute_path:
         out += f"[{part}]" if isinstance(part, int) else (f".{part}" if out else str(part))
     return out or "(top level)"
+
+
+def describe(error: jsonschema.ValidationError) -> str:
+    """A short message for a schema error, quoting at most a sanitised excerpt of the input.
+
+    Examples
+    --------
+    >>> cal = {"participant": "P1", "sources": [], "unmasked_al_db_v": {"EV270": "x" * 500}}
+    >>> describe(schema_errors(cal, "calibration")[0])
+    "must be of type number, got str 'xxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxx…"
+    """
+    from masking_lab.formats.reader import excerpt
+
+    finite = describe_type_error(error)
+    if finite is not None:
+        return finite
+    v, inst, want = error.validator, error.instance, error.validator_value
+    if v == "type":
+        want = " or ".join(want) if isinstance(want, list) else want
+        return f"must be of type {want}, got {type(inst).__name__} {excerpt(inst)}"
+    if v in ("minimum", "exclusiveMinimum", "maximum", "exclusiveMaximum"):
+        op = {"minimum": "≥", "exclusiveMinimum": ">", "maximum": "≤", "exclusiveMaximum": "<"}
+        return f"must be {op[v]} {want}, got {excerpt(inst)}"
+    if v in ("enum", "const"):
+        return f"must be {'one of ' if v == 'enum' else ''}{want!r}, got {excerpt(inst)}"
+    if v == "pattern":
+        return f"{excerpt(inst)} does not match the pattern {want}"
+    if v == "additionalProperties" and isinstance(inst, dict):
+        known = set(error.schema.get("properties", {}))
+        extra = [excerpt(k) for k in inst if k not in known][:3]
+        return f"unknown key(s) {', '.join(extra)}; known keys: {', '.join(sorted(known))}"
+    if v == "required":
+        return f"{error.message}: add it"
+    return excerpt(error.message, 160)

@@ -17,10 +17,15 @@ import pandas as pd
 
 from masking_lab.core.errors import AnalysisError
 from masking_lab.core.stimulus import is_stimulus_name, parse_stimulus
+from masking_lab.formats.reader import decode_utf8, excerpt, read_limited
 
 __all__ = ["OPTIONAL_COLUMNS", "REQUIRED_COLUMNS", "read_shifts_csv"]
 
 REQUIRED_COLUMNS = ("target", "masker", "masker_level_db_sl", "shift_db")
+#: Largest magnitude of a level, shift (dB) or frequency (Hz) accepted in a row.
+MAX_ABS_VALUE = 10_000.0
+#: Largest shifts CSV accepted, bytes (a paper-sized study is a few kB).
+MAX_CSV_BYTES = 16 * 1024 * 1024
 OPTIONAL_COLUMNS = ("participant", "masker_frequency_hz", "mv_frequency_hz", "experiment")
 
 
@@ -58,10 +63,8 @@ def read_shifts_csv(path: str | Path) -> tuple[pd.DataFrame, bool]:
     False
     """
     p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8-sig")
-    except OSError as exc:
-        raise AnalysisError(f"{p}: cannot read the file ({exc.strerror or exc})") from exc
+    raw = read_limited(p, what="file", error=_error, max_bytes=MAX_CSV_BYTES)
+    text = decode_utf8(raw, str(p), error=_error)
     lines = [
         (n, line)
         for n, line in enumerate(text.splitlines(), start=1)
@@ -69,8 +72,8 @@ def read_shifts_csv(path: str | Path) -> tuple[pd.DataFrame, bool]:
     ]
     if not lines:
         raise AnalysisError(f"{p}: the file is empty; expected a header line and shift rows")
-    reader = csv.reader([line for _, line in lines])
-    header = [h.strip() for h in next(reader)]
+    rows = [_split(p, n, line) for n, line in lines]
+    header = [h.strip() for h in rows[0]]
     missing = [c for c in REQUIRED_COLUMNS if c not in header]
     if missing:
         raise AnalysisError(
@@ -79,14 +82,15 @@ def read_shifts_csv(path: str | Path) -> tuple[pd.DataFrame, bool]:
         )
     unknown = [c for c in header if c not in REQUIRED_COLUMNS + OPTIONAL_COLUMNS]
     if unknown:
+        shown = ", ".join(ascii(c)[1:-1][:40] for c in unknown[:5])  # escaped, unquoted
         raise AnalysisError(
-            f"{p}: line {lines[0][0]}: unknown column(s) {', '.join(unknown)}; allowed: "
+            f"{p}: line {lines[0][0]}: unknown column(s) {shown}; allowed: "
             f"{', '.join(REQUIRED_COLUMNS + OPTIONAL_COLUMNS)}"
         )
     has_participants = "participant" in header
     records = []
     seen: dict[tuple, int] = {}
-    for (lineno, _), values in zip(lines[1:], reader, strict=True):
+    for (lineno, _), values in zip(lines[1:], rows[1:], strict=True):
         if len(values) != len(header):
             raise AnalysisError(
                 f"{p}: line {lineno}: {len(values)} fields, expected {len(header)} "
@@ -116,13 +120,31 @@ def read_shifts_csv(path: str | Path) -> tuple[pd.DataFrame, bool]:
     return pd.DataFrame(records), has_participants
 
 
+def _error(file: str, where: str, message: str) -> AnalysisError:
+    return AnalysisError(f"{file}: {where}: {message}" if where else f"{file}: {message}")
+
+
+def _split(p: Path, lineno: int, line: str) -> list[str]:
+    """One CSV line's fields (a quoted field never spans lines in this format)."""
+    try:
+        fields = next(csv.reader([line], strict=True))
+    except (csv.Error, StopIteration) as exc:
+        raise AnalysisError(
+            f"{p}: line {lineno}: not a CSV row ({excerpt(str(exc), 80)}); check its quotes"
+        ) from None
+    if any(len(f) > 200 for f in fields):
+        raise AnalysisError(f"{p}: line {lineno}: a field is longer than 200 characters")
+    return fields
+
+
 def _shift_record(p: Path, lineno: int, row: Mapping[str, str], has_participants: bool) -> dict:
     where = f"{p}: line {lineno}"
     names = {}
     for col in ("target", "masker"):
         if not is_stimulus_name(row[col]):
             raise AnalysisError(
-                f"{where}: {col} {row[col]!r} is not a stimulus name; write e.g. EV270 or MV120"
+                f"{where}: {col} {excerpt(row[col])} is not a stimulus name; write e.g. EV270 "
+                "or MV120"
             )
         names[col] = parse_stimulus(row[col])
     target, masker = names["target"], names["masker"]
@@ -133,9 +155,14 @@ def _shift_record(p: Path, lineno: int, row: Mapping[str, str], has_participants
         try:
             numbers[col] = float(row[col])
         except ValueError:
-            raise AnalysisError(f"{where}: {col} {row[col]!r} is not a number") from None
+            raise AnalysisError(f"{where}: {col} {excerpt(row[col])} is not a number") from None
         if not math.isfinite(numbers[col]):
-            raise AnalysisError(f"{where}: {col} must be a finite number, got {row[col]!r}")
+            raise AnalysisError(f"{where}: {col} must be a finite number, got {excerpt(row[col])}")
+        if abs(numbers[col]) > MAX_ABS_VALUE:
+            # A level or shift of 1e308 dB is no measurement, and it overflows the fits.
+            raise AnalysisError(
+                f"{where}: {col} {excerpt(row[col])} is outside ±{MAX_ABS_VALUE:g}; check the value"
+            )
     mv = masker if masker.channel == "MV" or target.channel != "MV" else target
     if "masker_frequency_hz" in numbers and numbers["masker_frequency_hz"] != masker.carrier_hz:
         raise AnalysisError(

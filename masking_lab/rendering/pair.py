@@ -19,7 +19,12 @@ import numpy as np
 
 from masking_lab.core.errors import SolverError
 from masking_lab.core.masking import MaskingFunction
-from masking_lab.rendering.ramp_inverse import PointSolution, point_answer
+from masking_lab.rendering.ramp_inverse import (
+    MAX_INTERCEPT_DB,
+    MAX_SLOPE,
+    PointSolution,
+    point_answer,
+)
 
 __all__ = ["MissingMaskingError", "MutualMasking", "PairProblem", "pair_from_params"]
 
@@ -72,7 +77,20 @@ class MutualMasking:
                     "masking functions"
                 )
             object.__setattr__(self, name, float(value))
+        for name in ("a_db", "c_db"):
+            if abs(getattr(self, name)) > MAX_INTERCEPT_DB:
+                raise SolverError(
+                    f"masking intercept {name} is {getattr(self, name)!r} dB: the solver works on "
+                    f"intercepts within ±{MAX_INTERCEPT_DB:g} dB (the paper's are within ±8 dB). "
+                    "Check the fit"
+                )
         for name, what in (("b", f"{self.mv} by {self.ev}"), ("d", f"{self.ev} by {self.mv}")):
+            if getattr(self, name) > MAX_SLOPE:
+                raise SolverError(
+                    f"masking slope {name} ({what}) is {getattr(self, name)!r}: the solver works "
+                    f"on slopes up to {MAX_SLOPE:g} dB/dB (the paper's are 0.6–1.1); beyond it "
+                    "float arithmetic cannot give a trustworthy answer. Check the fit"
+                )
             if getattr(self, name) < 0:
                 raise SolverError(
                     f"masking slope {name} ({what}) is {getattr(self, name)!r}: a masking ramp "

@@ -44,6 +44,15 @@ same on arrays with numpy. Pure: no I/O.
 
 Silence is ``-inf`` dB SL: a target of ``-inf`` for a channel means that channel is off and is
 answered with an input of ``-inf``. NaN and ``+inf`` targets have no answer (status ``none``).
+
+Documented range. Floats carry about 16 significant digits, so where a target, an intercept and
+a slope-times-level differ by many orders of magnitude the small one is absorbed and no float
+pair is perceived as the target (a slope of 1e300 once gave such a wrong "unique" answer). The
+solver therefore works on slopes 0 ≤ b, d ≤ :data:`MAX_SLOPE` dB/dB, intercepts
+``|a|, |c| ≤`` :data:`MAX_INTERCEPT_DB` dB (refused in :class:`~masking_lab.rendering.pair.
+MutualMasking`) and finite targets ``|m_p|, |e_p| ≤`` :data:`MAX_TARGET_DB_SL` dB SL (answered
+``none``, reason ``OVERFLOW``): a thousand times the paper's ranges, and inside it every answer
+checks against the forward model to rounding (``tests/test_hardening_solver.py``).
 """
 
 from __future__ import annotations
@@ -65,6 +74,13 @@ __all__ = [
     "point_answer",
     "tiled_cases",
 ]
+
+#: Largest masking slope b or d the solver accepts, dB of AL shift per dB SL (paper: 0.6–1.1).
+MAX_SLOPE = 100.0
+#: Largest intercept magnitude |a| or |c| the solver accepts, dB (paper: within ±8 dB).
+MAX_INTERCEPT_DB = 1000.0
+#: Largest finite target magnitude solved, dB SL (a touch screen presents at most ~40 dB SL).
+MAX_TARGET_DB_SL = 1e6
 
 
 class Status(IntEnum):
@@ -92,7 +108,8 @@ REASON_TEXT = {
     Reason.INFINITE_TARGET: "a +inf dB SL target needs an infinite input",
     Reason.UNREACHABLE: "no input pair is perceived this way (b·d ≥ 1: outside the reachable "
     "region)",
-    Reason.OVERFLOW: "the required input is beyond the float range",
+    Reason.OVERFLOW: "outside the solver's range: a target beyond ±1e6 dB SL, or a required "
+    "input beyond the float range",
 }
 
 _EPS = np.finfo(float).eps
@@ -169,6 +186,10 @@ def point_answer(mm: RampPair, m_p: float, e_p: float) -> PointSolution:
         return _NO_NAN
     if m_p == math.inf or e_p == math.inf:
         return _NO_INF
+    if max(abs(m_p) if m_p > -math.inf else 0.0, abs(e_p) if e_p > -math.inf else 0.0) > (
+        MAX_TARGET_DB_SL
+    ):
+        return _NO_OVERFLOW
     b, d = mm.b, mm.d
     u = mm.a_db + b * e_p if b else mm.a_db
     v = mm.c_db + d * m_p if d else mm.c_db
@@ -331,7 +352,8 @@ def folded_cases(mm, m_p, e_p, u, v, n1, n2):  # type: ignore[no-untyped-def]
         if mm.b:
             terms = terms + np.where(np.isfinite(e_p), mm.b * np.abs(e_p), 0.0)
             terms = terms + np.where(np.isfinite(m_p), mm.b * mm.d * np.abs(m_p), 0.0)
-        continuum = np.abs(n1) <= 16.0 * _EPS * terms
+        # asarray: for 0-d targets the comparison is a numpy scalar, which cannot be updated.
+        continuum = np.asarray(np.abs(n1) <= 16.0 * _EPS * terms)
         f0 = np.maximum(0.0, -v / mm.d)
         ok[..., 3] = continuum
         f[..., 3] = f0

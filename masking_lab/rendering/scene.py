@@ -42,8 +42,8 @@ from numpy.typing import ArrayLike, NDArray
 
 from masking_lab.core.errors import ProtocolError
 from masking_lab.core.stimulus import parse_stimulus
-from masking_lab.formats.protocol import _safe_yaml as safe_yaml
-from masking_lab.formats.schemas import key_path, schema_errors
+from masking_lab.formats.reader import decode_utf8, excerpt, parse_yaml, read_limited, where
+from masking_lab.formats.schemas import describe_type_error, key_path, most_relevant, schema_errors
 
 __all__ = [
     "SHAPES",
@@ -247,11 +247,7 @@ def load_scene(path: str | Path) -> Scene:
         Naming the file and key path (and line, for malformed YAML) and what to change.
     """
     p = Path(path)
-    try:
-        raw = p.read_bytes()
-    except OSError as exc:
-        raise ProtocolError(str(p), "", f"cannot read the scene ({exc.strerror or exc})") from exc
-    return parse_scene_text(raw, str(p))
+    return parse_scene_text(read_limited(p, what="scene"), str(p))
 
 
 def parse_scene_text(raw: bytes | str, source: str = "<memory>") -> Scene:
@@ -270,11 +266,13 @@ def parse_scene_text(raw: bytes | str, source: str = "<memory>") -> Scene:
         Malformed YAML (with its line), a duplicated key, or what :func:`parse_scene` refuses.
     """
     data_bytes = raw.encode("utf-8") if isinstance(raw, str) else raw
-    data, _lines = safe_yaml(data_bytes.decode("utf-8", errors="replace"), source)
-    return parse_scene(data, source, sha256=hashlib.sha256(data_bytes).hexdigest())
+    data, lines = parse_yaml(decode_utf8(data_bytes, source), source)
+    return parse_scene(data, source, sha256=hashlib.sha256(data_bytes).hexdigest(), lines=lines)
 
 
-def parse_scene(data: Any, source: str = "<memory>", sha256: str = "") -> Scene:
+def parse_scene(
+    data: Any, source: str = "<memory>", sha256: str = "", lines: Mapping[str, int] | None = None
+) -> Scene:
     """Validate an already parsed scene mapping against the schema and build a :class:`Scene`.
 
     Pure: no file, no YAML.
@@ -287,19 +285,21 @@ def parse_scene(data: Any, source: str = "<memory>", sha256: str = "") -> Scene:
         Names the data in messages and on the :class:`Scene`.
     sha256 : str
         Hash of the bytes the content came from ("" when built in memory).
+    lines : mapping of key path → line, optional
+        Where each key stands in the source file, for messages.
 
     Raises
     ------
     ProtocolError
-        Naming ``source``, the key path and what to change.
+        Naming ``source``, the key path (and line) and what to change.
     """
     if not isinstance(data, Mapping):
         raise ProtocolError(source, "(top level)", "a scene is a YAML mapping of keys to values")
     errors = schema_errors(data, "scene")
     if errors:
-        err = errors[0]
+        err = most_relevant(errors)
         more = f" (and {len(errors) - 1} more problem(s))" if len(errors) > 1 else ""
-        raise ProtocolError(source, key_path(err), f"{_describe(err)}{more}")
+        raise ProtocolError(source, where(key_path(err), lines or {}), f"{_describe(err)}{more}")
     path = PathSpec(**data.get("path", {}))
     if path.n_points < 2:
         raise ProtocolError(source, "path.n_points", "needs at least 2 points")
@@ -350,21 +350,24 @@ def _check_channel(name: str, channel: str, source: str, where: str) -> None:
 
 def _describe(err: Any) -> str:
     v, inst = err.validator, err.instance
+    finite = describe_type_error(err)
+    if finite is not None:
+        return finite
     if v == "additionalProperties":
         known = ", ".join(err.schema.get("properties", {}))
         return f"{err.message}; known keys: {known}"
     if v == "required":
         return f"{err.message}: add it"
     if v == "enum":
-        return f"must be one of {err.validator_value}, got {inst!r}"
+        return f"must be one of {err.validator_value}, got {excerpt(inst)}"
     if v == "pattern":
         return (
-            f"{inst!r} is not a stimulus name: write <EV|MV><carrier Hz>[am<envelope Hz>], "
+            f"{excerpt(inst)} is not a stimulus name: write <EV|MV><carrier Hz>[am<envelope Hz>], "
             "e.g. EV270, MV180, MV120am40"
         )
     if v in ("minimum", "exclusiveMinimum"):
         op = "≥" if v == "minimum" else ">"
-        return f"must be {op} {err.validator_value}, got {inst!r}"
+        return f"must be {op} {err.validator_value}, got {excerpt(inst)}"
     if v == "type":
-        return f"must be of type {err.validator_value}, got {type(inst).__name__} {inst!r}"
-    return err.message
+        return f"must be of type {err.validator_value}, got {type(inst).__name__} {excerpt(inst)}"
+    return excerpt(err.message, 160)

@@ -29,6 +29,7 @@ from masking_lab.rendering.pair import (
     pair_from_params,
 )
 from masking_lab.rendering.ramp_inverse import (
+    MAX_TARGET_DB_SL,
     REASON_TEXT,
     STATUS_NAMES,
     PointSolution,
@@ -180,13 +181,17 @@ def solve(
         m_i, e_i, case, status, reason, continuum, cand_m, cand_e, cand_ok = out
         fine = m_i < np.inf
         fine &= e_i < np.inf
-        if cand_ok is not None or not fine.all():
+        # Finite targets beyond the documented range get no answer (see ramp_inverse).
+        far = (np.abs(m_p) > MAX_TARGET_DB_SL) & (m_p > -np.inf)
+        far |= (np.abs(e_p) > MAX_TARGET_DB_SL) & (e_p > -np.inf)
+        if cand_ok is not None or not fine.all() or far.any():
             # Slow path, only when something needs reporting: NaN/+inf targets, overflow,
             # or b·d ≥ 1.
             nan_t = np.isnan(m_p) | np.isnan(e_p)
             inf_t = (m_p == np.inf) | (e_p == np.inf)
             bad = nan_t | inf_t
             overflow = (status == Status.UNIQUE) & ~fine & ~bad
+            overflow |= far & ~bad
             if cand_ok is not None:
                 assert cand_m is not None and cand_e is not None
                 cand_over = cand_ok & ~((cand_m < np.inf) & (cand_e < np.inf))

@@ -13,17 +13,18 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, TypeVar
 
-import yaml
-
 from masking_lab.core.clock import Clock
-from masking_lab.core.errors import MaskingLabError, ProtocolError
+from masking_lab.core.errors import MaskingLabError
 from masking_lab.device.base import Device
-from masking_lab.formats.session_log import SessionLogWriter
+from masking_lab.formats.session_log import SessionLogWriter, SyncPolicy
 from masking_lab.session.shell import Closable, close_quietly
-from masking_lab.simulation.observer import ground_truth_from_dict
+from masking_lab.simulation.observer import read_ground_truth
 
-_PARTICIPANT = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
-_DEVICE_SPEC = re.compile(r"^(sim|emulator|serial:.+|nidaq(:.+)?)$")
+# Matched whole (fullmatch: "$" alone would let a trailing newline through); the length limit
+# keeps every file name built from the id far below NAME_MAX.
+MAX_PARTICIPANT_CHARS = 64
+_PARTICIPANT = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]*")
+_DEVICE_SPEC = re.compile(r"(sim|emulator|serial:[^\x00-\x1f]+|nidaq(:[^\x00-\x1f]+)?)")
 
 DeviceOpener = Callable[[str, Clock], Device]
 
@@ -38,12 +39,24 @@ def check_participant(participant: str) -> str:
     Raises
     ------
     MaskingLabError
-        Empty, or characters other than letters, digits, ``_``, ``-`` and ``.``.
+        Empty, longer than :data:`MAX_PARTICIPANT_CHARS`, or characters other than letters,
+        digits, ``_``, ``-`` and ``.`` (a trailing newline included).
+
+    Examples
+    --------
+    >>> check_participant("S01")
+    'S01'
     """
-    if not _PARTICIPANT.match(participant or ""):
+    if not isinstance(participant, str) or len(participant) > MAX_PARTICIPANT_CHARS:
+        shown = participant[:20] + "…" if isinstance(participant, str) else type(participant)
         raise MaskingLabError(
-            f"--participant {participant!r}: use letters, digits, '_', '-' and '.' only (it "
-            "names the participant's data folder), e.g. S01"
+            f"--participant {shown!r}: at most {MAX_PARTICIPANT_CHARS} characters (it names the "
+            "participant's data folder and log files), e.g. S01"
+        )
+    if not _PARTICIPANT.fullmatch(participant):
+        raise MaskingLabError(
+            f"--participant {participant[:40]!a}: use letters, digits, '_', '-' and '.' only "
+            "(it names the participant's data folder), e.g. S01"
         )
     return participant
 
@@ -56,9 +69,9 @@ def check_device_spec(spec: str) -> str:
     MaskingLabError
         Not ``sim``, ``emulator``, ``serial:PORT`` or ``nidaq[:DEVICE]``.
     """
-    if not _DEVICE_SPEC.match(spec.strip()):
+    if not _DEVICE_SPEC.fullmatch(spec.strip()):
         raise MaskingLabError(
-            f"--device {spec!r}: choose sim, emulator, serial:PORT (e.g. serial:/dev/ttyACM0) "
+            f"--device {spec[:60]!a}: choose sim, emulator, serial:PORT (e.g. serial:/dev/ttyACM0) "
             "or nidaq[:DEVICE]"
         )
     return spec.strip()
@@ -87,24 +100,8 @@ def observer_record(ground_truth: Path | None) -> dict[str, Any]:
     ProtocolError
         Unreadable or malformed, or not a valid ground truth.
     """
-    from masking_lab.formats.resources import shipped
-
-    if ground_truth is None:
-        text = shipped("protocols", "simulation/ground_truth.yaml").read_text(encoding="utf-8")
-        source = "protocols/simulation/ground_truth.yaml"
-    else:
-        try:
-            text = Path(ground_truth).read_text(encoding="utf-8")
-        except OSError as exc:
-            raise ProtocolError(
-                str(ground_truth), "", f"cannot read the ground truth ({exc.strerror or exc})"
-            ) from exc
-        source = str(ground_truth)
-    try:
-        truth = yaml.safe_load(text)  # JSON is YAML too
-    except yaml.YAMLError as exc:
-        raise ProtocolError(source, "", f"malformed YAML or JSON: {exc}") from exc
-    ground_truth_from_dict(truth, source)  # validate now, before the session starts
+    # Read through the shared reader and validated now, before the session starts.
+    truth, source = read_ground_truth(ground_truth)
     return {"ground_truth_path": source, "population_seed": 0, "truth": truth}
 
 
@@ -165,8 +162,29 @@ def close_on_failure(device: Device, responder: Closable) -> Iterator[None]:
         raise
 
 
+def sync_policy(virtual: bool) -> SyncPolicy:
+    """When the log is fsynced: per set in virtual time, per record in real time.
+
+    In virtual time (simulation, the emulator, host firmware with ``--virtual-time``) nobody's
+    time is lost with a trial and the fsync would be half the run time; at a rig every trial is
+    a participant's time. Either way a completed set is never lost (see
+    :mod:`masking_lab.formats.session_log`).
+
+    Examples
+    --------
+    >>> sync_policy(True), sync_policy(False)
+    ('set', 'record')
+    """
+    return "set" if virtual else "record"
+
+
 def create_log(
-    data_dir: Path, experiment: str, participant: str, header: Mapping[str, Any]
+    data_dir: Path,
+    experiment: str,
+    participant: str,
+    header: Mapping[str, Any],
+    *,
+    sync: SyncPolicy = "record",
 ) -> SessionLogWriter:
     """Create a new session log under ``data_dir/<participant>/`` and write its header.
 
@@ -178,6 +196,8 @@ def create_log(
         Name parts of the log file (see :func:`new_log_path`).
     header : mapping
         The header record; ``session_id`` (the file's stem) is added.
+    sync : {"record", "set"}
+        When records are fsynced (:func:`sync_policy`).
 
     Returns
     -------
@@ -185,7 +205,9 @@ def create_log(
         Open for appending; ``writer.path`` is the new log.
     """
     log_path = new_log_path(data_dir, experiment, participant)
-    return SessionLogWriter.create(log_path, {**dict(header), "session_id": log_path.stem})
+    return SessionLogWriter.create(
+        log_path, {**dict(header), "session_id": log_path.stem}, sync=sync
+    )
 
 
 def new_log_path(data_dir: Path, experiment: str, participant: str) -> Path:

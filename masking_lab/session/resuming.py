@@ -16,9 +16,10 @@ from masking_lab import __version__
 from masking_lab.core.clock import Clock, RealClock, VirtualClock
 from masking_lab.core.errors import LogError, MaskingLabError
 from masking_lab.device.base import DeviceIdentity
-from masking_lab.formats.schemas import key_path, schema_errors
+from masking_lab.formats.reader import excerpt
+from masking_lab.formats.schemas import describe, key_path, schema_errors
 from masking_lab.formats.session_log import SessionLog, SessionLogWriter
-from masking_lab.session.opening import observer_record
+from masking_lab.session.opening import check_participant, observer_record
 from masking_lab.session.progress import ProgressLine
 from masking_lab.session.shell import device_record, drop_none, utc_now
 
@@ -28,9 +29,17 @@ def check_header(header: Mapping[str, Any], path: Path) -> None:
     errors = schema_errors(dict(header), "session_log")
     if errors:
         raise LogError(
-            f"{path}: line 1: the header breaks the session-log schema at {key_path(errors[0])}: "
-            f"{errors[0].message}; this log cannot be resumed"
+            f"{path}: line 1: the header breaks the session-log schema at "
+            f"{excerpt(key_path(errors[0]), 80)}: {describe(errors[0])}; this log cannot be "
+            "resumed"
         )
+    try:  # the id names folders and files: hold it to what `run` accepts
+        check_participant(header.get("participant"))  # type: ignore[arg-type]
+    except MaskingLabError as exc:
+        raise LogError(
+            f"{path}: line 1: the header's participant id is not one `run` accepts ({exc}); this "
+            "log cannot be resumed"
+        ) from None
 
 
 def refuse_finished(log: SessionLog, path: Path) -> None:
@@ -39,6 +48,33 @@ def refuse_finished(log: SessionLog, path: Path) -> None:
         raise LogError(
             f"{path}: this session has finished (it has a session_end record); there is nothing "
             "to resume. Start a new session with `masking-lab run`"
+        )
+
+
+def refuse_damaged(log: SessionLog, path: Path) -> None:
+    """Raise :class:`LogError` if lines are unusable or records are missing, repeated or moved.
+
+    A torn last line is not damage (a crash mid-write; it is cut and its trial re-run). Every
+    other problem is listed with its line, so the experimenter can compare with a backup.
+
+    Examples
+    --------
+    >>> from masking_lab.formats.session_log import parse_log
+    >>> log = parse_log(b'{"record":"header","seq":1}\\n{"record":"fault","seq":3}\\n', "x.jsonl")
+    >>> try:
+    ...     refuse_damaged(log, Path("x.jsonl"))
+    ... except LogError as exc:
+    ...     print(str(exc)[:77])
+    x.jsonl: the log is damaged, so resuming could repeat or lose trials: line 2:
+    """
+    damage = [p for p in log.problems if "truncated last line" not in p]
+    damage += log.continuity_problems()
+    if damage:
+        shown = "; ".join(damage[:5]) + (f"; and {len(damage) - 5} more" if len(damage) > 5 else "")
+        raise LogError(
+            f"{path}: the log is damaged, so resuming could repeat or lose trials: {shown}. "
+            "Restore the log from a backup copy, or start a new session with `masking-lab run` "
+            "(`masking-lab analyze` reports what this log holds)"
         )
 
 
@@ -80,8 +116,27 @@ def resume_observer(header: Mapping[str, Any], responder_name: str) -> dict[str,
 
 
 def resume_device_config(device_config: Path | None, header: Mapping[str, Any]) -> Path | None:
-    """``device_config`` if given, else the rig config the session started with."""
-    return device_config if device_config is not None else header_device_config(header)
+    """``device_config`` if given; the reference rig if the session started with it.
+
+    A log header is data, never a path to open: a session that started with a rig config of
+    its own is resumed only with ``--device-config`` naming a file again (a crafted header
+    could otherwise make ``resume`` read, and quote, any file it names).
+
+    Raises
+    ------
+    LogError
+        The session started with a rig config and none is given now.
+    """
+    if device_config is not None:
+        return device_config
+    logged = header_device_config(header)
+    if logged is not None:
+        raise LogError(
+            f"this session started with the rig config {excerpt(str(logged), 80)}; resume opens no "
+            "file the log names by itself: pass --device-config with that file (or the rig "
+            "config to use now)"
+        )
+    return None
 
 
 def record_resume(
@@ -153,14 +208,20 @@ def device_spec_from_header(header: Mapping[str, Any]) -> str:
         A serial device without a port, or a back-end that cannot be reopened from the log.
     """
     dev = header.get("device") or {}
-    backend = str(dev.get("backend", "sim"))
-    if backend == "serial":
-        if not dev.get("port"):
-            raise LogError("the log's device has no port; pass --device serial:PORT")
-        return f"serial:{dev['port']}"
+    backend = str(dev.get("backend", "sim")) if isinstance(dev, Mapping) else "?"
     if backend in ("sim", "emulator"):
         return backend
-    raise LogError(f"the log's device back-end {backend!r} cannot be reopened; pass --device")
+    if backend == "serial":
+        # A port named by the log is never opened by itself: a crafted header could name any
+        # path (a file, a FIFO) as the serial port.
+        port = excerpt(str(dev.get("port") or "?"), 60)
+        raise LogError(
+            f"the session ran on serial port {port}; pass --device serial:PORT naming the port "
+            "to reopen (resume opens no path the log names by itself)"
+        )
+    raise LogError(
+        f"the log's device back-end {excerpt(backend)} cannot be reopened; pass --device"
+    )
 
 
 def header_device_config(header: Mapping[str, Any]) -> Path | None:
@@ -215,16 +276,26 @@ def seconds_since(created_utc: str, floor_s: float) -> float:
     return max(elapsed, floor_s)
 
 
+def _finite(v: object) -> bool:
+    # An int beyond float range (a crafted record) is not a time either.
+    return (
+        isinstance(v, int | float)
+        and not isinstance(v, bool)
+        and abs(v) <= 1e300
+        and (math.isfinite(v))
+    )
+
+
 def last_time_s(log: SessionLog) -> float:
     """The latest session time (s) in the log's records: ``t_s`` and presentation onsets."""
     last = 0.0
     for rec in log.records:
         for key in ("t_s",):
             v = rec.get(key)
-            if isinstance(v, int | float) and math.isfinite(v):
+            if _finite(v):
                 last = max(last, float(v))
         for key in ("planned_onsets_s", "actual_onsets_s"):
             for v in rec.get(key) or ():
-                if isinstance(v, int | float) and math.isfinite(v):
+                if _finite(v):
                     last = max(last, float(v))
     return last

@@ -9,19 +9,19 @@ p(correct) = ψ(target level − masked AL), ψ from :mod:`masking_lab.core.psyc
 from __future__ import annotations
 
 import hashlib
-import json
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
 from masking_lab.core.errors import ProtocolError
 from masking_lab.core.masking import MaskingFunction
 from masking_lab.core.psychometric import GUESS_3IFC, Psychometric
+from masking_lab.formats.reader import load_document, where
 from masking_lab.formats.resources import shipped
+from masking_lab.formats.schemas import describe, key_path, most_relevant, schema_errors
 
 
 @dataclass(frozen=True)
@@ -111,35 +111,94 @@ def make_participant(truth: GroundTruth, participant: str, seed: int = 0) -> Sim
     return SimulatedParticipant(participant, truth, als, offset, rng_seed)
 
 
-def ground_truth_from_dict(data: Mapping[str, Any], source: str = "<ground truth>") -> GroundTruth:
-    """Build a :class:`GroundTruth` from a parsed ground-truth mapping (see ground_truth.yaml)."""
-    try:
-        masking = tuple(
-            MaskingFunction(m["target"], m["masker"], float(m["intercept_db"]), float(m["slope"]))
-            for m in data["masking"]
+def ground_truth_from_dict(
+    data: Any, source: str = "<ground truth>", lines: Mapping[str, int] | None = None
+) -> GroundTruth:
+    """Validate a parsed ground-truth mapping (``data_schema/ground_truth.schema.json``: every
+    number finite and in range) and build a :class:`GroundTruth`.
+
+    Parameters
+    ----------
+    data : mapping
+        As in ``protocols/simulation/ground_truth.yaml`` (ALs in dB re 1 V, masker levels dB SL).
+    source : str
+        Names the data in messages.
+    lines : mapping of key path → line, optional
+        Where each key stands in the source file.
+
+    Raises
+    ------
+    ProtocolError
+        Naming ``source``, the key path (and line) and what is wrong.
+
+    Examples
+    --------
+    >>> ground_truth_from_dict({"unmasked_al_db_v": {"EV270": -18.0}, "masking": []}).lapse
+    0.02
+    """
+    if not isinstance(data, Mapping):
+        raise ProtocolError(source, "(top level)", "a ground truth is a mapping of keys to values")
+    errors = schema_errors(data, "ground_truth")
+    if errors:
+        err = most_relevant(errors)
+        more = f" (and {len(errors) - 1} more problem(s))" if len(errors) > 1 else ""
+        raise ProtocolError(
+            source,
+            where(key_path(err), lines or {}),
+            f"not a valid ground-truth file: {describe(err)}{more}",
         )
-        psy = data.get("psychometric", {})
-        return GroundTruth(
-            unmasked_al_db_v={k: float(v) for k, v in data["unmasked_al_db_v"].items()},
-            masking=masking,
-            participant_sd_db=float(data.get("participant_sd_db", 2.0)),
-            shift_sd_db=float(data.get("shift_sd_db", 1.0)),
-            scale_db=float(psy.get("scale_db", 1.5)),
-            lapse=float(psy.get("lapse", 0.02)),
-            guess=float(psy.get("guess", GUESS_3IFC)),
-        )
-    except (KeyError, TypeError, ValueError) as exc:
-        raise ProtocolError(source, "", f"not a valid ground-truth file ({exc!r})") from exc
+    masking = tuple(
+        MaskingFunction(m["target"], m["masker"], float(m["intercept_db"]), float(m["slope"]))
+        for m in data["masking"]
+    )
+    psy = data.get("psychometric", {})
+    return GroundTruth(
+        unmasked_al_db_v={k: float(v) for k, v in data["unmasked_al_db_v"].items()},
+        masking=masking,
+        participant_sd_db=float(data.get("participant_sd_db", 2.0)),
+        shift_sd_db=float(data.get("shift_sd_db", 1.0)),
+        scale_db=float(psy.get("scale_db", 1.5)),
+        lapse=float(psy.get("lapse", 0.02)),
+        guess=float(psy.get("guess", GUESS_3IFC)),
+    )
+
+
+def read_ground_truth(path: str | Path | None = None) -> tuple[Any, str]:
+    """Read and validate a ground-truth YAML/JSON file (the shipped one if None) through the
+    shared reader; return its parsed content (plain data, logged in session headers) and name.
+
+    Raises
+    ------
+    ProtocolError
+        Unreadable, not UTF-8, malformed, or not a valid ground truth (file, key, line).
+
+    Examples
+    --------
+    >>> sorted(read_ground_truth()[0])[:2]
+    ['masking', 'participant_sd_db']
+    """
+    if path is None:
+        source = "protocols/simulation/ground_truth.yaml"
+        doc = load_document(shipped("protocols", "simulation/ground_truth.yaml"), what="x")
+    else:
+        source = str(path)
+        doc = load_document(path, what="ground truth")
+    ground_truth_from_dict(doc.data, source, doc.lines)
+    return doc.data, source
 
 
 def load_ground_truth(path: str | Path | None = None) -> GroundTruth:
-    """Load a ground-truth YAML/JSON file, or the embedded default (paper Table 2 ramps)."""
-    if path is None:
-        text = shipped("protocols", "simulation/ground_truth.yaml").read_text(encoding="utf-8")
-        return ground_truth_from_dict(
-            yaml.safe_load(text), "protocols/simulation/ground_truth.yaml (embedded)"
-        )
-    p = Path(path)
-    text = p.read_text(encoding="utf-8")
-    data = json.loads(text) if p.suffix == ".json" else yaml.safe_load(text)
-    return ground_truth_from_dict(data, str(p))
+    """Load a ground-truth YAML/JSON file, or the embedded default (paper Table 2 ramps).
+
+    Raises
+    ------
+    ProtocolError
+        As :func:`read_ground_truth`.
+
+    Examples
+    --------
+    >>> load_ground_truth().masking_function("EV270", "MV120").slope
+    0.711
+    """
+    data, source = read_ground_truth(path)
+    return ground_truth_from_dict(data, source)

@@ -31,8 +31,8 @@ from typing import Any, Literal
 import numpy as np
 
 from masking_lab.core.errors import ProtocolError
-from masking_lab.formats.protocol import _safe_yaml as safe_yaml
-from masking_lab.formats.schemas import key_path, schema_errors
+from masking_lab.formats.reader import decode_utf8, parse_yaml, read_limited, where
+from masking_lab.formats.schemas import describe, key_path, most_relevant, schema_errors
 from masking_lab.rendering.scene import Scene, load_scene
 
 __all__ = [
@@ -222,16 +222,17 @@ def load_usertest(path: str | Path) -> UserTestDesign:
         scene whose geometry shape or texture name is not the one its file name promises).
     """
     p = Path(path)
-    try:
-        raw = p.read_bytes()
-    except OSError as exc:
-        raise ProtocolError(str(p), "", f"cannot read the file ({exc.strerror or exc})") from exc
-    data, _lines = safe_yaml(raw.decode("utf-8", errors="replace"), str(p))
+    raw = read_limited(p, what="user-test protocol")
+    data, lines = parse_yaml(decode_utf8(raw, str(p)), str(p))
 
     def scene_file(g: str, t: str) -> Scene:
         # Called only once parse_usertest has validated ``data`` against the schema.
         file = p.parent / data.get("scenes_dir", "scenes") / f"{g}_{t}.yaml"
-        if not file.is_file():
+        try:
+            found = file.is_file()
+        except OSError:  # e.g. a name too long for the file system
+            found = False
+        if not found:
             raise ProtocolError(
                 str(p),
                 "scenes_dir",
@@ -240,7 +241,9 @@ def load_usertest(path: str | Path) -> UserTestDesign:
             )
         return load_scene(file)
 
-    return parse_usertest(data, scene_file, source=str(p), sha256=hashlib.sha256(raw).hexdigest())
+    return parse_usertest(
+        data, scene_file, source=str(p), sha256=hashlib.sha256(raw).hexdigest(), lines=lines
+    )
 
 
 def parse_usertest(
@@ -249,6 +252,7 @@ def parse_usertest(
     *,
     source: str = "<memory>",
     sha256: str = "",
+    lines: Mapping[str, int] | None = None,
 ) -> UserTestDesign:
     """Validate an already parsed user-test protocol and pair it with its object scenes.
 
@@ -266,6 +270,8 @@ def parse_usertest(
         Names the protocol in messages and becomes :attr:`UserTestDesign.path`.
     sha256 : str
         Hash of the protocol file's bytes ("" when built in memory).
+    lines : mapping of key path → line, optional
+        Where each key stands in the protocol file, for messages.
 
     Raises
     ------
@@ -277,9 +283,9 @@ def parse_usertest(
         raise ProtocolError(source, "(top level)", "a user-test protocol is a YAML mapping")
     errors = schema_errors(data, "usertest")
     if errors:
-        err = errors[0]
+        err = most_relevant(errors)
         more = f" (and {len(errors) - 1} more problem(s))" if len(errors) > 1 else ""
-        raise ProtocolError(source, key_path(err), f"{err.message}{more}")
+        raise ProtocolError(source, where(key_path(err), lines or {}), f"{describe(err)}{more}")
     timing = UserTestTiming(**data.get("timing", {}))
     found: dict[tuple[str, str], Scene] = {}
     for g in data["geometries"]:

@@ -1,0 +1,93 @@
+"""The fuzz campaign: mutated inputs of every file kind through every command that reads them,
+plus mutated serial frames; prints tried / clean errors / tracebacks / hangs / non-finite.
+
+Usage (from the repository root)::
+
+    .venv/bin/python tests/fuzz/campaign.py --n 2000 --seed 1
+
+``--n`` counts mutated inputs (files and serial exchanges); each file goes through every
+command of its kind (``fuzz_corpus.commands``), each run counted under ``runs``. Findings are
+printed with the command and the end of the traceback; the exit status is 1 if there is any.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import random
+import sys
+import tempfile
+import time
+from collections import Counter
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from fuzz_corpus import KINDS, RandomPicker, mutate, seed, trial
+from fuzz_serial import serial_trial
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--n", type=int, default=2000, help="mutated inputs (default 2000)")
+    parser.add_argument("--seed", type=int, default=1, help="random seed (default 1)")
+    parser.add_argument("--timeout", type=float, default=20.0, help="hang limit per run, s")
+    parser.add_argument(
+        "--serial-share", type=float, default=0.1, help="fraction of serial exchanges (0.1)"
+    )
+    parser.add_argument("--kinds", nargs="+", default=list(KINDS), help="file kinds to mutate")
+    parser.add_argument("--save", type=Path, help="folder to keep the inputs of findings in")
+    args = parser.parse_args(argv)
+    logging.getLogger("masking_lab").setLevel(logging.CRITICAL)  # device faults are expected
+    rng = random.Random(args.seed)
+    picker = RandomPicker(rng)
+    counts: Counter[str] = Counter()
+    per_kind: Counter[str] = Counter()
+    findings: list[str] = []
+    started = time.monotonic()
+    with tempfile.TemporaryDirectory(prefix="masking-fuzz-") as tmp:
+        work = Path(tmp) / "work"
+        for i in range(args.n):
+            if rng.random() < args.serial_share:
+                kind = "serial"
+                status, detail = serial_trial(picker, timeout_s=args.timeout)
+                outcomes = [(status, ("serial",), 1, detail)]
+            else:
+                kind = args.kinds[i % len(args.kinds)]
+                data = mutate(seed(kind), picker, rng.randint(1, 3))
+                outcomes = [
+                    (o.kind, o.argv, o.code, o.detail)
+                    for o in trial(kind, data, work, args.timeout)
+                ]
+            per_kind[kind] += 1
+            counts["tried"] += 1
+            # Per input: a finding if any command had one; else a clean error if any command
+            # refused it (serial: a DeviceError counts as one); else accepted.
+            worst = "accepted"
+            for status, cmd, code, detail in outcomes:
+                counts["runs"] += 1
+                if status != "clean":
+                    worst = status
+                    findings.append(f"[{status}] {kind}: {' '.join(cmd)[:120]}\n{detail[-800:]}")
+                    if args.save is not None and kind != "serial":
+                        args.save.mkdir(parents=True, exist_ok=True)
+                        (args.save / f"{i:05d}-{kind}").write_bytes(data)
+                elif code and worst == "accepted":
+                    worst = "clean_error"
+            counts[worst] += 1
+            if (i + 1) % 100 == 0:
+                print(f"  {i + 1}/{args.n} inputs, {time.monotonic() - started:.0f} s", flush=True)
+    for finding in findings[:20]:
+        print(finding)
+    print(f"kinds: {dict(sorted(per_kind.items()))}")
+    print(
+        f"tried {counts['tried']} inputs ({counts['runs']} command runs, seed {args.seed}, "
+        f"{time.monotonic() - started:.0f} s): clean errors {counts['clean_error']} / accepted "
+        f"{counts['accepted']} / tracebacks {counts['traceback']} / hangs {counts['hang']} / "
+        f"non-finite outputs {counts['non_finite']}"
+    )
+    return 1 if findings else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
