@@ -22,8 +22,9 @@ from masking_lab.formats.schemas import load_schema, schema_errors
 
 REPO = Path(__file__).resolve().parents[1]
 
-# Fields that depend on when (or through which process) a trial ran, not on what it was.
-TIME_FIELDS = {"planned_onsets_s", "actual_onsets_s", "device_extra", "t_s"}
+# Fields that depend on when (or through which process) a trial ran, not on what it was;
+# "seq" is the record's line number, which a resume's fault and resume records shift.
+TIME_FIELDS = {"planned_onsets_s", "actual_onsets_s", "device_extra", "t_s", "seq"}
 
 FAST_TIMING = {
     "stimulus_s": 0.05,

@@ -29,8 +29,9 @@ RAMPS = {
     "MV120am40": ((-0.387, 0.939), (-7.442, 0.711)),
 }
 
-# Fields that depend on when (or through which process) a trial ran, not on what it was.
-TIME_FIELDS = {"t_s", "planned_onsets_s", "actual_onsets_s"}
+# Fields that depend on when (or through which process) a trial ran, not on what it was;
+# "seq" is the record's line number, which a resume's fault and resume records shift.
+TIME_FIELDS = {"t_s", "planned_onsets_s", "actual_onsets_s", "seq"}
 
 TINY_TIMING = {
     "lead_in_s": 0.02,

@@ -122,6 +122,15 @@ def ramp_least_squares_batch(
     ------
     AnalysisError
         If the inputs are not finite or there are fewer than two distinct masker levels.
+
+    Examples
+    --------
+    Three replicates at 0, 10 and 20 dB SL: a ramp with its knee at 5 dB SL, no masking at
+    all, and a constant 3 dB shift:
+
+    >>> a, b = ramp_least_squares_batch([0, 10, 20], [[0, 4, 12], [0, 0, 0], [3, 3, 3]])
+    >>> np.round(a, 6).tolist(), np.round(b, 6).tolist()
+    ([-4.0, 0.0, 3.0], [0.8, 0.0, 0.0])
     """
     xv = _finite_vector(x, "masker level (dB SL)")
     y = np.atleast_2d(np.asarray(shifts, dtype=float))
@@ -154,7 +163,28 @@ def ramp_least_squares_batch(
 
 
 def ramp_least_squares(x: ArrayLike, shifts: ArrayLike) -> tuple[float, float]:
-    """Exact least-squares ramp ``(intercept_db, slope)`` for one set of points (see batch)."""
+    """Exact least-squares ramp ``(intercept_db, slope)`` for one set of points (see batch).
+
+    Parameters
+    ----------
+    x : array_like, shape (n,)
+        Masker levels, dB SL.
+    shifts : array_like, shape (n,)
+        AL shifts, dB.
+
+    Returns
+    -------
+    intercept_db : float
+        Ramp intercept a, dB.
+    slope : float
+        Ramp slope b ≥ 0, dB of shift per dB SL of masker.
+
+    Examples
+    --------
+    >>> a, b = ramp_least_squares([0, 5, 10, 15, 20, 25], [0.0, 0.1, 2.1, 5.9, 10.2, 13.8])
+    >>> round(a, 2), round(b, 3)
+    (-5.79, 0.788)
+    """
     a, b = ramp_least_squares_batch(x, np.asarray(shifts, dtype=float)[None, :])
     return float(a[0]), float(b[0])
 
@@ -182,6 +212,18 @@ def fit_ramp(x: ArrayLike, shifts: ArrayLike, *, ci_level: float = 0.95) -> Ramp
     The asymptotic covariance is the Gauss–Newton one, ``σ²(JᵀJ)⁻¹`` with ``σ² = SSE/(n − 2)``
     and ``J`` the Jacobian ``[1, x]`` on points above the knee (0 on the flat ones); intervals use
     Student's t with n − 2 degrees of freedom.
+
+    Examples
+    --------
+    >>> fit = fit_ramp([0, 5, 10, 15, 20, 25], [0.0, 0.1, 2.1, 5.9, 10.2, 13.8])
+    >>> fit.status, round(fit.slope, 3), round(fit.knee_db_sl, 2), fit.n_active_levels
+    ('fitted', 0.788, 7.35, 4)
+    >>> [round(v, 3) for v in fit.slope_ci]
+    [0.75, 0.826]
+    >>> fit_ramp([10, 10], [1.0, 2.0]).status  # one masker level cannot fix a slope
+    'insufficient_data'
+    >>> fit_ramp([0, 10, 20], [0.0, 0.0, 0.0]).status
+    'no_masking'
     """
     if not 0.0 < ci_level < 1.0:
         raise AnalysisError(f"ci_level must lie between 0 and 1, got {ci_level}")
@@ -321,6 +363,13 @@ def with_bootstrap(
     -------
     RampFit
         SE = SD of the replicates, intervals = percentile intervals at ``fit.ci_level``.
+
+    Examples
+    --------
+    >>> fit = fit_ramp([0, 10, 20], [0.0, 4.0, 12.0])
+    >>> boot = with_bootstrap(fit, [-4.2, -3.8, -4.0], [0.78, 0.82, 0.80])
+    >>> boot.uncertainty, round(boot.slope_se, 3)
+    ('bootstrap', 0.02)
     """
     if fit.status != "fitted":
         return fit
@@ -375,6 +424,21 @@ def participant_bootstrap(
         Estimates of the replicates that could be fitted.
     n_failed : int
         Replicates with fewer than two masker levels left (every participant drawn lacked them).
+
+    Raises
+    ------
+    AnalysisError
+        For non-finite levels, a shape mismatch or ``n_boot`` < 2.
+
+    Examples
+    --------
+    AL shifts (dB) of four participants at 0, 10 and 20 dB SL; a 95 % interval of the slope:
+
+    >>> shifts = [[0, 2, 10], [0, 5, 14], [0, 4, 12], [1, 6, 11]]
+    >>> a, b, failed = participant_bootstrap(
+    ...     [0, 10, 20], shifts, n_boot=500, rng=np.random.default_rng(0))
+    >>> len(b), failed, [round(float(v), 2) for v in np.percentile(b, [2.5, 97.5])]
+    (500, 0, [0.55, 0.87])
     """
     xv = _finite_vector(x, "masker level (dB SL)")
     data = np.asarray(shifts_by_participant, dtype=float)
@@ -383,11 +447,24 @@ def participant_bootstrap(
     if n_boot < 2:
         raise AnalysisError(f"n_boot must be at least 2, got {n_boot}")
     n_part = data.shape[0]
-    draws = rng.integers(0, n_part, size=(n_boot, n_part))
     present = np.isfinite(data)
     filled = np.where(present, data, 0.0)
-    counts = present[draws].sum(axis=1)  # (B, C)
-    sums = filled[draws].sum(axis=1)
+    # Each replicate as weights (how often each participant was drawn) times the data, not as
+    # a materialised B x P x C copy. Drawn in blocks of replicates, which consume the generator
+    # exactly as one (B, P) draw does; only a block's weights exist at a time, so the memory is
+    # B x C plus ~2e6 weights (16 MB), whatever the number of participants.
+    present_f = present.astype(float)
+    counts = np.empty((n_boot, present.shape[1]))  # participants drawn with data, per cell
+    sums = np.empty_like(counts)
+    block = max(1, 2_000_000 // max(1, n_part))
+    for lo in range(0, n_boot, block):
+        rows = min(block, n_boot - lo)
+        draws = rng.integers(0, n_part, size=(rows, n_part))
+        draws += (np.arange(rows) * n_part)[:, None]
+        weights = np.bincount(draws.ravel(), minlength=rows * n_part).reshape(rows, n_part)
+        weights = weights.astype(float)
+        counts[lo : lo + rows] = weights @ present_f
+        sums[lo : lo + rows] = weights @ filled
     with np.errstate(invalid="ignore", divide="ignore"):
         means = sums / counts
     complete = (counts > 0).all(axis=1)

@@ -23,15 +23,20 @@ shift and enter the statistics.
 
 from __future__ import annotations
 
+import functools
 import math
+import operator
 from dataclasses import dataclass
 from typing import Any
 
 import pandas as pd
+from msgspec import UNSET
 
+from masking_lab.analysis.procedure_estimates import procedure_estimate
 from masking_lab.core.errors import AnalysisError
 from masking_lab.core.psychometric import GUESS_3IFC
-from masking_lab.core.stimulus import parse_stimulus
+from masking_lab.core.stimulus import Stimulus, parse_stimulus
+from masking_lab.formats.log_records import ATrial
 from masking_lab.formats.session_log import SessionLog, SetRecords
 from masking_lab.procedures.estimators import ESTIMATORS, ml_threshold, reversal_mean_al
 from masking_lab.procedures.staircase import implied_target_p_for
@@ -57,11 +62,16 @@ COLUMNS = [
     "reversals",
     "status",
     "estimator",
+    "al_sd_db",
+    "al_ci95_low_db",
+    "al_ci95_high_db",
     "session_id",
     "created_utc",
     "log",
     "note",
 ]
+# The keys of a raw row (session_rows) that the table uses, in the order of packed rows.
+ROW_KEYS = (*COLUMNS, "calibration_al_db_v")
 
 
 @dataclass(frozen=True)
@@ -100,6 +110,9 @@ class SetEstimate:
     trials: int
     reversals: int
     note: str | None
+    # Bayesian sets (QUEST+): posterior SD and 95 % credible interval, dB in the set's unit.
+    sd_db: float | None = None
+    ci95_db: tuple[float, float] | None = None
 
 
 def estimate_set(records: SetRecords, settings: EstimatorSettings) -> SetEstimate:
@@ -117,9 +130,7 @@ def estimate_set(records: SetRecords, settings: EstimatorSettings) -> SetEstimat
     status = str(end.get("status"))
     unit_key = "level_db_sl" if start.get("level_unit") == "db_sl" else "level_db_v"
     try:
-        levels = [float(t[unit_key]) for t in trials]
-        correct = [bool(t["correct"]) for t in trials]
-        flagged = [float(t[unit_key]) for t in trials if t.get("reversal")]
+        levels, correct, flagged, index = _trial_columns(trials, unit_key)
     except (KeyError, TypeError, ValueError) as exc:
         return SetEstimate(
             None, "invalid", n_trials, 0, f"a trial record lacks a usable {exc} value"
@@ -131,7 +142,6 @@ def estimate_set(records: SetRecords, settings: EstimatorSettings) -> SetEstimat
         # The set_end list is the staircase's own record; flags can miss a skipped line.
         reversals = [float(v) for v in logged_reversals]
         notes.append("trial reversal flags disagree with set_end; used set_end's reversals")
-    index = [t.get("trial_index") for t in trials]
     if index != list(range(n_trials)):
         notes.append("trial indices are not 0..n-1 (lines lost or repeated)")
     if status != "completed":
@@ -145,6 +155,13 @@ def estimate_set(records: SetRecords, settings: EstimatorSettings) -> SetEstimat
             + (f" ({reason})" if reason else "")
             + ": not a threshold",
         )
+    if start.get("procedure"):
+        est = procedure_estimate(
+            start["procedure"], levels, correct, estimator=settings.estimator, lapse=settings.lapse
+        )
+        ci = None if est.ci_low_db is None else (est.ci_low_db, est.ci_high_db)
+        note = est.note or ("; ".join(notes) or None)
+        return SetEstimate(est.al_db, est.status, n_trials, 0, note, est.sd_db, ci)  # type: ignore[arg-type]
     staircase = start.get("staircase") or {}
     if settings.estimator == "reversals":
         k = settings.n_reversals_averaged or int(staircase.get("n_reversals_averaged", 8))
@@ -165,6 +182,43 @@ def estimate_set(records: SetRecords, settings: EstimatorSettings) -> SetEstimat
             return SetEstimate(None, "estimator_failed", n_trials, len(reversals), fit.message)
         al = float(fit.threshold_db)  # type: ignore[arg-type]
     return SetEstimate(al, "completed", n_trials, len(reversals), "; ".join(notes) or None)
+
+
+# A study names a handful of stimuli, thousands of times; bounded, as names come from files.
+_cached_stimulus = functools.lru_cache(maxsize=1024)(parse_stimulus)
+
+
+def _stimulus(name: Any) -> Stimulus:
+    # Only strings are cached: anything else must fail exactly as parse_stimulus fails.
+    return _cached_stimulus(name) if isinstance(name, str) else parse_stimulus(name)
+
+
+_CORRECT = operator.attrgetter("correct")
+_REVERSAL = operator.attrgetter("reversal")
+_TRIAL_INDEX = operator.attrgetter("trial_index")
+
+
+def _trial_columns(
+    trials: list[Any], unit_key: str
+) -> tuple[list[float], list[bool], list[float], list[Any]]:
+    """Levels (dB in the set's unit), answers, levels of flagged reversals and trial indices.
+
+    Typed trial records (the analysis view of :mod:`masking_lab.formats.log_records`) are read
+    by attribute; anything else, or a typed record lacking a value, by key, which raises
+    ``KeyError``/``TypeError``/``ValueError`` for a missing or unusable value.
+    """
+    if trials and set(map(type, trials)) == {ATrial}:
+        levels = list(map(operator.attrgetter(unit_key), trials))
+        correct = list(map(_CORRECT, trials))
+        if None not in levels and UNSET not in levels and UNSET not in correct:
+            flags = map(_REVERSAL, trials)
+            flagged = [v for v, flag in zip(levels, flags, strict=True) if flag is True]
+            # An absent index (UNSET) differs from every int, as None does for dicts.
+            return levels, correct, flagged, list(map(_TRIAL_INDEX, trials))
+    levels = [float(t[unit_key]) for t in trials]
+    correct = [bool(t["correct"]) for t in trials]
+    flagged = [float(t[unit_key]) for t in trials if t.get("reversal")]
+    return levels, correct, flagged, [t.get("trial_index") for t in trials]
 
 
 def session_rows(log: SessionLog, log_name: str, settings: EstimatorSettings) -> list[dict]:
@@ -195,9 +249,9 @@ def session_rows(log: SessionLog, log_name: str, settings: EstimatorSettings) ->
         start = records.start
         row: dict[str, Any] = {**base, "set_id": str(set_id)}
         try:
-            target = parse_stimulus(start["target"]).name
+            target = _stimulus(start["target"]).name
             masker = start.get("masker")
-            masker = parse_stimulus(masker).name if masker else None
+            masker = _stimulus(masker).name if masker else None
             level = start.get("masker_level_db_sl")
             row |= {
                 "target": target,
@@ -208,11 +262,16 @@ def session_rows(log: SessionLog, log_name: str, settings: EstimatorSettings) ->
             rows.append(row | {"status": "invalid", "note": f"set_start unusable ({exc})"})
             continue
         est = estimate_set(records, settings)
+        if start.get("procedure"):  # a Bayesian set: say which estimate its AL is
+            row["estimator"] = "ml" if settings.estimator == "ml" else "posterior_mean"
         row |= {
             "trials": est.trials,
             "reversals": est.reversals,
             "status": est.status,
             "note": est.note,
+            "al_sd_db": est.sd_db,
+            "al_ci95_low_db": est.ci95_db[0] if est.ci95_db else None,
+            "al_ci95_high_db": est.ci95_db[1] if est.ci95_db else None,
         }
         if start.get("level_unit") == "db_sl":
             cal = start.get("unmasked_al_db_v")
@@ -234,76 +293,112 @@ def session_rows(log: SessionLog, log_name: str, settings: EstimatorSettings) ->
     return rows
 
 
-def thresholds_table(rows: list[dict], *, unmasked_al: str = "auto") -> pd.DataFrame:
+def packed(rows: list[dict]) -> list[tuple]:
+    """Rows as tuples in :data:`ROW_KEYS` order (None where a key is absent): ~3x smaller.
+
+    What :mod:`masking_lab.analysis.log_reading` sends between processes and keeps for a large
+    study; :func:`thresholds_table` takes either form.
+
+    Examples
+    --------
+    >>> packed([{"participant": "P1", "status": "completed"}])[0][:2]
+    ('P1', None)
+    """
+    return [tuple(r.get(k) for k in ROW_KEYS) for r in rows]
+
+
+def unpacked(rows: list[tuple]) -> list[dict]:
+    """The dicts of :func:`packed` rows (absent keys as None).
+
+    Examples
+    --------
+    >>> unpacked(packed([{"set_id": "A"}]))[0]["set_id"]
+    'A'
+    """
+    return [dict(zip(ROW_KEYS, r, strict=True)) for r in rows]
+
+
+def thresholds_table(
+    rows: list[dict] | list[tuple], *, unmasked_al: str = "auto", consume: bool = False
+) -> pd.DataFrame:
     """Join unmasked ALs, compute shifts, mark superseded attempts; sorted, one row per set.
 
     Parameters
     ----------
-    rows : list of dict
-        From :func:`session_rows` over every log.
+    rows : list of dict, or list of tuple
+        From :func:`session_rows` over every log, or those rows :func:`packed`.
     unmasked_al : {"auto", "baseline", "calibration"}
         Where a masked set's unmasked AL comes from (module docstring).
+    consume : bool
+        The caller gives ``rows`` up: the list is emptied once its values are taken, so a
+        large study does not hold the rows and the table at once (about 1 kB per set).
+
+    Returns
+    -------
+    pandas.DataFrame
+        :data:`COLUMNS`, object dtype (None stays None).
+
+    Examples
+    --------
+    >>> rows = [{"participant": "P1", "experiment": "baseline", "set_id": "EV", "target": "EV270",
+    ...          "masker": None, "status": "completed", "al_db_v": -20.0, "log": "a.jsonl"}]
+    >>> thresholds_table(rows)[["participant", "al_db_v", "status"]].values.tolist()
+    [['P1', -20.0, 'completed']]
     """
     if unmasked_al not in UNMASKED_SOURCES:
         raise AnalysisError(
             f"unknown unmasked-AL source {unmasked_al!r}; use one of {', '.join(UNMASKED_SOURCES)}"
         )
-    table = [{col: r.get(col) for col in [*COLUMNS, "calibration_al_db_v"]} for r in rows]
-    order = sorted(
-        range(len(table)),
-        key=lambda i: (
-            table[i]["created_utc"] or "",
-            table[i]["session_id"] or "",
-            table[i]["log"] or "",
-        ),
-    )
-
-    def set_key(r: dict) -> tuple:
-        return (
-            r["participant"],
-            r["experiment"],
-            r["target"],
-            r["masker"],
-            r["masker_level_db_sl"],
-        )
+    # Column lists (None where a row lacks the key), not a dict per row: ~8 bytes per cell.
+    if rows and isinstance(rows[0], tuple):
+        col = dict(zip(ROW_KEYS, map(list, zip(*rows, strict=True)), strict=True))
+    else:
+        col = {c: [r.get(c) for r in rows] for c in ROW_KEYS}  # type: ignore[union-attr]
+    if consume:
+        rows.clear()
+    n = len(col["status"])
+    created, session, log = col["created_utc"], col["session_id"], col["log"]
+    participant, experiment = col["participant"], col["experiment"]
+    target, masker, level = col["target"], col["masker"], col["masker_level_db_sl"]
+    status, note, al_db_v = col["status"], col["note"], col["al_db_v"]
+    order = sorted(range(n), key=lambda i: (created[i] or "", session[i] or "", log[i] or ""))
 
     # Later attempts at the same set supersede earlier completed ones.
-    latest: dict[tuple, dict] = {}
+    latest: dict[tuple, int] = {}
     for i in order:
-        r = table[i]
-        if r["status"] == "completed":
-            key = set_key(r)
+        if status[i] == "completed":
+            key = (participant[i], experiment[i], target[i], masker[i], level[i])
             if key in latest:
-                latest[key]["status"] = "superseded"
-                latest[key]["note"] = f"a later session ({r['session_id']}) completed this set"
-            latest[key] = r
+                j = latest[key]
+                status[j] = "superseded"
+                note[j] = f"a later session ({session[i]}) completed this set"
+            latest[key] = i
     baseline: dict[tuple[str, str], float] = {}
     for i in order:  # latest baseline session wins
-        r = table[i]
-        if r["status"] == "completed" and r["masker"] is None and r["al_db_v"] is not None:
-            baseline[(r["participant"], r["target"])] = float(r["al_db_v"])
+        if status[i] == "completed" and masker[i] is None and al_db_v[i] is not None:
+            baseline[(participant[i], target[i])] = float(al_db_v[i])
 
-    for r in table:
-        if r["masker"] is None or r["target"] is None:
+    for i in range(n):
+        if masker[i] is None or target[i] is None:
             continue
-        target, masker = parse_stimulus(r["target"]), parse_stimulus(r["masker"])
+        t_stim, m_stim = _stimulus(target[i]), _stimulus(masker[i])
         # The ANOVA's frequency factor is the MV stimulus of the pair (paper Table 2).
-        mv = masker if masker.channel == "MV" or target.channel != "MV" else target
-        r["masker_frequency_hz"] = masker.carrier_hz
-        r["mv_stimulus"] = mv.name
-        r["mv_frequency_hz"] = mv.carrier_hz
-        if r["status"] != "completed":
+        mv = m_stim if m_stim.channel == "MV" or t_stim.channel != "MV" else t_stim
+        col["masker_frequency_hz"][i] = m_stim.carrier_hz
+        col["mv_stimulus"][i] = mv.name
+        col["mv_frequency_hz"][i] = mv.carrier_hz
+        if status[i] != "completed":
             continue
-        from_base = baseline.get((r["participant"], r["target"]))
-        cal = r["calibration_al_db_v"]
+        from_base = baseline.get((participant[i], target[i]))
+        cal = col["calibration_al_db_v"][i]
         if unmasked_al == "calibration" or (unmasked_al == "auto" and from_base is None):
             unmasked, source = cal, "calibration"
         else:
             unmasked, source = from_base, "baseline"
         if unmasked is None:
-            r["status"] = "no_baseline"
-            r["note"] = (
-                f"participant {r['participant']} has no completed baseline AL for {r['target']}"
+            status[i] = "no_baseline"
+            note[i] = (
+                f"participant {participant[i]} has no completed baseline AL for {target[i]}"
                 + (
                     "; run the baseline protocol or use --unmasked-al calibration"
                     if unmasked_al == "baseline"
@@ -311,26 +406,30 @@ def thresholds_table(rows: list[dict], *, unmasked_al: str = "auto") -> pd.DataF
                 )
             )
             continue
-        r["unmasked_al_db_v"] = float(unmasked)
-        r["unmasked_source"] = source
-        r["shift_db"] = float(r["al_db_v"]) - float(unmasked)
+        col["unmasked_al_db_v"][i] = float(unmasked)
+        col["unmasked_source"][i] = source
+        col["shift_db"][i] = float(al_db_v[i]) - float(unmasked)
 
-    def sort_key(r: dict) -> tuple:
-        lvl = r["masker_level_db_sl"]
+    set_id = col["set_id"]
+
+    def sort_key(i: int) -> tuple:
+        lvl = level[i]
         return (
-            r["participant"] or "",
-            r["experiment"] or "",
-            r["target"] or "",
-            r["masker"] or "",
+            participant[i] or "",
+            experiment[i] or "",
+            target[i] or "",
+            masker[i] or "",
             -math.inf if lvl is None else lvl,
-            r["created_utc"] or "",
-            r["log"] or "",
-            r["set_id"] or "",
+            created[i] or "",
+            log[i] or "",
+            set_id[i] or "",
         )
 
-    table.sort(key=sort_key)
+    ranked = sorted(range(n), key=sort_key)  # stable, like sorting the rows themselves
     # object dtype keeps None as None (pandas would turn missing strings into NaN)
-    return pd.DataFrame(table, columns=COLUMNS, dtype=object)
+    return pd.DataFrame(
+        {c: [col[c][i] for i in ranked] for c in COLUMNS}, columns=COLUMNS, dtype=object
+    )
 
 
 def shifts_long(thresholds: pd.DataFrame) -> pd.DataFrame:

@@ -4,7 +4,15 @@ from __future__ import annotations
 
 
 class MaskingLabError(Exception):
-    """Base class for every error masking_lab raises on purpose."""
+    """Base class for every error masking_lab raises on purpose.
+
+    Examples
+    --------
+    Catch this to handle any deliberate error; value errors are also ``ValueError``:
+
+    >>> issubclass(LevelError, MaskingLabError), issubclass(LevelError, ValueError)
+    (True, True)
+    """
 
 
 class LevelError(MaskingLabError, ValueError):
@@ -22,6 +30,11 @@ class ProtocolError(MaskingLabError):
         Key path (``staircase.n_down``) or ``line N`` locating the problem.
     message : str
         What is wrong and how to fix it.
+
+    Examples
+    --------
+    >>> str(ProtocolError("exp1.yaml", "staircase.n_down", "must be an integer ≥ 1"))
+    'exp1.yaml: staircase.n_down: must be an integer ≥ 1'
     """
 
     def __init__(self, file: str, where: str, message: str) -> None:
@@ -74,12 +87,24 @@ class LogError(MaskingLabError):
     """A session log is unreadable, truncated or inconsistent with its protocol."""
 
 
+class LogLockedError(LogError):
+    """Another process (``run`` or ``resume``) holds the session log's lock."""
+
+
+class LogWriteError(LogError):
+    """Writing or syncing a session-log record failed (disk full, I/O error)."""
+
+
 class CalibrationError(MaskingLabError):
     """A participant's calibration (unmasked ALs) is missing or incomplete."""
 
 
 class AnalysisError(MaskingLabError):
     """The data cannot support the requested analysis (missing cells, one participant, ...)."""
+
+
+class OutputFolderError(MaskingLabError):
+    """An output folder cannot be replaced safely (a file, holds inputs or foreign files)."""
 
 
 class SolverError(MaskingLabError, ValueError):

@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["csv_text"]
+__all__ = ["csv_text", "csv_text_rows"]
 
 
 def csv_text(columns: Sequence[str], rows: Iterable[Mapping[str, Any]]) -> str:
@@ -46,7 +46,27 @@ def csv_text(columns: Sequence[str], rows: Iterable[Mapping[str, Any]]) -> str:
     return buf.getvalue()
 
 
+def csv_text_rows(columns: Sequence[str], rows: Iterable[Sequence[Any]]) -> str:
+    """:func:`csv_text` for rows given as sequences in ``columns`` order (no dict per row).
+
+    Examples
+    --------
+    >>> csv_text_rows(["a", "b"], [[1.0 / 3, None], [True, "x"]])
+    'a,b\\n0.333333,\\ntrue,x\\n'
+    """
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(columns)
+    w.writerows([_cell(v) for v in row] for row in rows)
+    return buf.getvalue()
+
+
 def _cell(v: Any) -> str:
+    kind = type(v)  # the common exact types first: this runs once per cell
+    if kind is str:
+        return v
+    if kind is float:
+        return "" if v != v else f"{v:.6g}"  # v != v: NaN
     if v is None:
         return ""
     if isinstance(v, bool | np.bool_):

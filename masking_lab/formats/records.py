@@ -2,10 +2,10 @@
 
 Every JSON Lines record a session log holds (header, ``set_start``, ``trial``, ``set_end``,
 ``fault``, ``resume``, ``usertest_trial``, ``session_end``; fields in
-``data_schema/session_log.schema.json``) is written by :func:`encode_record`, whoever writes it:
-the threshold and user-test runners (through
-:class:`~masking_lab.formats.session_log.SessionLogWriter`) and the synthetic logs of
-:mod:`masking_lab.simulation.synthetic_logs`.
+``data_schema/session_log.schema.json``, types in :mod:`masking_lab.formats.log_records`) is
+written by :func:`encode_record` through the one writer,
+:class:`~masking_lab.formats.session_log.SessionLogWriter`, whoever writes it: the threshold and
+user-test runners, resume and the synthetic logs of :mod:`masking_lab.simulation.synthetic_logs`.
 
 The policy for non-finite numbers, in one place:
 

@@ -2,21 +2,20 @@
 
 :func:`simulate_study` runs, for each simulated participant, the baseline protocol (unmasked ALs
 in dB re 1 V), takes its completed ALs as the participant's calibration, then runs the masked
-protocols in dB SL, exactly as a rig would: a 1-up-3-down staircase from
-:mod:`masking_lab.procedures.staircase` answered by
+protocols in dB SL, exactly as a rig would: each set's procedure (the 1-up-3-down staircase of
+:mod:`masking_lab.procedures.staircase`, or QUEST+), driven through the
+:class:`~masking_lab.procedures.base.Procedure` interface and answered by
 :class:`masking_lab.simulation.observer.SimulatedParticipant`.
 
 The masker's *true* sensation level follows from the calibration, so a baseline error misplaces
-the masker as it would at a real rig. Records follow ``data_schema/session_log.schema.json``;
-each file is written in one go and fsynced once (these are fixtures, not a live session, so the
-per-record fsync of :class:`masking_lab.formats.session_log.SessionLogWriter` is not needed).
+the masker as it would at a real rig. Records follow ``data_schema/session_log.schema.json``
+and are written by :class:`masking_lab.formats.session_log.SessionLogWriter`, each file in one
+write and one fsync (fixtures, not a live session).
 """
 
 from __future__ import annotations
 
-import dataclasses
 import hashlib
-import os
 from collections.abc import Sequence
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
@@ -27,9 +26,9 @@ import yaml
 
 from masking_lab import __version__
 from masking_lab.formats.protocol import Protocol, load_protocol, parse_protocol
-from masking_lab.formats.records import encode_record
 from masking_lab.formats.resources import shipped
-from masking_lab.procedures.staircase import Staircase, start
+from masking_lab.formats.session_log import SessionLogWriter
+from masking_lab.procedures.log_fields import end_fields, start_fields, trial_fields
 from masking_lab.simulation.observer import (
     GroundTruth,
     SimulatedParticipant,
@@ -123,7 +122,7 @@ def simulate_session(
         if masker is not None:
             masker_db_v = float(spec.masker_level_db_sl) + calibration[masker]  # type: ignore[arg-type]
             true_masker_sl = masker_db_v - participant.unmasked_al_db_v[masker]
-        settings = spec.staircase
+        settings = spec.settings
         records.append(
             {
                 "record": "set_start",
@@ -136,13 +135,13 @@ def simulate_session(
                 "level_unit": protocol.level_unit,
                 "max_level_db": settings.max_level_db,
                 "min_level_db": settings.min_level_db,
-                "staircase": _settings_dict(settings),
+                **start_fields(settings),
                 "t_s": round(t, 3),
             }
         )
-        sc: Staircase = start(settings)
+        sc = settings.start()
         while not sc.finished:
-            level = sc.level_db
+            level = sc.next_level()
             level_v = level + unmasked if masked else level  # type: ignore[operator]
             p = participant.p_correct(target, level_v, masker, true_masker_sl or 0.0)
             correct = bool(rng.random() < p)
@@ -157,7 +156,7 @@ def simulate_session(
                 + i * (protocol.timing.stimulus_s + protocol.timing.gap_s)
                 for i in range(3)
             ]
-            before = len(sc.reversal_levels_db)
+            before = sc
             sc = sc.update(correct)
             records.append(
                 {
@@ -169,30 +168,29 @@ def simulate_session(
                     "target_interval": interval,
                     "response_interval": response,
                     "correct": correct,
-                    "reversal": len(sc.reversal_levels_db) > before,
-                    "step_db": sc.level_db - level,
-                    "next_level_db": sc.level_db,
-                    "at_bound": sc.at_bound,
+                    **_trial_fields(before, sc, level),
                     "planned_onsets_s": [round(o, 3) for o in onsets],
                     "actual_onsets_s": [round(o + 0.001, 3) for o in onsets],
                     "response_time_s": round(rt, 3),
                 }
             )
             t += trial_s + rt + protocol.timing.inter_trial_s
-        al = sc.al_db
-        records.append(
-            {
-                "record": "set_end",
-                "set_id": set_id,
-                "status": sc.status,
-                "al_db": al,
-                "al_db_v": None if al is None else (al + unmasked if masked else al),  # type: ignore[operator]
-                "al_db_sl": al if masked else None,
-                "n_trials": sc.n_trials,
-                "reversal_levels_db": list(sc.reversal_levels_db),
-                "t_s": round(t, 3),
-            }
-        )
+        ends = end_fields(sc)
+        al = ends["al_db"]
+        end = {
+            "record": "set_end",
+            "set_id": set_id,
+            "status": sc.status,
+            "al_db": al,
+            "al_db_v": None if al is None else (al + unmasked if masked else al),  # type: ignore[operator]
+            "al_db_sl": al if masked else None,
+            "n_trials": sc.n_trials,
+            "reversal_levels_db": ends["reversal_levels_db"],
+            "t_s": round(t, 3),
+        }
+        if "sd_db" in ends:  # the staircase's records stay as they were
+            end |= {"method": ends["method"], "sd_db": ends["sd_db"]}
+        records.append(end)
         t += protocol.timing.rest_between_sets_s
     ended = _parse_utc(created_utc) + timedelta(seconds=t)
     records.append({"record": "session_end", "status": "completed", "ended_utc": _utc(ended)})
@@ -200,14 +198,16 @@ def simulate_session(
 
 
 def write_log(path: str | Path, records: Sequence[dict[str, Any]]) -> Path:
-    """Write records as a JSON Lines log (same serialisation as the session log writer)."""
+    """Write records (header first) as a session log, through the session-log writer.
+
+    The lines are those a live session writes (with ``seq``); the file is written in one go
+    and fsynced once. An existing file at ``path`` is replaced.
+    """
     p = Path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    text = "".join(encode_record(r) + "\n" for r in records)
-    with open(p, "w", encoding="utf-8", newline="\n") as fh:
-        fh.write(text)
-        fh.flush()
-        os.fsync(fh.fileno())
+    p.unlink(missing_ok=True)
+    header, *rest = records
+    with SessionLogWriter.create(p, header, sync="set") as writer:
+        writer.append_many(rest)
     return p
 
 
@@ -290,10 +290,14 @@ def _calibration_from(
     return cal
 
 
-def _settings_dict(settings: Any) -> dict[str, Any]:
-    d = dataclasses.asdict(settings)
-    d["step_sizes_db"] = list(d["step_sizes_db"])
-    return d
+def _trial_fields(before: Any, after: Any, level: float) -> dict[str, Any]:
+    """The procedure's keys of a trial record (these fixtures log the staircase's step as the
+    level change and its next level even after the last trial, as they always have)."""
+    fields = {k: v for k, v in trial_fields(before, after).items() if v is not None}
+    if "posterior" not in fields:
+        fields |= {"step_db": after.next_level() - level, "next_level_db": after.next_level()}
+        fields["at_bound"] = after.at_bound
+    return fields
 
 
 def _session_seed(seed: int, participant: str, experiment: str) -> int:
