@@ -6,18 +6,23 @@ from pathlib import Path
 
 import pytest
 
+from masking_lab.commands.cli import main as cli_main
 from masking_lab.core.psychometric import LEVITT_1U3D
 from masking_lab.planning.study import (
     StudyError,
     cheapest_matching,
     convergence_study,
     fill_doc,
-    main,
     settings_study,
 )
 
 ROOT = Path(__file__).resolve().parents[1]
-BLOCKS = ("meta", "convergence", "settings", "answer")
+BLOCKS = ("meta", "convergence", "settings", "answer", "procedures")
+
+
+def main(argv: list[str]) -> int:
+    """``masking-lab study ARGS`` (the study's command line lives in masking_lab.commands)."""
+    return cli_main(["study", *argv])
 
 
 def test_small_steps_converge_where_levitt_says():
@@ -32,6 +37,18 @@ def test_small_steps_converge_where_levitt_says():
     assert ratio["target_p"] == pytest.approx(0.8315, abs=1e-4)
     assert 0.82 < ratio["p_converged"] < 0.85
     assert equal["completed"] == 1.0
+
+
+def test_the_0_7393_ratio_is_a_2afc_constant():
+    """García-Pérez's ratio holds its track near 83 % across step sizes in 2AFC, not in 3IFC."""
+    kw = {"ratios": (0.7393,), "replicates": 400, "n_reversals": 40, "n_averaged": 32}
+    steps = (0.5, 2.0)
+    two = convergence_study(step_over_scale=steps, guess=0.5, **kw)
+    three = convergence_study(step_over_scale=steps, guess=1 / 3, **kw)
+    assert all(0.82 < r["p_converged"] < 0.845 for r in two)
+    assert abs(two[1]["p_converged"] - two[0]["p_converged"]) < 0.01  # flat in 2AFC
+    assert three[1]["p_converged"] - three[0]["p_converged"] > 0.008  # drifts up in 3IFC
+    assert {r["guess"] for r in two} == {0.5}
 
 
 def test_cheapest_setting_is_at_least_as_precise_and_no_longer_than_the_paper():
@@ -79,6 +96,8 @@ ARGS = [
     "30",
     "--max-reversals",
     "15",
+    "--quest-replicates",
+    "10",
 ]
 
 
@@ -92,12 +111,18 @@ def test_one_command_regenerates_figures_tables_and_the_document_byte_for_byte(t
         "settings.csv",
         "ladder.csv",
         "speed_accuracy.png",
+        "convergence_2afc.png",
+        "procedures.csv",
+        "procedures.png",
     )
     first = {n: (out / n).read_bytes() for n in names}
     text = doc.read_text()
     assert "| 4,4,4,2 | 11/8 **(paper)** | reversal mean |" in text
     assert "Fewest trials for that precision" in text
-    assert "| 0.25 | 0.375 | 1 | 0.7937 |" in text
+    assert "| 3IFC | 0.25 | 0.375 | 1 | 0.7937 |" in text
+    assert "| 2AFC | 0.25 | 0.375 | 0.7393 | 0.8315 |" in text
+    assert "| QUEST+ | SD ≤ 1.08 dB **(protocol)** | posterior mean |" in text
+    assert "Fewest trials for ±1 dB" in text
     assert first["convergence.png"][:4] == b"\x89PNG"
     # a second run gives the same bytes: the committed study only changes with its results
     assert main(["--out", str(out), "--doc", str(doc), *ARGS]) == 0

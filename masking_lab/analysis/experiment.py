@@ -23,6 +23,7 @@ from masking_lab.analysis.pooling import (
     level_sort_key,
     parse_pool_spec,
 )
+from masking_lab.analysis.pooling_lr import compare_pooling, comparison_lines
 from masking_lab.analysis.ramp_fit import RampFit, fit_ramp, participant_bootstrap, with_bootstrap
 from masking_lab.analysis.settings import AnalysisSettings
 from masking_lab.analysis.stats import (
@@ -277,6 +278,7 @@ def _analyze_experiment(
         tests=posthoc,
         explicit=explicit,
     )
+    pooling = replace(pooling, model_comparison=_model_comparison(sub, levels, settings))
     fits = tuple(
         _fit_group(experiment, group, sub, cells, pair_of_level, settings, has_participants)
         for group in pooling.groups
@@ -342,6 +344,17 @@ def _fit_group(
     pairs = tuple("|".join(pair_of_level[lv]) for lv in group)
     freqs = tuple(sorted({c.mv_frequency_hz for c in mine}))
     return GroupFit(tuple(group), pairs, freqs, fit, n_part)
+
+
+def _model_comparison(
+    sub: pd.DataFrame, levels: Sequence[str], settings: AnalysisSettings
+) -> tuple[str, ...]:
+    """Pooled against separate ramps over every shift (issue 13), beside the paper's rule."""
+    points = {
+        lv: (g["masker_level_db_sl"].to_numpy(float), g["shift_db"].to_numpy(float))
+        for lv, g in sub.groupby("mv_stimulus")
+    }
+    return tuple(comparison_lines(compare_pooling(points, levels), settings.pool_alpha))
 
 
 def _add_message(fit: RampFit, text: str) -> RampFit:

@@ -26,6 +26,7 @@ COMMANDS = (
     "solve",
     "render",
     "plan",
+    "study",
     "demo",
 )
 

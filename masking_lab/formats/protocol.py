@@ -18,11 +18,12 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
-import yaml
 
 from masking_lab.core.errors import ProtocolError, StaircaseError
 from masking_lab.core.stimulus import Stimulus, parse_stimulus
-from masking_lab.formats.schemas import key_path, load_schema, schema_errors
+from masking_lab.formats.reader import decode_utf8, excerpt, parse_yaml, read_limited, where
+from masking_lab.formats.schemas import describe_type_error, key_path, load_schema, schema_errors
+from masking_lab.procedures.quest_plus import QuestPlusSettings
 from masking_lab.procedures.staircase import StaircaseSettings
 
 Kind = Literal["baseline", "masked"]
@@ -59,15 +60,27 @@ class SetSpec:
         Masker played in all three intervals (None in baseline sets).
     masker_level_db_sl : float or None
         Masker level in dB SL of the masker (None in baseline sets).
-    staircase : StaircaseSettings
-        The staircase for this set (start level in the protocol's level unit).
+    staircase : StaircaseSettings or None
+        The staircase for this set (start level in the protocol's level unit); None when the
+        set runs another procedure and the protocol has no ``staircase`` block.
+    procedure : QuestPlusSettings or None
+        The set's procedure when it is not the staircase (``procedure: {kind: quest_plus}``);
+        None runs ``staircase`` (the default and the paper's choice).
     """
 
     id: str
     target: Stimulus
     masker: Stimulus | None
     masker_level_db_sl: float | None
-    staircase: StaircaseSettings
+    staircase: StaircaseSettings | None
+    procedure: QuestPlusSettings | None = None
+
+    @property
+    def settings(self) -> StaircaseSettings | QuestPlusSettings:
+        """The settings of the procedure this set runs (levels in the protocol's unit)."""
+        chosen = self.procedure if self.procedure is not None else self.staircase
+        assert chosen is not None  # the loader gives every set one
+        return chosen
 
 
 @dataclass(frozen=True)
@@ -90,6 +103,9 @@ class Protocol:
         Trial timing.
     randomize_order : bool
         Shuffle sets per participant from the session seed.
+    interleave : bool
+        Run all sets of a session at once, one trial at a time from a set drawn at random
+        (seeded) among the unfinished ones, as PsychoPy's MultiStairHandler does.
     content : dict
         The parsed YAML (logged, so a log is self-contained).
     """
@@ -102,6 +118,7 @@ class Protocol:
     timing: Timing
     randomize_order: bool = True
     description: str = ""
+    interleave: bool = False
     content: Mapping[str, Any] = field(default_factory=dict, compare=False, repr=False)
 
     @property
@@ -156,10 +173,7 @@ def load_protocol(
         Naming the file, key path and line of the first problem(s).
     """
     p = Path(path)
-    try:
-        raw = p.read_bytes()
-    except OSError as exc:
-        raise ProtocolError(str(p), "", f"cannot read the file ({exc.strerror or exc})") from exc
+    raw = read_limited(p, what="file")
     return parse_protocol(raw, str(p), max_level_db_sl=max_level_db_sl)
 
 
@@ -167,8 +181,7 @@ def parse_protocol(
     raw: bytes, source: str, *, max_level_db_sl: Mapping[str, float] | None = None
 ) -> Protocol:
     """:func:`load_protocol` on bytes already read; ``source`` names them in messages."""
-    text = raw.decode("utf-8", errors="replace")
-    data, lines = _safe_yaml(text, source)
+    data, lines = _safe_yaml(decode_utf8(raw, source), source)
     return protocol_from_mapping(
         data,
         source,
@@ -243,60 +256,13 @@ def _join(problems: list[tuple[str, str]]) -> str:
 
 
 def _safe_yaml(text: str, source: str) -> tuple[Any, dict[str, int]]:
-    """Parse YAML with the safe loader; return the data and a key-path → line map."""
-    try:
-        node = yaml.compose(text, Loader=yaml.SafeLoader)
-        data = yaml.safe_load(text)
-    except yaml.MarkedYAMLError as exc:
-        mark = exc.problem_mark or exc.context_mark
-        where = f"line {mark.line + 1}, column {mark.column + 1}" if mark else ""
-        what = exc.problem or str(exc)
-        if "could not determine a constructor" in str(exc):
-            what = f"{what}: tags that build Python objects are not allowed in a protocol"
-        raise ProtocolError(source, where, f"malformed YAML: {what}; fix the syntax there") from exc
-    except yaml.YAMLError as exc:
-        raise ProtocolError(source, "", f"malformed YAML: {exc}") from exc
-    lines: dict[str, int] = {}
-    dupes: list[tuple[str, int]] = []
-    if node is not None:
-        _walk(node, "", lines, dupes)
-    if dupes:
-        path, line = dupes[0]
-        raise ProtocolError(
-            source,
-            f"{path} (line {line})",
-            "this key appears twice in the same mapping; YAML would silently keep the last one. "
-            "Delete or rename one of them",
-        )
-    return data, lines
-
-
-def _walk(node: yaml.Node, path: str, lines: dict[str, int], dupes: list[tuple[str, int]]) -> None:
-    lines.setdefault(path or "(top level)", node.start_mark.line + 1)
-    if isinstance(node, yaml.MappingNode):
-        seen: set[str] = set()
-        for key_node, value_node in node.value:
-            key = str(key_node.value)
-            child = f"{path}.{key}" if path else key
-            if key in seen and key != "<<":
-                dupes.append((child, key_node.start_mark.line + 1))
-            seen.add(key)
-            lines[child] = key_node.start_mark.line + 1
-            _walk(value_node, child, lines, dupes)
-    elif isinstance(node, yaml.SequenceNode):
-        for i, item in enumerate(node.value):
-            _walk(item, f"{path}[{i}]", lines, dupes)
+    """Parse YAML through the shared reader (limits, no aliases, no duplicate keys, finite
+    numbers); return the data and a key-path → line map."""
+    return parse_yaml(text, source)
 
 
 def _where(path: str, lines: Mapping[str, int]) -> str:
-    probe = path
-    while probe:
-        if probe in lines:
-            return f"{path} (line {lines[probe]})"
-        probe = probe.rsplit(".", 1)[0] if "." in probe else probe.rsplit("[", 1)[0]
-        if probe == path:
-            break
-    return path
+    return where(path, lines)
 
 
 def _schema_problems(data: Any, lines: Mapping[str, int]) -> Iterator[tuple[str, str]]:
@@ -310,7 +276,7 @@ def _schema_problems(data: Any, lines: Mapping[str, int]) -> Iterator[tuple[str,
                 child = f"{path}.{key}" if path != "(top level)" else str(key)
                 hint = difflib.get_close_matches(str(key), list(parent), n=1)
                 tip = f"did you mean {hint[0]!r}?" if hint else f"known keys: {', '.join(parent)}"
-                yield _where(child, lines), f"unknown key {key!r}; {tip}"
+                yield _where(child, lines), f"unknown key {excerpt(key)}; {tip}"
             continue
         if err.validator == "required":
             missing = err.message.split("'")[1] if "'" in err.message else err.message
@@ -321,7 +287,7 @@ def _schema_problems(data: Any, lines: Mapping[str, int]) -> Iterator[tuple[str,
             and err.absolute_path
             and err.absolute_path[-1] == "schema_version"
         ):
-            yield _where(path, lines), f"schema_version must be 1, got {err.instance!r}"
+            yield _where(path, lines), f"schema_version must be 1, got {excerpt(err.instance)}"
             continue
         desc = _describe(err, schema)
         yield _where(path, lines), desc
@@ -329,27 +295,32 @@ def _schema_problems(data: Any, lines: Mapping[str, int]) -> Iterator[tuple[str,
 
 def _describe(err: Any, schema: Mapping[str, Any]) -> str:
     v, inst = err.validator, err.instance
+    finite = describe_type_error(err)
+    if finite is not None:
+        return finite
     if v == "type":
         want = err.validator_value
         want = " or ".join(want) if isinstance(want, list) else want
-        return f"must be of type {want}, got {type(inst).__name__} {inst!r}"
+        return f"must be of type {want}, got {type(inst).__name__} {excerpt(inst)}"
     if v in ("minimum", "exclusiveMinimum"):
         op = "≥" if v == "minimum" else ">"
-        return f"must be {op} {err.validator_value}, got {inst!r}"
+        return f"must be {op} {err.validator_value}, got {excerpt(inst)}"
     if v == "enum":
-        return f"must be one of {err.validator_value}, got {inst!r}"
+        return f"must be one of {err.validator_value}, got {excerpt(inst)}"
     if v == "pattern":
         if "EV|MV" in str(err.validator_value):
             return (
-                f"{inst!r} is not a stimulus name: write <EV|MV><carrier Hz>[am<envelope Hz>], "
+                f"{excerpt(inst)} is not a stimulus name: write <EV|MV><carrier Hz>"
+                "[am<envelope Hz>], "
                 "e.g. EV270, MV120, MV120am40"
             )
-        return f"{inst!r} may only contain letters, digits, '_', '-' and '.'"
+        return f"{excerpt(inst)} may only contain letters, digits, '_', '-' and '.'"
     if v == "minItems":
         return f"needs at least {err.validator_value} item(s)"
     if v == "oneOf" and isinstance(inst, str):
         return (
-            f"{inst!r} is not a stimulus name: write <EV|MV><carrier Hz>[am<envelope Hz>], "
+            f"{excerpt(inst)} is not a stimulus name: write <EV|MV><carrier Hz>"
+            "[am<envelope Hz>], "
             "or null for no masker"
         )
     return err.message
@@ -363,15 +334,19 @@ def _build(
 ) -> tuple[Protocol | None, list[tuple[str, str]]]:
     problems: list[tuple[str, str]] = []
     kind: Kind = data["kind"]
-    sc_data = dict(data["staircase"])
-    if "step_sizes_db" in sc_data:
-        sc_data["step_sizes_db"] = tuple(sc_data["step_sizes_db"])
     base_sc: StaircaseSettings | None = None
-    try:
-        base_sc = StaircaseSettings(**{k: v for k, v in sc_data.items() if k in _STAIRCASE_KEYS})
-    except StaircaseError as exc:
-        key = str(exc).split(":")[0].replace("staircase setting ", "").split("[")[0]
-        problems.append((_where(f"staircase.{key}", lines), str(exc).split(": ", 1)[1]))
+    if "staircase" in data:
+        sc_data = dict(data["staircase"])
+        if "step_sizes_db" in sc_data:
+            sc_data["step_sizes_db"] = tuple(sc_data["step_sizes_db"])
+        try:
+            base_sc = StaircaseSettings(
+                **{k: v for k, v in sc_data.items() if k in _STAIRCASE_KEYS}
+            )
+        except StaircaseError as exc:
+            key = str(exc).split(":")[0].replace("staircase setting ", "").split("[")[0]
+            problems.append((_where(f"staircase.{key}", lines), str(exc).split(": ", 1)[1]))
+    top_procedure = dict(data.get("procedure") or {"kind": "staircase"})
     timing = Timing(**data.get("timing", {}))
     default_target = data.get("target")
     sets: list[SetSpec] = []
@@ -424,10 +399,41 @@ def _build(
                 )
             )
         seen_conditions.setdefault(condition, sid)
+        chosen = _set_procedure(top_procedure, s.get("procedure"))
+        quest: QuestPlusSettings | None = None
+        if chosen.get("kind") == "quest_plus":
+            where = "procedure" if s.get("procedure") is None else f"{here}.procedure"
+            try:
+                quest = QuestPlusSettings.from_mapping(chosen)
+            except StaircaseError as exc:
+                problem = _procedure_problem(where, str(exc), lines)
+                if problem not in problems:  # a protocol-wide block is reported once
+                    problems.append(problem)
+                continue
+            if "start_level_db" in s:
+                problems.append(
+                    (
+                        _where(f"{here}.start_level_db", lines),
+                        "start_level_db belongs to a staircase; QUEST+ places its first trial "
+                        "itself (remove the key or run this set as a staircase)",
+                    )
+                )
+                continue
+        elif "staircase" not in data:
+            problems.append(
+                (
+                    _where(here, lines),
+                    "this set runs the staircase (the default procedure) but the protocol has "
+                    "no `staircase:` block; add one, or give `procedure: {kind: quest_plus, ...}`",
+                )
+            )
+            continue
         if base_sc is None:
+            if quest is not None:
+                sets.append(_set_spec(sid, target_name, masker_name, level, None, quest))
             continue
         sc = base_sc
-        if "start_level_db" in s:
+        if quest is None and "start_level_db" in s:
             try:
                 sc = StaircaseSettings(
                     **{**sc.__dict__, "start_level_db": float(s["start_level_db"])}
@@ -435,15 +441,7 @@ def _build(
             except StaircaseError as exc:
                 problems.append((_where(f"{here}.start_level_db", lines), str(exc)))
                 continue
-        sets.append(
-            SetSpec(
-                id=sid,
-                target=parse_stimulus(target_name),
-                masker=parse_stimulus(masker_name) if masker_name is not None else None,
-                masker_level_db_sl=float(level) if level is not None else None,
-                staircase=sc,
-            )
-        )
+        sets.append(_set_spec(sid, target_name, masker_name, level, sc, quest))
     if problems:
         return None, problems
     protocol = Protocol(
@@ -454,10 +452,47 @@ def _build(
         sets=tuple(sets),
         timing=timing,
         randomize_order=bool(data.get("order", {}).get("randomize", True)),
+        interleave=bool(data.get("order", {}).get("interleave", False)),
         description=str(data.get("description", "")).strip(),
         content=data,
     )
     return protocol, []
+
+
+def _set_spec(
+    sid: str,
+    target_name: str,
+    masker_name: str | None,
+    level: float | None,
+    staircase: StaircaseSettings | None,
+    quest: QuestPlusSettings | None,
+) -> SetSpec:
+    return SetSpec(
+        id=sid,
+        target=parse_stimulus(target_name),
+        masker=parse_stimulus(masker_name) if masker_name is not None else None,
+        masker_level_db_sl=float(level) if level is not None else None,
+        staircase=staircase,
+        procedure=quest,
+    )
+
+
+def _set_procedure(top: Mapping[str, Any], own: Mapping[str, Any] | None) -> dict[str, Any]:
+    """A set's ``procedure`` block: its own keys over the protocol's when the kinds agree."""
+    if not own:
+        return dict(top)
+    own_kind = own.get("kind", top.get("kind", "staircase"))
+    if own_kind == top.get("kind", "staircase"):
+        return {**top, **own}
+    return dict(own)
+
+
+def _procedure_problem(where: str, message: str, lines: Mapping[str, int]) -> tuple[str, str]:
+    """Place a QuestPlusSettings error on the key it names (``procedure.max_trials``...)."""
+    head, _, detail = message.partition(": ")
+    key = head.removeprefix("quest_plus setting ").removeprefix("quest_plus settings")
+    path = f"{where}.{key}" if key and " " not in key else where
+    return _where(path, lines), detail or message
 
 
 def _limit_problems(

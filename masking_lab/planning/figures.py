@@ -10,9 +10,11 @@ from __future__ import annotations
 import io
 from collections.abc import Sequence
 
+from matplotlib.axes import Axes
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
+from masking_lab.formats.png_figure import legible
 from masking_lab.planning.plan import ESTIMATOR_LABELS, PlanResult
 
 _COLORS = ("#1b6ca8", "#d1495b", "#2a9d55", "#8e5ea2", "#e69f00", "#4d4d4d", "#00a6a6")
@@ -43,9 +45,15 @@ def speed_accuracy(result: PlanResult, title: str = "") -> Figure:
     thin line along its reversal ladder; the protocol's own setting is ringed and labelled;
     the dashed line is the SD that gives ±``precision_db`` at ``z``.
     """
+    with legible():
+        fig = Figure(figsize=(10.0, 5.6), layout="constrained")
+        ax = fig.add_subplot(1, 1, 1)
+        _speed_accuracy_axes(result, ax, title)
+    return fig
+
+
+def _speed_accuracy_axes(result: PlanResult, ax: Axes, title: str) -> None:
     s = result.settings
-    fig = Figure(figsize=(7.0, 4.6))
-    ax = fig.add_subplot(1, 1, 1)
     keys: list[tuple[str, float]] = []
     for row in result.table:
         if _schedule_key(row) not in keys:
@@ -78,14 +86,19 @@ def speed_accuracy(result: PlanResult, title: str = "") -> Figure:
                 markersize=6,
                 label=f"{_schedule_label(key)}, {ESTIMATOR_LABELS[est]}",
             )
-            for r in rows if est == "reversal_mean" else ():
+            # Rule names only along the protocol's own schedule, alternating above and below
+            # the points: one label per point of every schedule collided.
+            own_schedule = any(r.get("own") for r in rows)
+            for k, r in enumerate(rows if est == "reversal_mean" and own_schedule else ()):
                 ax.annotate(
                     r["rule"],
                     (r["minutes_median"], r["sd_db"]),
                     textcoords="offset points",
-                    xytext=(4, 3),
-                    fontsize=6,
+                    xytext=(6, 5 if k % 2 == 0 else -12),
+                    fontsize=8,
                     color=color,
+                    bbox={"boxstyle": "round,pad=0.1", "fc": "white", "ec": "none", "alpha": 0.8},
+                    zorder=5,
                 )
     own = [r for r in result.table if r.get("own") and r["estimator"] == "reversal_mean"]
     for r in own:
@@ -101,24 +114,21 @@ def speed_accuracy(result: PlanResult, title: str = "") -> Figure:
             label=f"this protocol ({r['rule']}, {r['schedule']} dB)",
         )
     target = s.precision_db / s.z
-    ax.axhline(target, color="black", linestyle="--", linewidth=0.8)
+    ax.axhline(target, color="black", linestyle="--", linewidth=0.8, label="precision target")
     ax.annotate(
         f"SD giving ±{s.precision_db:g} dB ({s.z:g}·SD)",
         (0.99, target),
         xycoords=("axes fraction", "data"),
         ha="right",
         va="bottom",
-        fontsize=7,
+        fontsize=8,
     )
     ax.set_xlabel("session length per set, median (min)")
     ax.set_ylabel("SD of the AL estimate (dB)")
     ax.set_ylim(bottom=0)
     ax.grid(True, linewidth=0.4, alpha=0.5)
-    ax.legend(fontsize=6, loc="upper right", framealpha=0.9)
-    if title:
-        ax.set_title(title, fontsize=9)
-    fig.tight_layout()
-    return fig
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
+    ax.set_title(title or "Speed against accuracy of the staircase settings", fontsize=10)
 
 
 def _needed(result: PlanResult, key: tuple[str, float]) -> int:
@@ -137,10 +147,18 @@ def convergence(
     ``rows`` have ``step_over_scale``, ``down_up_ratio``, ``p_converged`` (at the reversal-mean
     AL) with ``p_low``/``p_high`` (95 % interval) and ``p_trials`` (mean p(correct) over the
     trials). Solid lines: reversal mean; dashed: trials. Dotted horizontals mark Levitt's 0.794
-    and the 0.8315 that a 0.7393 down/up ratio targets.
+    and the 0.8315 that a 0.7393 down/up ratio (García-Pérez's 2AFC value) targets.
     """
-    fig = Figure(figsize=(6.4, 4.0))
-    ax = fig.add_subplot(1, 1, 1)
+    with legible():
+        fig = Figure(figsize=(9.0, 4.8), layout="constrained")
+        ax = fig.add_subplot(1, 1, 1)
+        _convergence_axes(rows, levitt_p, garcia_perez_p, title, ax)
+    return fig
+
+
+def _convergence_axes(
+    rows: Sequence[dict], levitt_p: float, garcia_perez_p: float, title: str, ax: Axes
+) -> None:
     ratios = sorted({float(r["down_up_ratio"]) for r in rows}, reverse=True)
     for i, ratio in enumerate(ratios):
         mine = sorted(
@@ -181,14 +199,11 @@ def convergence(
             xycoords=("axes fraction", "data"),
             ha="right",
             va="bottom",
-            fontsize=7,
+            fontsize=8,
         )
     ax.set_xscale("log", base=2)
     ax.set_xlabel("up step / psychometric scale")
-    ax.set_ylabel("p(correct)")
+    ax.set_ylabel("p(correct) where the track settles")
     ax.grid(True, linewidth=0.4, alpha=0.5)
-    ax.legend(fontsize=7, loc="upper left")
-    if title:
-        ax.set_title(title, fontsize=9)
-    fig.tight_layout()
-    return fig
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
+    ax.set_title(title or "Where 1-up-3-down tracks converge", fontsize=10)

@@ -54,6 +54,7 @@ from masking_lab.planning.settings import (
     trial_duration_s,
     true_thresholds_db,
 )
+from masking_lab.procedures.fisher import cramer_rao_trials
 from masking_lab.procedures.ml_batch import index_levels, ml_threshold_from_counts
 from masking_lab.procedures.staircase_batch import (
     CEILING,
@@ -61,6 +62,7 @@ from masking_lab.procedures.staircase_batch import (
     FLOOR,
     RUNNING,
     TRIAL_CAP,
+    Observer,
     StopOutcome,
     outcome_under,
     simulate,
@@ -79,6 +81,7 @@ __all__ = [
     "StopRule",
     "default_schedules",
     "default_stop_rules",
+    "efficiency_fields",
     "ladder_rules",
     "parse_ratios",
     "parse_schedules",
@@ -139,6 +142,7 @@ def summarize(
         "unfinished": float(np.mean(status_code == RUNNING)),
         "trials_median": med,
         "trials_p90": p90,
+        "trials_mean": float(np.mean(n_trials)),
         "minutes_median": med * trial_s / 60.0,
         "minutes_p90": p90 * trial_s / 60.0,
     }
@@ -160,6 +164,7 @@ def pool(per_set: Sequence[dict[str, float]], trials: NDArray[np.int64], trial_s
         "sessions": int(sum(r["sessions"] for r in per_set)),
         "trials_median": med,
         "trials_p90": p90,
+        "trials_mean": float(np.mean(trials)),
         "minutes_median": med * trial_s / 60.0,
         "minutes_p90": p90 * trial_s / 60.0,
     }
@@ -178,6 +183,22 @@ def pool(per_set: Sequence[dict[str, float]], trials: NDArray[np.int64], trial_s
         out["worst_abs_bias_db"] = float(np.max(np.abs(biases[ok]))) if ok.any() else math.nan
         out["sets_without_al"] = int(np.sum(~ok))
     return out
+
+
+def efficiency_fields(sd_db: float, trials_mean: float, observer: Observer) -> dict[str, float]:
+    """``cr_trials`` (the bound's trials for ``sd_db``) and ``efficiency`` = that / trials.
+
+    Examples
+    --------
+    >>> f = efficiency_fields(1.08, 52.0, Observer(1.5, 0.02))
+    >>> round(f["cr_trials"], 1), round(f["efficiency"], 2)
+    (16.1, 0.31)
+    """
+    if not (math.isfinite(sd_db) and sd_db > 0 and math.isfinite(trials_mean)):
+        return {"cr_trials": math.nan, "efficiency": math.nan}
+    model = {"scale_db": observer.scale_db, "lapse": observer.lapse, "guess": observer.guess}
+    cr = float(cramer_rao_trials(sd_db, **model))
+    return {"cr_trials": cr, "efficiency": cr / trials_mean if trials_mean > 0 else math.nan}
 
 
 # --------------------------------------------------------------------------------------------
@@ -277,7 +298,7 @@ def run_plan(
         )
     trial_s = trial_duration_s(protocol.timing, settings.response_s)
     cap = base.max_trials
-    starts = np.repeat([s.staircase.start_level_db for s in protocol.sets], reps)
+    starts = np.repeat([(s.staircase or base).start_level_db for s in protocol.sets], reps)
     thr = thresholds_db.reshape(-1)
     set_of_row = np.repeat(np.arange(n_sets), reps)
     ml_reps = min(settings.ml_replicates, reps)
@@ -363,6 +384,7 @@ def run_plan(
                     settings.z * pooled["worst_sd_db"] <= settings.precision_db
                 )
                 pooled["own"] = sched == own_sched and rule == own_rule
+                pooled |= efficiency_fields(pooled["sd_db"], pooled["trials_mean"], obs)
                 table.append(_label(pooled, sched, rule, est, None))
 
         say(f"{head}: reversal ladder 3…{settings.max_reversals}")
@@ -381,6 +403,7 @@ def run_plan(
             ]
             row = _label(pool(sets_rows, out.n_trials, trial_s), sched, rung, "reversal_mean")
             row["half_width_db"] = settings.z * row["worst_sd_db"]
+            row |= efficiency_fields(row["sd_db"], row["trials_mean"], obs)
             row["capped_by_protocol"] = (
                 0.0 if cap is None else float(np.mean(out.completed & (out.n_trials > cap)))
             )

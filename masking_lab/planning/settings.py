@@ -19,6 +19,7 @@ from numpy.typing import NDArray
 
 from masking_lab.core.errors import AnalysisError, ProtocolError, StaircaseError
 from masking_lab.formats.protocol import Protocol, Timing
+from masking_lab.procedures.downup_ratio import GARCIA_PEREZ_2AFC_RATIO
 from masking_lab.procedures.staircase import StaircaseSettings
 from masking_lab.procedures.staircase_batch import Observer
 from masking_lab.simulation.observer import GroundTruth
@@ -34,6 +35,7 @@ __all__ = [
     "default_schedules",
     "default_stop_rules",
     "ladder_rules",
+    "paper_staircase",
     "parse_ratios",
     "parse_schedules",
     "parse_stop_rules",
@@ -44,8 +46,10 @@ __all__ = [
     "true_thresholds_db",
 ]
 
-#: García-Pérez (1998): this down/up step ratio makes 1-up 3-down converge on 83.15 % correct.
-GARCIA_PEREZ_RATIO = 0.7393
+#: García-Pérez (1998): this down/up step ratio makes 1-up 3-down converge on 83.15 % correct
+#: in **2AFC** (guess rate 1/2) whatever the step size; in 3IFC it does not
+#: (docs/speed-accuracy.md).
+GARCIA_PEREZ_RATIO = GARCIA_PEREZ_2AFC_RATIO
 ESTIMATORS = ("reversal_mean", "ml")
 ESTIMATOR_LABELS = {"reversal_mean": "reversal mean", "ml": "ML fit"}
 #: Trials simulated at most per track (only reached by a track that never reverses).
@@ -257,14 +261,42 @@ def protocol_staircase(protocol: Protocol) -> StaircaseSettings:
     StaircaseError
         If sets differ in anything else.
     """
-    base = protocol.sets[0].staircase
+    staircases = [s.staircase for s in protocol.sets if s.staircase is not None]
+    if not staircases:
+        return paper_staircase(protocol)
+    base = staircases[0]
     for s in protocol.sets[1:]:
+        if s.staircase is None:
+            continue
         if replace(s.staircase, start_level_db=base.start_level_db) != base:
             raise StaircaseError(
                 f"{protocol.path}: set {s.id!r} has staircase settings other than the first "
                 "set's; plan supports sets that differ only in start level"
             )
     return base
+
+
+def paper_staircase(protocol: Protocol) -> StaircaseSettings:
+    """The paper's staircase (steps 4,4,4,2 dB, 11/8, start 20 dB, cap 150) within the range of
+    a protocol whose sets run another procedure, so ``plan`` can set it beside them.
+
+    Examples
+    --------
+    >>> from masking_lab.formats.resources import shipped
+    >>> from masking_lab.formats.protocol import load_protocol
+    >>> p = load_protocol(shipped("protocols", "experiment1_questplus.yaml"))
+    >>> sc = paper_staircase(p)
+    >>> sc.step_sizes_db, sc.n_reversals, sc.min_level_db, sc.max_level_db
+    ((4.0, 4.0, 4.0, 2.0), 11, -20, 45)
+    """
+    lo, hi = -20.0, 45.0
+    quests = [s.procedure for s in protocol.sets if s.procedure is not None]
+    if quests:
+        lo, hi = quests[0].min_level_db, quests[0].max_level_db
+    start = min(max(20.0, lo), hi)
+    return StaircaseSettings(
+        start, step_sizes_db=(4.0, 4.0, 4.0, 2.0), min_level_db=lo, max_level_db=hi, max_trials=150
+    )
 
 
 def protocol_stop_rule(protocol: Protocol) -> StopRule:

@@ -6,12 +6,12 @@ against the same simulated observers, and reports for each the trials used, the 
 its threshold estimates, and its efficiency: the Cramér-Rao trials for the SD it achieved
 (:mod:`masking_lab.procedures.fisher`) divided by the trials it used.
 
-Run ``python -m masking_lab.procedures.efficiency`` to print the table of docs/procedures.md.
+Run ``python -m masking_lab.procedures.efficiency`` to print the table of docs/procedures.md
+(:func:`report`; command-line options live in ``masking-lab plan`` and ``masking-lab study``).
 """
 
 from __future__ import annotations
 
-import argparse
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -189,26 +189,29 @@ def format_table(rows: Sequence[EfficiencyRow], *, scale_db: float, lapse: float
     return "\n".join(lines)
 
 
-def main(argv: list[str] | None = None) -> int:
-    """Print the efficiency table (``python -m masking_lab.procedures.efficiency --help``)."""
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--per-set", type=int, default=134, help="tracks per experiment-I set")
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--scale-db", type=float, default=1.5)
-    ap.add_argument("--lapse", type=float, default=0.02)
-    ap.add_argument("--no-psi", action="store_true", help="skip the (slow) psi-marginal")
-    args = ap.parse_args(argv)
+def report(
+    per_set: int = 134,
+    seed: int = 0,
+    *,
+    scale_db: float = 1.5,
+    lapse: float = 0.02,
+    psi: bool = True,
+) -> str:
+    """The efficiency table of docs/procedures.md (``psi=False`` skips the slow psi-marginal).
+
+    ``python -m masking_lab.procedures.efficiency`` prints it with the defaults; ``masking-lab
+    study`` and ``masking-lab plan`` give the same comparison for any protocol.
+    """
     rows = compare(
         experiment1_thresholds_db(),
-        args.per_set,
-        np.random.default_rng(args.seed),
-        scale_db=args.scale_db,
-        lapse=args.lapse,
-        psi=not args.no_psi,
+        per_set,
+        np.random.default_rng(seed),
+        scale_db=scale_db,
+        lapse=lapse,
+        psi=psi,
     )
-    print(format_table(rows, scale_db=args.scale_db, lapse=args.lapse))
-    return 0
+    return format_table(rows, scale_db=scale_db, lapse=lapse)
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    print(report())

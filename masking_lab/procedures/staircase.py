@@ -10,8 +10,10 @@ Rules (paper §2.3 defaults: 1-up 3-down, stop after 11 reversals, AL = mean of 
   wrong answers raise it by the up step. The run counter restarts after every step.
 * A reversal is a change of direction; its level is the level of the trial that caused it.
 * The up step after ``k`` reversals is ``step_sizes_db[min(k, len - 1)]``; the down step is that
-  times ``down_up_ratio`` (García-Pérez 1998 recommends 0.7393 for 1-up 3-down, whose
-  zero-drift point is 83.15 % correct; docs/speed-accuracy.md measures how far that holds).
+  times ``down_up_ratio`` (García-Pérez 1998 recommends 0.7393 for 1-up 3-down in **2AFC**,
+  whose zero-drift point is 83.15 % correct; docs/speed-accuracy.md shows it is not
+  step-size invariant in 3IFC; :func:`masking_lab.procedures.downup_ratio.downup_ratio_for`
+  computes a ratio for a target).
 * ``initial_one_down_one_up``: until the first reversal, every answer moves the level (one
   correct → down, one wrong → up), and the step at the first reversal follows the same rule.
 * Bounds: with ``bound_policy="clamp"`` a step past a bound stops at the bound, and each step asked
@@ -358,7 +360,8 @@ def implied_target_p(settings: StaircaseSettings) -> float:
 
     Solves ``up_step·P(up step) = down_step·P(down step)`` per trial for the run-counter Markov
     chain of this rule (Kaernbach 1991; García-Pérez 1998). For equal steps this is Levitt's
-    target, e.g. 0.5^(1/3) = 0.794 for 1-up 3-down; a down/up ratio of 0.7393 gives 0.8315.
+    target, e.g. 0.5^(1/3) = 0.794 for 1-up 3-down; a down/up ratio of 0.7393 (García-Pérez's
+    2AFC value) gives 0.8315.
     This is the asymptote for steps small against the psychometric spread; with larger steps the
     reversal mean settles elsewhere (simulated in docs/speed-accuracy.md).
     """

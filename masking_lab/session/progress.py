@@ -48,6 +48,7 @@ def format_progress(
     level_db: float,
     level_unit: str,
     time_left_s: float,
+    track: str = "",
 ) -> str:
     """The progress line for the trial about to be played.
 
@@ -67,11 +68,22 @@ def format_progress(
         Unit of the staircase.
     time_left_s : float
         Estimated session time left, s.
+    track : str
+        The track's state for procedures without reversals (``"posterior 12.3 ± 1.4"``, dB);
+        shown instead of the reversal count when given.
+
+    Examples
+    --------
+    >>> format_progress(set_number=1, n_sets=2, set_id="A", trial_index=4, reversals=0,
+    ...                 n_reversals=0, level_db=3.0, level_unit="db_sl", time_left_s=600,
+    ...                 track="posterior 3.2 ± 1.5")
+    'set 1/2 A | trial 5 | posterior 3.2 ± 1.5 dB SL | level 3.0 dB SL | ~10 min left'
     """
     unit = UNIT_LABEL.get(level_unit, level_unit)
     return (
         f"set {set_number}/{n_sets} {set_id} | trial {trial_index + 1} | "
-        f"reversals {reversals}/{n_reversals} | level {level_db:.1f} {unit} | "
+        f"{f'{track} {unit}' if track else f'reversals {reversals}/{n_reversals}'} | "
+        f"level {level_db:.1f} {unit} | "
         f"{format_duration(time_left_s)} left"
     )
 

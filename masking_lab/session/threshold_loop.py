@@ -1,9 +1,12 @@
 """The threshold session's loop: each unfinished set of the order, trial by trial.
 
 One :class:`ThresholdSession` runs the sets a process still has to run: it plans each set
-(:mod:`masking_lab.session.trials`), asks the set's procedure for the next level, plays the trial,
-logs it fsynced before the next, shows progress, rests between sets, writes the calibration
-after baseline sets, and ends each set with its AL or the reason it has none.
+(:mod:`masking_lab.session.trials`), asks the set's procedure (any
+:class:`~masking_lab.procedures.base.Procedure`: the staircase or QUEST+) for the next level,
+plays the trial, logs it fsynced before the next, shows progress, rests between sets, writes the
+calibration after baseline sets, and ends each set with its AL or the reason it has none. With
+``order: {interleave: true}`` all sets run at once, each trial from a set drawn by
+:func:`masking_lab.session.interleave.next_set`.
 """
 
 from __future__ import annotations
@@ -28,8 +31,19 @@ from masking_lab.formats.calibration import record_al
 from masking_lab.formats.protocol import Protocol, SetSpec
 from masking_lab.formats.records import jsonable
 from masking_lab.formats.session_log import SessionLogWriter, SetRecords
-from masking_lab.procedures.staircase import Staircase, StaircaseSettings, replay
+from masking_lab.procedures.base import Procedure, replay
+from masking_lab.procedures.quest_plus import QuestPlus
+from masking_lab.procedures.staircase import Staircase
 from masking_lab.responders.base import Responder, SetInfo, TrialPresentation
+from masking_lab.session.interleave import next_set
+from masking_lab.session.pace import session_time_left_s, track_trials_left
+from masking_lab.session.procedure_records import (
+    bound_reason,
+    end_fields,
+    settings_from_record,
+    start_fields,
+    trial_fields,
+)
 
 # EXIT_* and the signal classes were public here first; the noqa lines re-export them.
 from masking_lab.session.progress import ProgressLine, format_progress
@@ -43,11 +57,9 @@ from masking_lab.session.shell import (
     drop_none,
     utc_now,
 )
-from masking_lab.session.threshold_plan import settings_from_record
 from masking_lab.session.trials import (
     UNIT_LABEL,
     SetPlan,
-    estimate_time_left_s,
     nominal_seconds_per_trial,
     plan_set,
     plan_trial,
@@ -147,6 +159,7 @@ class ThresholdSession(SessionShell[SessionResult]):
         self.finished_trials: list[int] = []
         self.trial_seconds: list[float] = []
         self.where: tuple[str | None, int | None] = (None, None)
+        self.interleaved_tracks: dict[str, tuple[int, SetPlan, Procedure]] = {}
 
     # -- top level --------------------------------------------------------------------------
 
@@ -168,6 +181,9 @@ class ThresholdSession(SessionShell[SessionResult]):
                 self.outcomes.append(_outcome_from_end(rec, self.protocol.level_unit))
                 if rec.end.get("status") in ("completed", "ceiling", "floor", "trial_cap"):
                     self.finished_trials.append(len(rec.trials))
+        if self.protocol.interleave:
+            self._run_interleaved()
+            return
         first = True
         for k, set_id in enumerate(self.order):
             rec = self.existing.get(set_id)
@@ -176,9 +192,58 @@ class ThresholdSession(SessionShell[SessionResult]):
             if not first:
                 self._rest(k)
             first = False
-            self._run_set(k, self.protocol.set_by_id(set_id), rec)
+            opened = self._open_set(self.protocol.set_by_id(set_id), rec)
+            if opened is None:
+                continue
+            plan, state = opened
+            self._start_responder_set(k, plan)
+            self._run_track(k, plan, state)
 
-    def _run_set(self, k: int, spec: SetSpec, rec: SetRecords | None) -> None:
+    def _run_track(self, k: int, plan: SetPlan, state: Procedure) -> None:
+        while not state.finished:
+            after = self._next_trial(k, plan, state)
+            if after is None:
+                return  # refused and logged as aborted
+            state = after
+        self._end_set(plan, state)
+
+    def _run_interleaved(self) -> None:
+        """All unfinished sets at once; each trial's set drawn from (seed, trials so far)."""
+        tracks: dict[str, tuple[int, SetPlan, Procedure]] = {}
+        for k, set_id in enumerate(self.order):
+            rec = self.existing.get(set_id)
+            if rec is not None and rec.end is not None:
+                continue
+            opened = self._open_set(self.protocol.set_by_id(set_id), rec)
+            if opened is not None:
+                tracks[set_id] = (k, *opened)
+        done = sum(len(rec.trials) for rec in self.existing.values())
+        introduced: set[str] = set()
+        self.interleaved_tracks = tracks
+        for set_id, (_, plan, state) in list(tracks.items()):
+            if state.finished:  # stopped by its last logged trial before set_end was written
+                self._end_set(plan, state)
+                del tracks[set_id]
+        while tracks:
+            running = [s for s in self.order if s in tracks]
+            set_id = next_set(self.seed, done, running)
+            k, plan, state = tracks[set_id]
+            if set_id not in introduced:
+                self._start_responder_set(k, plan)
+                introduced.add(set_id)
+            after = self._next_trial(k, plan, state)
+            if after is None:
+                del tracks[set_id]
+                continue
+            done += 1
+            if after.finished:
+                self._end_set(plan, after)
+                del tracks[set_id]
+            else:
+                tracks[set_id] = (k, plan, after)
+
+    def _open_set(self, spec: SetSpec, rec: SetRecords | None) -> tuple[SetPlan, Procedure] | None:
+        """Plan a set and rebuild its track from the log; None if the device refuses it."""
         unit = self.protocol.level_unit
         self.where = (spec.id, None)
         try:
@@ -186,42 +251,47 @@ class ThresholdSession(SessionShell[SessionResult]):
         except (LevelError, CalibrationError) as exc:
             n = len(rec.trials) if rec else 0
             self._refuse_set(spec, started=rec is not None, n_trials=n, exc=exc)
-            return
+            return None
         if rec is not None:
-            plan = dataclasses.replace(plan, staircase=settings_from_record(rec.start, spec))
+            plan = dataclasses.replace(plan, procedure=settings_from_record(rec.start, spec))
         else:
             self._append(self._set_start_record(plan))
-        state = replay(plan.staircase, [bool(t["correct"]) for t in (rec.trials if rec else [])])
+        state = replay(plan.procedure, [bool(t["correct"]) for t in (rec.trials if rec else [])])
+        return plan, state
+
+    def _start_responder_set(self, k: int, plan: SetPlan) -> None:
         self.responder.start_set(
             SetInfo(
-                set_id=spec.id,
+                set_id=plan.set_id,
                 set_number=k + 1,
                 n_sets=len(self.order),
-                target=spec.target,
-                masker=spec.masker,
-                masker_level_db_sl=spec.masker_level_db_sl,
+                target=plan.target,
+                masker=plan.masker,
+                masker_level_db_sl=plan.masker_level_db_sl,
             )
         )
-        while not state.finished:
-            try:
-                trial = plan_trial(
-                    plan,
-                    state.level_db,
-                    draw_target_interval(self.seed, plan.set_id, state.n_trials),
-                    self.protocol.timing,
-                )
-            except LevelError as exc:
-                # Only after a resume on a device with a lower limit than the set started with.
-                self._refuse_set(spec, started=True, n_trials=state.n_trials, exc=exc)
-                return
-            state = self._trial(k, plan, state, trial)
-        self._end_set(plan, state)
 
-    def _trial(self, k: int, plan: SetPlan, state: Staircase, trial: TrialPlan) -> Staircase:
+    def _next_trial(self, k: int, plan: SetPlan, state: Procedure) -> Procedure | None:
+        """Play the track's next trial; None (set refused and logged) if the device cannot."""
+        try:
+            trial = plan_trial(
+                plan,
+                state.next_level(),
+                draw_target_interval(self.seed, plan.set_id, state.n_trials),
+                self.protocol.timing,
+            )
+        except LevelError as exc:
+            # Only after a resume on a device with a lower limit than the set started with.
+            spec = self.protocol.set_by_id(plan.set_id)
+            self._refuse_set(spec, started=True, n_trials=state.n_trials, exc=exc)
+            return None
+        return self._trial(k, plan, state, trial)
+
+    def _trial(self, k: int, plan: SetPlan, state: Procedure, trial: TrialPlan) -> Procedure:
         timing = self.protocol.timing
         index = state.n_trials
         self.where = (plan.set_id, index)
-        level = state.level_db
+        level = state.next_level()
         interval = trial.target_interval
         self._show_progress(k, plan, state)
         t0 = self.clock.now()
@@ -256,10 +326,7 @@ class ThresholdSession(SessionShell[SessionResult]):
                 "target_interval": interval,
                 "response_interval": int(response.interval),
                 "correct": correct,
-                "reversal": len(after.reversal_levels_db) > len(state.reversal_levels_db),
-                "step_db": state.step_db,
-                "next_level_db": None if after.finished else after.level_db,
-                "at_bound": after.at_bound,
+                **trial_fields(state, after),
                 "planned_onsets_s": trial.planned_onsets_s(start_s),
                 "actual_onsets_s": list(played.actual_onsets_s),
                 "response_time_s": max(0.0, float(response.response_time_s)),
@@ -275,8 +342,9 @@ class ThresholdSession(SessionShell[SessionResult]):
         self.trial_seconds.append(self.clock.now() - t0)
         return after
 
-    def _end_set(self, plan: SetPlan, state: Staircase) -> None:
-        al = state.al_db
+    def _end_set(self, plan: SetPlan, state: Procedure) -> None:
+        ends = end_fields(state)
+        al = ends["al_db"]
         if self.protocol.kind == "baseline" and al is not None:
             # Calibration first: a crash before set_end replays the set and writes it again.
             source = _relative(self.writer.path, self.data_dir)
@@ -296,11 +364,14 @@ class ThresholdSession(SessionShell[SessionResult]):
             "al_db_v": plan.level_db_v(al) if al is not None else None,
             "al_db_sl": plan.level_db_sl(al) if al is not None else None,
             "n_trials": state.n_trials,
-            "reversal_levels_db": list(state.reversal_levels_db),
+            "reversal_levels_db": ends["reversal_levels_db"],
+            "method": ends["method"],
             "t_s": self.clock.now(),
         }
+        if "sd_db" in ends:
+            record["sd_db"] = ends["sd_db"]
         if state.status != "completed":
-            record["reason"] = _bound_reason(state, plan)
+            record["reason"] = bound_reason(state, UNIT_LABEL[plan.level_unit], plan.target_max_v)
         self._append(record)
         self.finished_trials.append(state.n_trials)
         outcome = SetOutcome(
@@ -323,7 +394,7 @@ class ThresholdSession(SessionShell[SessionResult]):
                     "masker": spec.masker.name if spec.masker else None,
                     "masker_level_db_sl": spec.masker_level_db_sl,
                     "level_unit": unit,
-                    "staircase": _settings_record(spec.staircase),
+                    **start_fields(spec.settings),
                     "t_s": self.clock.now(),
                 }
             )
@@ -358,42 +429,55 @@ class ThresholdSession(SessionShell[SessionResult]):
             "masker_level_db_v": plan.masker_level_db_v,
             "unmasked_al_db_v": plan.unmasked_al_db_v,
             "level_unit": plan.level_unit,
-            "max_level_db": plan.staircase.max_level_db,
-            "min_level_db": plan.staircase.min_level_db,
-            "staircase": _settings_record(plan.staircase),
+            "max_level_db": plan.procedure.max_level_db,
+            "min_level_db": plan.procedure.min_level_db,
+            **start_fields(plan.procedure),
             "t_s": self.clock.now(),
         }
 
-    def _show_progress(self, k: int, plan: SetPlan, state: Staircase) -> None:
+    def _show_progress(self, k: int, plan: SetPlan, state: Procedure) -> None:
         if not self.out.enabled:
             return
-        sc = plan.staircase
         per_trial = (
             sum(self.trial_seconds) / len(self.trial_seconds)
             if self.trial_seconds
             else nominal_seconds_per_trial(self.protocol.timing)
         )
-        left = estimate_time_left_s(
-            seconds_per_trial=per_trial,
-            trials_done_in_set=state.n_trials,
-            reversals_in_set=len(state.reversal_levels_db),
-            n_reversals=sc.n_reversals,
-            max_trials=sc.max_trials,
-            sets_after_current=self._sets_after(k),
-            finished_set_trials=self.finished_trials,
-            rest_between_sets_s=self.protocol.timing.rest_between_sets_s,
-        )
+        assert isinstance(state, Staircase | QuestPlus)
+        if self.protocol.interleave:
+            # Every running track shares the session: the time left is theirs together.
+            running = [s for _, _, s in self.interleaved_tracks.values()]
+            trials = sum(track_trials_left(s, self.finished_trials) for s in running)  # type: ignore[arg-type]
+            left = trials * per_trial
+        else:
+            left = session_time_left_s(
+                state,
+                seconds_per_trial=per_trial,
+                sets_after_current=self._sets_after(k),
+                finished_set_trials=self.finished_trials,
+                rest_between_sets_s=self.protocol.timing.rest_between_sets_s,
+            )
+        if isinstance(state, Staircase):
+            done, goal, what = len(state.reversal_levels_db), state.settings.n_reversals, ""
+        else:
+            done, goal = 0, 0
+            what = (
+                f"posterior {state.posterior_mean_db:.1f} ± {state.posterior_sd_db:.1f}"
+                if state.n_trials
+                else "posterior: prior"
+            )
         self.out.update(
             format_progress(
                 set_number=k + 1,
                 n_sets=len(self.order),
                 set_id=plan.set_id,
                 trial_index=state.n_trials,
-                reversals=len(state.reversal_levels_db),
-                n_reversals=sc.n_reversals,
-                level_db=state.level_db,
+                reversals=done,
+                n_reversals=goal,
+                level_db=state.next_level(),
                 level_unit=plan.level_unit,
                 time_left_s=left,
+                track=what,
             )
         )
 
@@ -418,12 +502,6 @@ class ThresholdSession(SessionShell[SessionResult]):
             self.clock.sleep_until(min(end, self.clock.now() + 1.0))
 
 
-def _settings_record(settings: StaircaseSettings) -> dict[str, Any]:
-    record = dataclasses.asdict(settings)
-    record["step_sizes_db"] = list(settings.step_sizes_db)
-    return record
-
-
 def _outcome_from_end(rec: SetRecords, unit: str) -> SetOutcome:
     end = rec.end or {}
     return SetOutcome(
@@ -434,19 +512,6 @@ def _outcome_from_end(rec: SetRecords, unit: str) -> SetOutcome:
         n_trials=int(end.get("n_trials", len(rec.trials))),
         reason=str(end.get("reason", "")),
     )
-
-
-def _bound_reason(state: Staircase, plan: SetPlan) -> str:
-    unit = UNIT_LABEL[plan.level_unit]
-    sc = state.settings
-    if state.status == "ceiling":
-        return (
-            f"pinned at the upper bound {sc.max_level_db:.2f} {unit} (protocol max ∩ device "
-            f"limit {plan.target_max_v:g} V): a ceiling, not a threshold"
-        )
-    if state.status == "floor":
-        return f"pinned at the lower bound {sc.min_level_db} {unit}: a floor, not a threshold"
-    return f"reached the trial cap ({sc.max_trials} trials) before {sc.n_reversals} reversals"
 
 
 def _relative(path: Path, base: Path) -> str:

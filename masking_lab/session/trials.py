@@ -26,6 +26,8 @@ from masking_lab.core.levels import check_within_rating, db_v_to_volts, volts_to
 from masking_lab.core.stimulus import Stimulus
 from masking_lab.core.trial import TrialPlan
 from masking_lab.formats.protocol import SetSpec, Timing
+from masking_lab.procedures.log_fields import SetProcedure
+from masking_lab.procedures.quest_plus import QuestPlusSettings
 from masking_lab.procedures.staircase import StaircaseSettings
 
 LevelUnit = Literal["db_sl", "db_v"]
@@ -59,8 +61,8 @@ class SetPlan:
     target_max_v : float
         Largest target drive the device allows, V peak: the channel's limit, less the masker's
         drive when both share a channel (peak drives on one channel add).
-    staircase : StaircaseSettings
-        The protocol's staircase with ``max_level_db`` lowered to what the device can drive.
+    procedure : StaircaseSettings or QuestPlusSettings
+        The set's procedure with ``max_level_db`` lowered to what the device can drive.
     """
 
     set_id: str
@@ -72,7 +74,12 @@ class SetPlan:
     masker_level_db_v: float | None
     masker_amplitude_v: float
     target_max_v: float
-    staircase: StaircaseSettings
+    procedure: SetProcedure
+
+    @property
+    def staircase(self) -> SetProcedure:
+        """The set's procedure settings (the name from when every set ran a staircase)."""
+        return self.procedure
 
     def level_db_v(self, level_db: float) -> float:
         """Target drive in dB re 1 V for a staircase level in ``level_unit``."""
@@ -122,7 +129,7 @@ def plan_set(
     unmasked: float | None = None
     if level_unit == "db_sl":
         unmasked = _calibrated(calibration_db_v, spec.target, spec.id)
-    sc = spec.staircase
+    sc = spec.settings
     unit = UNIT_LABEL[level_unit]
 
     masker_db_v: float | None = None
@@ -151,21 +158,26 @@ def plan_set(
     device_max = limit_db_v if unmasked is None else limit_db_v - unmasked
     protocol_max = sc.max_level_db if sc.max_level_db is not None else math.inf
     effective_max = min(protocol_max, device_max)
-    if sc.start_level_db > effective_max + _LIMIT_SLACK_DB:
+    start_db = sc.start_level_db if isinstance(sc, StaircaseSettings) else sc.min_level_db
+    if start_db > effective_max + _LIMIT_SLACK_DB:
         raise LevelError(
-            f"set {spec.id}: start level {sc.start_level_db:g} {unit} of {spec.target.name} is "
+            f"set {spec.id}: start level {start_db:g} {unit} of {spec.target.name} is "
             f"above what the device can drive ({limit_v:g} V = {effective_max:.2f} {unit}); "
-            "lower staircase.start_level_db in the protocol, or check the participant's "
+            f"lower {_start_key(sc)} in the protocol, or check the participant's "
             "calibration and the device config"
         )
     if sc.min_level_db is not None and sc.min_level_db >= effective_max - _LIMIT_SLACK_DB:
         raise LevelError(
             f"set {spec.id}: the device limit for {spec.target.name} ({limit_v:g} V = "
             f"{effective_max:.2f} {unit}) is not above the protocol's min_level_db "
-            f"({sc.min_level_db:g} {unit}); the staircase would have no room to move"
+            f"({sc.min_level_db:g} {unit}); the {sc.kind} would have no room to move"
         )
-    # A start level within rounding of the limit is the limit itself.
-    settings = replace(sc, max_level_db=max(effective_max, sc.start_level_db))
+    settings: SetProcedure
+    if isinstance(sc, StaircaseSettings):
+        # A start level within rounding of the limit is the limit itself.
+        settings = replace(sc, max_level_db=max(effective_max, sc.start_level_db))
+    else:
+        settings = _capped_quest(sc, effective_max)
     return SetPlan(
         set_id=spec.id,
         target=spec.target,
@@ -176,8 +188,34 @@ def plan_set(
         masker_level_db_v=masker_db_v,
         masker_amplitude_v=masker_v,
         target_max_v=limit_v,
-        staircase=settings,
+        procedure=settings,
     )
+
+
+def _start_key(settings: SetProcedure) -> str:
+    if isinstance(settings, StaircaseSettings):
+        return "staircase.start_level_db"
+    return "procedure.min_level_db"
+
+
+def _capped_quest(settings: QuestPlusSettings, max_db: float) -> QuestPlusSettings:
+    """QUEST+ under a device limit: the stimulus grid stops at the limit, on the protocol's
+    grid so the levels stay round numbers. A threshold grid that follows the stimulus range
+    (the default) follows it down, so a threshold above what the rig can play ends the track
+    as ``ceiling`` rather than as an extrapolated number."""
+    if max_db >= settings.max_level_db:
+        return settings
+    step = settings.level_step_db
+    top = round(
+        settings.min_level_db + step * math.floor((max_db - settings.min_level_db) / step + 1e-9),
+        9,
+    )
+    if top <= settings.min_level_db:
+        raise LevelError(
+            f"the device limit ({max_db:.2f} dB) leaves QUEST+ less than one grid step "
+            f"({step:g} dB) above procedure.min_level_db ({settings.min_level_db:g} dB)"
+        )
+    return replace(settings, max_level_db=top)
 
 
 def plan_trial(

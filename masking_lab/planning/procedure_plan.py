@@ -1,0 +1,302 @@
+"""Procedures side by side: the staircase's settings against QUEST+, and both against the bound.
+
+``masking-lab plan`` simulates the protocol's staircase settings (:mod:`masking_lab.planning.
+plan`); this module adds QUEST+ (:mod:`masking_lab.procedures.quest_plus_batch`) on the same
+simulated observers and true thresholds, and rates every setting of every procedure against the
+Cramér-Rao bound of the protocol's observer (:mod:`masking_lab.procedures.fisher`): the
+**efficiency** of a setting is the trials the bound needs for the SD it achieved divided by the
+mean trials it used (the paper's 11/8 staircase: ~30 %).
+
+QUEST+ runs once per variant to the strictest posterior-SD target of a ladder; a track's levels
+do not depend on its stop rule until it stops, so every looser target is read off that run
+exactly (:meth:`~masking_lab.procedures.quest_plus_batch.SimulatedQuestPlus.trials_to_sd`).
+Each target is then summarised like a staircase rule: trials and minutes (median, p90, mean),
+bias, SD and RMSE of the AL against the true threshold, and how often a track ends at a bound
+or the trial cap. "Fewest trials for ±X dB" is answered across procedures from uncapped rows.
+
+Pure: randomness from the seed given, progress to a callback, no I/O. Units: dB in the
+protocol's level unit, minutes, trials.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from masking_lab.formats.protocol import Protocol
+from masking_lab.planning.plan import PlanResult, efficiency_fields, pool, summarize
+from masking_lab.planning.settings import PlanSettings, trial_duration_s
+from masking_lab.procedures.fisher import max_information
+from masking_lab.procedures.quest_plus import QuestPlusSettings, stop_status
+from masking_lab.procedures.quest_plus_batch import SimulatedQuestPlus, simulate_quest_plus
+from masking_lab.procedures.staircase_batch import (
+    CEILING,
+    COMPLETED,
+    FLOOR,
+    RUNNING,
+    TRIAL_CAP,
+    Observer,
+)
+
+__all__ = [
+    "PSI_SCALES_DB",
+    "SD_LADDER_DB",
+    "ProcedureComparison",
+    "compare_procedures",
+    "protocol_quest_plus",
+]
+
+#: Posterior-SD stop rules read off each QUEST+ run, dB.
+SD_LADDER_DB = (3.0, 2.0, 1.5, 1.25, 1.08, 1.0, 0.9, 0.8, 0.7, 0.6, 0.5, 0.45, 0.4)
+#: The psi-marginal's slope grid: logistic scales from 0.5 to 6 dB (docs/procedures.md).
+PSI_SCALES_DB = tuple(float(v) for v in np.round(np.geomspace(0.5, 6.0, 10), 3))
+#: Trials simulated at most per QUEST+ track (the ladder's strictest target needs ~100).
+QUEST_TRIAL_LIMIT = 300
+
+_CODES = {"completed": COMPLETED, "ceiling": CEILING, "floor": FLOOR, "trial_cap": TRIAL_CAP}
+
+Progress = Callable[[str], None]
+
+
+@dataclass(frozen=True)
+class ProcedureComparison:
+    """Every procedure's settings against each other and the bound.
+
+    Attributes
+    ----------
+    rows : list of dict
+        One per (procedure, setting), pooled over sets as :func:`masking_lab.planning.plan.pool`
+        does, with ``procedure``, ``setting``, ``estimator``, ``trials_mean``, ``cr_trials``,
+        ``efficiency``, ``own`` (the protocol's own setting) and ``capped`` (False for the
+        uncapped rows that answer "fewest trials").
+    per_set : list of dict
+        The QUEST+ rows per set (``set`` names it).
+    bound : dict
+        ``information`` (I*, dB⁻²), ``p_correct`` where it peaks, ``scale_db``, ``lapse``,
+        ``guess`` of the observer the bound is for.
+    fewest : list of dict
+        Per procedure family, the cheapest uncapped row whose worst-set z·SD ≤ ``precision_db``
+        (or, with ``met`` False, the most precise it reached).
+    precision_db, z : float
+        The question asked.
+    """
+
+    rows: list[dict]
+    per_set: list[dict]
+    bound: dict[str, float]
+    fewest: list[dict]
+    precision_db: float
+    z: float
+
+
+def protocol_quest_plus(protocol: Protocol) -> QuestPlusSettings | None:
+    """The QUEST+ settings the protocol's QUEST+ sets share (None if it has none).
+
+    Examples
+    --------
+    >>> from masking_lab.formats.resources import shipped
+    >>> from masking_lab.formats.protocol import load_protocol
+    >>> p = load_protocol(shipped("protocols", "experiment1_questplus.yaml"))
+    >>> protocol_quest_plus(p).target_sd_db
+    1.08
+    """
+    quests = [s.procedure for s in protocol.sets if s.procedure is not None]
+    return quests[0] if quests else None
+
+
+def _variants(
+    protocol: Protocol, observer: Observer, psi: bool
+) -> list[tuple[str, QuestPlusSettings]]:
+    own = protocol_quest_plus(protocol)
+    if own is None:
+        sc = protocol.sets[0].staircase
+        lo = -20.0 if sc is None or sc.min_level_db is None else float(sc.min_level_db)
+        hi = 45.0 if sc is None or sc.max_level_db is None else float(sc.max_level_db)
+        own = QuestPlusSettings(
+            lo, hi, scales_db=(observer.scale_db,), target_sd_db=1.08, min_trials=10, max_trials=80
+        )
+    name = "QUEST+" if len(own.scales_db) == 1 else "psi-marginal"
+    out = [(name, own)]
+    if psi and len(own.scales_db) == 1:
+        out.append(("psi-marginal", replace(own, scales_db=PSI_SCALES_DB)))
+    return out
+
+
+def compare_procedures(
+    protocol: Protocol,
+    staircase: PlanResult | None,
+    settings: PlanSettings,
+    thresholds_db: NDArray[np.float64],
+    *,
+    quest_replicates: int = 400,
+    sd_ladder_db: Sequence[float] = SD_LADDER_DB,
+    psi: bool = False,
+    progress: Progress | None = None,
+) -> ProcedureComparison:
+    """Simulate QUEST+ beside the staircase plan and rate every setting against the bound.
+
+    Parameters
+    ----------
+    protocol : Protocol
+        Sets, QUEST+ settings (or the staircase's bounds for a default QUEST+), timing.
+    staircase : PlanResult or None
+        The staircase plan of the same protocol and observers (its rows join the comparison).
+    settings : PlanSettings
+        Observer, response time, precision question, seed.
+    thresholds_db : array, shape (n_sets, ≥ quest_replicates)
+        True thresholds, protocol's level unit (the staircase plan's; the first
+        ``quest_replicates`` of each set are used).
+    quest_replicates : int
+        QUEST+ tracks per set.
+    sd_ladder_db : sequence of float
+        Posterior-SD targets read off each run, dB (the protocol's own is added).
+    psi : bool
+        Add the psi-marginal (slope unknown) beside a slope-known QUEST+ (slow).
+    progress : callable, optional
+        One line per step.
+
+    Examples
+    --------
+    >>> from masking_lab.formats.resources import shipped
+    >>> from masking_lab.formats.protocol import load_protocol
+    >>> from masking_lab.planning.settings import StopRule, Schedule
+    >>> p = load_protocol(shipped("protocols", "experiment1_questplus.yaml"))
+    >>> s = PlanSettings((StopRule(11, 8),), (Schedule((4.0, 2.0)),), replicates=20)
+    >>> c = compare_procedures(p, None, s, np.full((15, 20), 5.0), quest_replicates=20,
+    ...                        sd_ladder_db=(1.5,))
+    >>> sorted({r["setting"] for r in c.rows})
+    ['SD ≤ 1.08 dB', 'SD ≤ 1.5 dB']
+    """
+    say = progress or (lambda _msg: None)
+    obs = settings.observer
+    trial_s = trial_duration_s(protocol.timing, settings.response_s)
+    info, p_peak, _ = max_information(scale_db=obs.scale_db, guess=obs.guess, lapse=obs.lapse)
+    bound = {
+        "information": info,
+        "p_correct": p_peak,
+        "scale_db": obs.scale_db,
+        "lapse": obs.lapse,
+        "guess": obs.guess,
+    }
+    reps = min(quest_replicates, thresholds_db.shape[1])
+    thr = thresholds_db[:, :reps].reshape(-1)
+    set_of_row = np.repeat(np.arange(len(protocol.sets)), reps)
+    rows: list[dict] = []
+    per_set: list[dict] = []
+    if staircase is not None:
+        own_staircase = any(s.staircase is not None for s in protocol.sets)
+        for r in staircase.table:
+            rows.append({**_staircase_row(r, obs), "own": bool(r.get("own")) and own_staircase})
+        for r in staircase.ladder:
+            rows.append({**_staircase_row(r, obs), "capped": False, "own": False})
+    for k, (name, own) in enumerate(_variants(protocol, obs, psi)):
+        targets = sorted({*sd_ladder_db, *([own.target_sd_db] if own.target_sd_db else [])})
+        longest = replace(
+            own, target_sd_db=min(targets), max_trials=max(QUEST_TRIAL_LIMIT, own.max_trials or 0)
+        )
+        say(f"{name}: simulating {thr.size} tracks to posterior SD {min(targets):g} dB")
+        sim = simulate_quest_plus(
+            longest,
+            thr,
+            scale_db=obs.scale_db,
+            lapse=obs.lapse,
+            guess=obs.guess,
+            rng=np.random.default_rng([settings.seed, 0x9E57, k]),
+        )
+        for target in targets:
+            for capped in (True, False):
+                cap = own.max_trials if capped else None
+                status, n, est = _outcome(sim, replace(own, target_sd_db=target), cap)
+                sets_rows = []
+                for j, spec in enumerate(protocol.sets):
+                    mine = set_of_row == j
+                    row = summarize(n[mine], status[mine], est[mine], thr[mine], trial_s)
+                    row["trials_mean"] = float(np.mean(n[mine]))
+                    sets_rows.append(row)
+                    if capped:
+                        per_set.append({"set": spec.id, **_head(name, target, own, capped), **row})
+                pooled = pool(sets_rows, n, trial_s)
+                pooled["trials_mean"] = float(np.mean(n))
+                pooled |= efficiency_fields(pooled["sd_db"], pooled["trials_mean"], obs)
+                rows.append({**_head(name, target, own, capped), **pooled})
+    fewest = _fewest(rows, settings.precision_db, settings.z)
+    return ProcedureComparison(rows, per_set, bound, fewest, settings.precision_db, settings.z)
+
+
+def _head(name: str, target: float, own: QuestPlusSettings, capped: bool) -> dict[str, Any]:
+    return {
+        "procedure": name,
+        "setting": f"SD ≤ {target:g} dB",
+        "estimator": "posterior_mean",
+        "target_sd_db": target,
+        "max_trials": own.max_trials if capped else None,
+        "own": bool(capped and target == own.target_sd_db),
+        "capped": capped,
+    }
+
+
+def _staircase_row(r: dict, obs: Observer) -> dict:
+    sched = r["schedule"] + ("" if r["down_up_ratio"] == 1.0 else f" d/u {r['down_up_ratio']:g}")
+    out = {
+        "procedure": f"staircase {sched}",
+        "setting": r["rule"],
+        "estimator": r["estimator"],
+        "own": bool(r.get("own", False)),
+        "capped": True,
+        **{k: v for k, v in r.items() if k not in ("own",)},
+    }
+    if "efficiency" not in out:
+        out |= efficiency_fields(out.get("sd_db", math.nan), out.get("trials_mean", math.nan), obs)
+    return out
+
+
+def _outcome(
+    sim: SimulatedQuestPlus, rule: QuestPlusSettings, cap: int | None
+) -> tuple[NDArray[np.int8], NDArray[np.int64], NDArray[np.float64]]:
+    """Status codes, trials and estimates had every track stopped under ``rule`` and ``cap``."""
+    limit = sim.levels_db.shape[1]
+    n = sim.trials_to_sd(rule.target_sd_db or 0.0, rule.min_trials)
+    reached = np.isfinite(n)
+    stop = np.where(reached, n, limit)
+    if cap is not None:
+        stop = np.minimum(stop, cap)
+    stop_i = stop.astype(np.int64)
+    col = np.maximum(stop_i - 1, 0)
+    rows = np.arange(stop_i.size)
+    mean, sd = sim.mean_db[rows, col], sim.sd_db[rows, col]
+    capped_rule = replace(rule, max_trials=int(cap) if cap is not None else limit)
+    names = stop_status(capped_rule, stop_i, mean, sd)
+    # A track that never reached the target within the simulation counts as trial_cap.
+    codes = np.array([_CODES.get(str(s), RUNNING) for s in names], dtype=np.int8)
+    est = np.where(codes == COMPLETED, mean, np.nan)
+    return codes, stop_i, est
+
+
+def _fewest(rows: Sequence[dict], precision_db: float, z: float) -> list[dict]:
+    """Per procedure family, the cheapest uncapped setting meeting ±precision (worst set)."""
+    families: dict[tuple[str, str], list[dict]] = {}
+    for r in rows:
+        if not r.get("capped", True):  # the staircase's uncapped ladder, QUEST+'s uncapped rows
+            families.setdefault((r["procedure"], r["estimator"]), []).append(r)
+    out = []
+    for group in families.values():
+        ok = [
+            r
+            for r in group
+            if math.isfinite(r.get("worst_sd_db", math.nan))
+            and z * r["worst_sd_db"] <= precision_db
+        ]
+        if ok:
+            best = min(ok, key=lambda r: (r["trials_median"], r["trials_mean"]))
+            out.append({**best, "met": True, "half_width_db": z * best["worst_sd_db"]})
+        else:
+            finite = [r for r in group if math.isfinite(r.get("worst_sd_db", math.nan))]
+            if finite:
+                best = min(finite, key=lambda r: r["worst_sd_db"])
+                out.append({**best, "met": False, "half_width_db": z * best["worst_sd_db"]})
+    return sorted(out, key=lambda r: (not r["met"], r["trials_median"]))
