@@ -11,6 +11,8 @@
 #   gcc-arm-none-eabi ... the device firmware (firmware/): ARM cross-compiler + newlib, QEMU to
 #                         run the STM32 image, make + gcc for the host build; the conformance
 #                         tests fail under CI when these are missing
+#   chromium              headless browser that opens report.html (tests/test_html_report.py
+#                         fails, never skips, without it)
 set -euo pipefail
 
 packages=(
@@ -20,6 +22,7 @@ packages=(
     libfontconfig1 libfreetype6 fonts-dejavu-core
     libasound2 libportaudio2 libjack-jackd2-0 libsndfile1
     gcc-arm-none-eabi libnewlib-arm-none-eabi qemu-system-arm make gcc
+    chromium
 )
 
 missing=()

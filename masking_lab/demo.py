@@ -13,11 +13,9 @@ sessions run in order because the masked experiments need the baseline's calibra
 from __future__ import annotations
 
 import io
-import math
 import os
 import sys
 import time
-from collections.abc import Mapping, Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,11 +24,22 @@ from typing import Any, TextIO
 import numpy as np
 
 from masking_lab.core.errors import MaskingLabError
+from masking_lab.demo_summary import PROTOCOLS, build_summary, sample_truth, summary_text
 from masking_lab.formats.resources import shipped
-from masking_lab.simulation.observer import GroundTruth
 
-PROTOCOLS = ("baseline", "experiment1", "experiment2")
+__all__ = [
+    "PROTOCOLS",
+    "DemoSettings",
+    "SessionDone",
+    "default_jobs",
+    "new_demo_folder",
+    "run_demo",
+    "sample_truth",
+]
+
 SCENE = "bump_rough"
+# What the demo writes inside its folder; --force removes exactly these, nothing else.
+DEMO_PARTS = ("data", "analysis", "render")
 
 
 @dataclass(frozen=True)
@@ -51,6 +60,8 @@ class DemoSettings:
         Worker processes running participants in parallel.
     n_boot : int
         Bootstrap replicates of the ramp fits.
+    force : bool
+        Overwrite an earlier demo in ``out`` (its ``data/``, ``analysis/``, ``render/``).
     """
 
     out: Path
@@ -59,6 +70,37 @@ class DemoSettings:
     device: str = "emulator"
     jobs: int = 2
     n_boot: int = 1000
+    force: bool = False
+
+
+def _holds_logs(folder: Path) -> bool:
+    return (folder / "data").exists() and any((folder / "data").rglob("*.jsonl"))
+
+
+def new_demo_folder(base: Path) -> Path:
+    """``base`` if it holds no demo yet, else the first free ``base-2``, ``base-3``, ...
+
+    Parameters
+    ----------
+    base : Path
+        The default folder (``demo_out``).
+
+    Returns
+    -------
+    Path
+        A folder without session logs, so a rerun never mixes two demos.
+
+    Examples
+    --------
+    >>> new_demo_folder(Path("/nonexistent/demo_out"))
+    PosixPath('/nonexistent/demo_out')
+    """
+    k = 1
+    folder = base
+    while _holds_logs(folder):
+        k += 1
+        folder = base.with_name(f"{base.name}-{k}")
+    return folder
 
 
 @dataclass(frozen=True)
@@ -124,16 +166,42 @@ def _run_participant(out: str, device: str, master_seed: int, index: int) -> lis
 def run_demo(settings: DemoSettings, stream: TextIO | None = None) -> int:
     """Run the demo; print progress and the summary to ``stream`` (stderr for progress).
 
-    Returns the process exit code (0 when every stage succeeded).
+    Parameters
+    ----------
+    settings : DemoSettings
+        What to run and where (an existing demo there is refused unless ``force``).
+    stream : TextIO or None
+        Where to print (None: the summary to stdout, progress to stderr).
+
+    Returns
+    -------
+    int
+        The process exit code (0 when every stage succeeded, 3 when a session failed).
+
+    Raises
+    ------
+    MaskingLabError
+        ``settings.out`` already holds a demo's logs and ``force`` is off.
+
+    Examples
+    --------
+    >>> run_demo(DemoSettings(out=Path("demo_out"), participants=2))  # doctest: +SKIP
+    0
     """
     out_stream = stream or sys.stdout
     err = sys.stderr if stream is None else stream
     out = Path(settings.out)
-    if (out / "data").exists() and any((out / "data").rglob("*.jsonl")):
-        raise MaskingLabError(
-            f"{out}/data already holds session logs; give an empty or new --out folder so the "
-            "demo's analysis sees only its own sessions"
-        )
+    if _holds_logs(out):
+        if not settings.force:
+            raise MaskingLabError(
+                f"{out}/data already holds session logs; pass --force to overwrite that demo, "
+                "or leave out --out to write a new folder, so the demo's analysis sees only its "
+                "own sessions"
+            )
+        import shutil
+
+        for part in DEMO_PARTS:
+            shutil.rmtree(out / part, ignore_errors=True)
     t_start = time.perf_counter()
     sessions = _collect(settings, err)
     failed = [s for s in sessions if s.exit_code != 0]
@@ -163,18 +231,16 @@ def run_demo(settings: DemoSettings, stream: TextIO | None = None) -> int:
 
     params = read_masking_params(out / "analysis" / "masking_params.json")
     truth = load_ground_truth()
-    print(
-        summary_text(
-            settings,
-            sessions,
-            params,
-            truth,
-            rendering_summary,
-            warnings=summary.warnings,
-            timings={"collect": t_collect, "analyse": t_analyse, "total": total},
-        ),
-        file=out_stream,
+    model = build_summary(
+        settings,
+        sessions,
+        params,
+        truth,
+        rendering_summary,
+        warnings=summary.warnings,
+        timings={"collect": t_collect, "analyse": t_analyse, "total": total},
     )
+    print(summary_text(model), file=out_stream)
     return 0
 
 
@@ -240,152 +306,6 @@ def _render(out: Path) -> dict[str, Any]:
     summary = summarize(rendering)
     summary["files"] = [str(p) for p in written]
     return summary
-
-
-# --------------------------------------------------------------------------------------------
-# Summary (pure)
-
-
-def sample_truth(
-    truth: GroundTruth,
-    participants: Sequence[str],
-    pairs: Sequence[tuple[str, str]],
-    levels_db_sl: Sequence[float],
-) -> tuple[float, float]:
-    """The ramp a (pooled) fit estimates: least squares on the participants' mean true shift.
-
-    Each simulated participant's true shift at a level is its true masked AL minus its true
-    unmasked AL (individual offsets included, clipped at 0 like the observer's); averaging over
-    the participants and ``pairs`` and fitting a ramp gives the number the analysis estimates.
-
-    Parameters
-    ----------
-    truth : GroundTruth
-        The simulation's ground truth.
-    participants : sequence of str
-        Participant ids (drawn with the runner's population seed 0).
-    pairs : sequence of (target, masker)
-        The stimulus pairs pooled into one fit.
-    levels_db_sl : sequence of float
-        Masker levels the fit used, dB SL.
-
-    Returns
-    -------
-    (intercept_db, slope)
-    """
-    from masking_lab.analysis.ramp_fit import fit_ramp
-    from masking_lab.simulation.observer import make_participant
-
-    x = np.asarray(levels_db_sl, dtype=float)
-    people = [make_participant(truth, pid, 0) for pid in participants]
-    shifts = [
-        [p.masked_al_db_v(t, m, level) - p.unmasked_al_db_v[t] for level in x]
-        for p in people
-        for t, m in pairs
-    ]
-    fit = fit_ramp(x, np.mean(shifts, axis=0))
-    if fit.intercept_db is None or fit.slope is None:
-        raise ValueError(fit.message)
-    return float(fit.intercept_db), float(fit.slope)
-
-
-def summary_text(
-    settings: DemoSettings,
-    sessions: Sequence[SessionDone],
-    params: Mapping[str, Any],
-    truth: GroundTruth,
-    rendering: Mapping[str, Any],
-    *,
-    warnings: Sequence[str] = (),
-    timings: Mapping[str, float] | None = None,
-) -> str:
-    """The demo's closing summary: what ran, where the files are, fitted vs true parameters."""
-    out = Path(settings.out)
-    n_sets = sum(s.n_sets for s in sessions)
-    n_done = sum(s.n_completed for s in sessions)
-    n_trials = sum(s.n_trials for s in sessions)
-    lines = [
-        "",
-        "masking-lab demo: done",
-        f"  ran      {len(sessions)} sessions ({settings.participants} participants x "
-        f"{', '.join(PROTOCOLS)}), {n_sets} staircases ({n_done} completed), {n_trials} trials "
-        f"through the {settings.device}",
-    ]
-    if timings:
-        lines.append(
-            f"  time     {timings['total']:.0f} s (sessions {timings['collect']:.0f} s, "
-            f"analysis {timings['analyse']:.0f} s)"
-        )
-    lines += [
-        f"  logs     {out / 'data'}/<participant>/*.jsonl",
-        f"  analysis {out / 'analysis'}/ (thresholds.csv, anova.csv, report.txt, figures/)",
-        f"  params   {out / 'analysis' / 'masking_params.json'}",
-        f"  scene    {out / 'render'}/ (points.csv, summary.json, figure4.png)",
-        "",
-        "Masking functions: fitted (95 % interval) beside the simulation's ground truth",
-        f"  {'target|masker':<14} {'pooled with':<14} {'intercept dB':>24} {'slope':>20}"
-        f"  {'truth a, b':>14}  within interval",
-    ]
-    people = [f"S{i:02d}" for i in range(1, settings.participants + 1)]
-    for f in params.get("functions", []):
-        lines.append(_param_line(f, truth, people))
-    lines.append(
-        "  (truth: the ramp through the simulated participants' mean true AL shift, pooled pairs"
-        " averaged)"
-    )
-    mm = rendering.get("masking") or {}
-    if mm:
-        lines += [
-            "",
-            f"Scene {rendering['scene']}: {mm['mv']} with {mm['ev']}, b·d = {mm['bd']:.2f}",
-        ]
-        for name, ch in rendering["channels"].items():
-            lo, hi = ch["input_range_db_sl"] or (math.nan, math.nan)
-            unc = ch["uncompensated"]
-            text = (
-                f"  {name} ({ch['stimulus']}): compensated inputs {lo:.1f}..{hi:.1f} dB SL; "
-                f"without compensation worst error {unc['max_abs_error_db']:.1f} dB, "
-                f"{unc['points_not_felt']} of {rendering['n_points']} points not felt"
-            )
-            if ch["points_above_rating"]:
-                text += (
-                    f"; {ch['points_above_rating']} points need more than the rig's "
-                    f"{ch['max_rated_db_sl']:g} dB SL (flagged, not clipped)"
-                )
-            lines.append(text)
-    if warnings:
-        lines += ["", f"Analysis notes ({len(warnings)}): see {out / 'analysis' / 'report.txt'}"]
-    return "\n".join(lines)
-
-
-def _param_line(f: Mapping[str, Any], truth: GroundTruth, participants: Sequence[str]) -> str:
-    key = f"{f['target']}|{f['masker']}"
-    pooled = [p for p in f.get("pooled_pairs") or [] if p != key]
-    pooled_txt = (
-        ",".join(p.split("|")[1] if p.startswith(f["target"]) else p.split("|")[0] for p in pooled)
-        or "-"
-    )
-    if f.get("status") != "fitted" or f.get("intercept_db") is None:
-        return f"  {key:<14} {pooled_txt:<14} {f.get('status')}: {f.get('message') or ''}"
-    pairs = [tuple(p.split("|")) for p in (f.get("pooled_pairs") or [key])]
-    lo, hi = f.get("fitted_range_db_sl") or (5, 25)
-    levels = np.arange(lo, hi + 1e-9, 5.0) if hi > lo else np.array([lo])
-    try:
-        ta, tb = sample_truth(truth, participants, pairs, levels)  # type: ignore[arg-type]
-    except (KeyError, AttributeError, MaskingLabError, ValueError):
-        return f"  {key:<14} {pooled_txt:<14} (no ground truth for this pair)"
-    a, b = f["intercept_db"], f["slope"]
-    a_ci, b_ci = f.get("intercept_ci_db"), f.get("slope_ci")
-    inside_a = a_ci is not None and a_ci[0] <= ta <= a_ci[1]
-    inside_b = b_ci is not None and b_ci[0] <= tb <= b_ci[1]
-    a_txt = f"{a:6.2f} [{a_ci[0]:6.2f},{a_ci[1]:6.2f}]" if a_ci else f"{a:6.2f}"
-    b_txt = f"{b:5.3f} [{b_ci[0]:5.3f},{b_ci[1]:5.3f}]" if b_ci else f"{b:5.3f}"
-    verdict = (
-        "yes"
-        if inside_a and inside_b
-        else ("a only" if inside_a else ("b only" if inside_b else "no"))
-    )
-    return f"  {key:<14} {pooled_txt:<14} {a_txt:>24} {b_txt:>20}  {ta:6.2f}, {tb:5.3f}  {verdict}"
 
 
 def default_jobs() -> int:

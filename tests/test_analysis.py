@@ -369,7 +369,7 @@ def test_track_figures_per_session_and_ml_estimator(study, tmp_path):
     )
     out = tmp_path / "out"
     argv = ["analyze", str(data), "--out", str(out), "--quiet", "--n-boot", "200"]
-    assert main([*argv, "--estimator", "ml"]) == 0
+    assert main([*argv, "--estimator", "ml", "--figures", "all"]) == 0
     tracks = sorted(p.name for p in (out / "figures" / "tracks").glob("*.png"))
     assert [t.split("_")[:2] for t in tracks] == [["P01", "baseline"], ["P01", "experiment1"]]
     assert (out / "figures" / "tracks" / tracks[0]).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

@@ -380,7 +380,8 @@ def test_compensation_without_params_or_with_a_missing_pair(lab, tmp_path):
     partial = write_params(tmp_path / "partial.json", drop=(("EV270", "MV120am40"),))
     with pytest.raises(SolverError) as err:
         run_usertest(options(lab, data, params=partial))
-    written = data / "measure_EV270_MV120am40.yaml"
+    written = data / "measure_EV270_by_MV120am40.yaml"
+    assert written.read_text().startswith("# Written by masking-lab run:")
     assert "EV270 masked by MV120am40 (no entry)" in str(err.value)
     assert str(written) in str(err.value)
     assert main(["validate", str(written)]) == 0
@@ -556,7 +557,7 @@ def test_interrupt_then_resume_equals_an_uninterrupted_run(lab, tmp_path):
     # A crash while the next record was being written leaves half a line: resume cuts it.
     with open(stopped.log_path, "a", encoding="utf-8") as fh:
         fh.write('{"record":"usertest_trial","participant":"S0')
-    resumed = resume_usertest(stopped.log_path, stream=io.StringIO())
+    resumed = resume_usertest(stopped.log_path, stream=io.StringIO(), device_config=lab["rig"])
     assert resumed.exit_code == 0 and resumed.n_logged == 24
     recs = records(stopped.log_path)
     assert timeless(recs) == timeless(records(ref.log_path))

@@ -209,7 +209,11 @@ def test_sigkill_mid_session_then_resume_loses_and_repeats_nothing(lab, referenc
     n_before = len(trials(records(log)))
     assert 5 <= n_before < 24, "the kill came after the session ended; nothing was tested"
     resumed = subprocess.run(
-        [sys.executable, "-m", "masking_lab.commands.cli", "resume", str(log), "--no-progress"],
+        # Resume opens no file the log names by itself: the rig config is named again.
+        [
+            *(sys.executable, "-m", "masking_lab.commands.cli", "resume", str(log)),
+            *("--no-progress", "--device-config", str(lab["rig"])),
+        ],
         capture_output=True,
         text=True,
         cwd=REPO,
@@ -291,7 +295,7 @@ def test_device_fault_mid_trial_then_resume(lab, reference, tmp_path, fault, kin
     n = len(trials(recs))
     assert 0 < n < 24 and logged_fault["trial_index"] == n  # the trial in flight is not logged
     assert f"masking-lab resume {result.log_path}" in out.getvalue()
-    resumed = resume_usertest(result.log_path, stream=io.StringIO())
+    resumed = resume_usertest(result.log_path, stream=io.StringIO(), device_config=rig_path)
     assert resumed.exit_code == 0
     recs = assert_valid(result.log_path)
     assert timeless(recs) == timeless(reference)

@@ -10,9 +10,11 @@ Modules, from the science outwards:
 - ``settings``: :class:`AnalysisSettings` and option parsing.
 - ``experiment``: :func:`analyze_shifts`, the pure per-experiment computation.
 - ``tables``: rows and columns of the CSV outputs.
-- ``report``: the report model (:func:`build_report`); ``report_text``: ``report.txt``.
+- ``report``: the report model (:func:`build_report`); ``report_text``: ``report.txt``;
+  ``report_html``: ``report.html`` (Jinja2 templates, figures embedded).
 - ``export``: ``masking_params.json`` and writing every output.
-- ``figures``: masking-function and staircase-track figures (matplotlib, loaded on use).
+- ``figures``: masking-function figures; ``track_figures``: per-session staircase tracks,
+  drawn in worker processes reusing one figure (matplotlib, loaded on use).
 - ``batch``: the shell behind ``masking-lab analyze`` and ``fit`` (:func:`run_analyze`,
   :func:`run_fit`).
 
@@ -29,6 +31,7 @@ _HOME = {
     "RunSummary": "batch",
     "analyze_shifts": "experiment",
     "build_report": "report",
+    "render_html": "report_html",
     "render_text": "report_text",
     "run_analyze": "batch",
     "run_fit": "batch",

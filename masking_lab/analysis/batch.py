@@ -14,6 +14,7 @@ formats, seeded bootstrap with a seed per experiment and group, no wall-clock ti
 from __future__ import annotations
 
 import hashlib
+import os
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -21,22 +22,27 @@ from typing import TYPE_CHECKING, TextIO
 
 from masking_lab.analysis.experiment import analyze_shifts, result_warnings
 from masking_lab.analysis.export import write_outputs
+from masking_lab.analysis.log_reading import read_logs
 from masking_lab.analysis.report import LogsInput, ShiftsTableInput, build_report
+from masking_lab.analysis.report_html import render_html
 from masking_lab.analysis.report_text import render_text
+from masking_lab.analysis.rig_check import RigUse, rig_changes, rig_use
 from masking_lab.analysis.settings import EPOCH_UTC, AnalysisSettings, is_utc_stamp
 from masking_lab.analysis.thresholds import COLUMNS as THRESHOLD_COLUMNS
 from masking_lab.analysis.thresholds import (
     EstimatorSettings,
-    session_rows,
     shifts_long,
     thresholds_table,
+    unpacked,
 )
-from masking_lab.core.errors import AnalysisError, LogError
-from masking_lab.formats.csv_table import csv_text
+from masking_lab.core.errors import AnalysisError
+from masking_lab.formats.csv_table import csv_text, csv_text_rows
 from masking_lab.formats.fileio import write_text_atomic
+from masking_lab.formats.output_dir import staged_output
 from masking_lab.formats.shifts_csv import read_shifts_csv
 
 if TYPE_CHECKING:
+    from masking_lab.analysis.track_figures import TrackJob
     from masking_lab.formats.session_log import SessionLog
 
 __all__ = ["RunSummary", "find_logs", "progress_printer", "run_analyze", "run_fit"]
@@ -87,60 +93,106 @@ def run_analyze(
     """Analyse every session log under ``data_dir`` and write every output into ``out_dir``.
 
     Unreadable or truncated logs are reported (report, ``problems.csv``, provenance) and the run
-    continues.
+    continues. The outputs are written into a fresh sibling folder that replaces ``out_dir``
+    only when the run completes (:func:`masking_lab.formats.output_dir.staged_output`).
+
+    Parameters
+    ----------
+    data_dir : str or Path
+        Folder of session logs (searched recursively).
+    out_dir : str or Path
+        Output folder: missing, empty or a previous run's outputs (replaced as a whole).
+    settings : AnalysisSettings
+        Estimation, statistics, export and figure settings.
+    progress : callable or None
+        Called with (logs read, logs found).
+
+    Returns
+    -------
+    RunSummary
+        Files written (paths inside ``out_dir``) and warnings.
 
     Raises
     ------
     AnalysisError
         If the folder has no readable log or no completed masked set (``thresholds.csv`` and the
-        report are written first in the latter case).
+        report are written first in the latter case); the previous results stay in place.
+
+    Examples
+    --------
+    >>> run_analyze("data", "analysis", AnalysisSettings())  # doctest: +SKIP
     """
+    data, out = Path(data_dir), Path(out_dir)
+    if not data.is_dir():
+        raise AnalysisError(f"{data}: no such folder; give the folder holding session logs")
+    with staged_output(out, protect=[data]) as staging:
+        summary = _analyze_into(data, staging, settings, progress)
+    return _moved(summary, staging, out)
+
+
+def _moved(summary: RunSummary, staging: Path, out: Path) -> RunSummary:
+    """The summary with paths pointing into ``out`` instead of the staging folder."""
+    files = [out / p.relative_to(staging) for p in summary.files]
+    return RunSummary(out, files, summary.warnings)
+
+
+def _analyze_into(
+    data: Path,
+    out: Path,
+    settings: AnalysisSettings,
+    progress: Callable[[int, int], None] | None,
+) -> RunSummary:
+    """The analysis of :func:`run_analyze`, writing into ``out`` (the staging folder)."""
     from masking_lab.formats.session_log import read_log
 
-    data = Path(data_dir)
-    out = Path(out_dir)
     paths = find_logs(data)
     if not paths:
         raise AnalysisError(f"{data}: no session logs (*.jsonl) found")
     est = EstimatorSettings(settings.estimator, settings.n_reversals_averaged, settings.lapse)
-    rows: list[dict] = []
+    rows: list[tuple] = []  # packed (thresholds.packed): a third of the memory of dicts
     inputs: list[dict[str, str]] = []
     skipped: list[dict[str, str]] = []
     problems: list[dict[str, str]] = []
     created: list[str] = []
     files: list[Path] = []
-    for i, path in enumerate(paths, start=1):
-        rel = path.relative_to(data).as_posix()
-        try:
-            raw = path.read_bytes()
-            log = read_log(path)
-        except (OSError, LogError) as exc:
-            reason: str | None = str(exc)
+    tracks: list[TrackJob] = []
+    rigs: list[RigUse] = []
+    # One read per log (hashed and parsed from the same bytes), in parallel for many logs.
+    for res in read_logs(paths, data, est, progress=progress):
+        rel = res.rel
+        if res.error is not None:
+            reason: str | None = res.error
         else:
             problems += [
-                {"log": rel, "problem": pr, "action": "line ignored"} for pr in log.problems
+                {"log": rel, "problem": pr, "action": "line ignored"} for pr in res.line_problems
             ]
-            reason = _skip_reason(log.header)
+            reason = _skip_reason(res.header)
         if reason is not None:
             skipped.append({"path": rel, "reason": reason})
             problems.append({"log": rel, "problem": reason, "action": "file skipped"})
         else:
-            h = log.header
-            inputs.append({"path": rel, "sha256": hashlib.sha256(raw).hexdigest()})
+            h = res.header
+            problems += [
+                {"log": rel, "problem": pr, "action": "records kept; check the log"}
+                for pr in res.continuity
+            ]
+            inputs.append({"path": rel, "sha256": res.sha256})
+            rigs.append(rig_use(h, rel))
             if isinstance(h.get("created_utc"), str) and is_utc_stamp(h["created_utc"]):
                 created.append(h["created_utc"])
-            new_rows = session_rows(log, rel, est)
-            rows.extend(new_rows)
+            rows.extend(res.rows)
             if settings.figures == "all":
-                files.append(_track_figure(out, log, new_rows))
-        if progress:
-            progress(i, len(paths))
+                tracks.append(_track_job(out, read_log(res.path), unpacked(res.rows)))
     if not inputs:
         raise AnalysisError(
             f"{data}: none of the {len(paths)} log file(s) could be read; first problem: "
             f"{problems[0]['log']}: {problems[0]['problem']}"
         )
-    thresholds = thresholds_table(rows, unmasked_al=settings.unmasked_al)
+    if tracks:
+        from masking_lab.analysis.track_figures import draw_tracks
+
+        files += draw_tracks(tracks, workers=min(4, os.cpu_count() or 1))
+    thresholds = thresholds_table(rows, unmasked_al=settings.unmasked_al, consume=True)
     shifts = shifts_long(thresholds)
     created_utc = settings.created_utc or (max(created) if created else EPOCH_UTC)
     report_inputs = LogsInput(
@@ -151,24 +203,28 @@ def run_analyze(
         line_problems=tuple(
             (p["log"], p["problem"], p["action"]) for p in problems if p["action"] != "file skipped"
         ),
+        rig_warnings=tuple(rig_changes(rigs)),
     )
     files.append(
         write_text_atomic(
-            out / "thresholds.csv", csv_text(THRESHOLD_COLUMNS, thresholds.to_dict("records"))
+            out / "thresholds.csv",
+            csv_text_rows(THRESHOLD_COLUMNS, thresholds[THRESHOLD_COLUMNS].to_numpy().tolist()),
         )
     )
     files.append(
         write_text_atomic(out / "problems.csv", csv_text(["log", "problem", "action"], problems))
     )
     warnings = [f"{p['log']}: {p['problem']} ({p['action']})" for p in problems]
+    warnings += report_inputs.rig_warnings
     if shifts.empty:
         report = build_report(
             [], settings, source="analyze", inputs=report_inputs, thresholds=thresholds
         )
         files.append(write_text_atomic(out / "report.txt", render_text(report)))
+        files.append(write_text_atomic(out / "report.html", render_html(report)))
         raise AnalysisError(
             f"{data}: no completed masked set to analyse ({len(thresholds)} sets, none with an "
-            f"AL shift); see {out / 'report.txt'} for the status of each set"
+            "AL shift); see report.txt for the status of each set"
         )
     results = analyze_shifts(shifts, settings, has_participants=True)
     files += write_outputs(
@@ -186,46 +242,67 @@ def run_analyze(
     return RunSummary(out, files, warnings)
 
 
-def _track_figure(out: Path, log: SessionLog, rows: list[dict]) -> Path:
-    """Draw the staircase tracks of one session into ``out/figures/tracks``."""
-    from masking_lab.analysis.figures import safe_stem, track_figure
+def _track_job(out: Path, log: SessionLog, rows: list[dict]) -> TrackJob:
+    """The track figure of one session, to draw into ``out/figures/tracks``."""
+    from masking_lab.analysis.figures import safe_stem
+    from masking_lab.analysis.track_figures import track_job
 
     h = log.header
     als = {r["set_id"]: (r.get("al_db_sl") if r.get("masker") else r.get("al_db_v")) for r in rows}
     name = safe_stem(f"{h['participant']}_{h['protocol']['experiment']}_{h.get('session_id', '')}")
-    return track_figure(out / "figures" / "tracks" / f"{name}.png", log, als)
+    return track_job(out / "figures" / "tracks" / f"{name}.png", log, als)
 
 
 def run_fit(csv_path: str | Path, out_dir: str | Path, settings: AnalysisSettings) -> RunSummary:
     """Statistics, pooling, ramp fits and export from a long CSV of AL shifts.
 
+    Parameters
+    ----------
+    csv_path : str or Path
+        The long table of AL shifts (dB) against masker level (dB SL).
+    out_dir : str or Path
+        Output folder: missing, empty or a previous run's outputs (replaced as a whole when
+        the run completes).
+    settings : AnalysisSettings
+        Pooling, uncertainty, export and figure settings.
+
+    Returns
+    -------
+    RunSummary
+        Files written (paths inside ``out_dir``) and warnings.
+
     Raises
     ------
     AnalysisError
         For an unreadable or malformed table (naming the line).
+
+    Examples
+    --------
+    >>> run_fit("shifts.csv", "fit_out", AnalysisSettings(pooling="paired"))  # doctest: +SKIP
     """
     path = Path(csv_path)
     out = Path(out_dir)
-    shifts, has_participants = read_shifts_csv(path)
-    results = analyze_shifts(shifts, settings, has_participants=has_participants)
-    inputs = [{"path": str(csv_path), "sha256": hashlib.sha256(path.read_bytes()).hexdigest()}]
-    table = ShiftsTableInput(
-        path=str(csv_path),
-        n_rows=len(shifts),
-        n_participants=int(shifts["participant"].nunique()) if has_participants else None,
-    )
-    files = write_outputs(
-        out,
-        results,
-        settings,
-        source="fit",
-        inputs=inputs,
-        skipped=(),
-        created_utc=settings.created_utc or EPOCH_UTC,
-        report_inputs=table,
-        thresholds=None,
-    )
-    return RunSummary(out, files, result_warnings(results))
+    with staged_output(out, protect=[path]) as staging:
+        shifts, has_participants = read_shifts_csv(path)
+        results = analyze_shifts(shifts, settings, has_participants=has_participants)
+        digest = hashlib.sha256(path.read_bytes()).hexdigest()
+        table = ShiftsTableInput(
+            path=str(csv_path),
+            n_rows=len(shifts),
+            n_participants=int(shifts["participant"].nunique()) if has_participants else None,
+        )
+        files = write_outputs(
+            staging,
+            results,
+            settings,
+            source="fit",
+            inputs=[{"path": str(csv_path), "sha256": digest}],
+            skipped=(),
+            created_utc=settings.created_utc or EPOCH_UTC,
+            report_inputs=table,
+            thresholds=None,
+        )
+    return _moved(RunSummary(out, files, result_warnings(results)), staging, out)
 
 
 def progress_printer(stream: TextIO, label: str) -> Callable[[int, int], None]:

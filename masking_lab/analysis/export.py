@@ -16,6 +16,7 @@ import pandas as pd
 from masking_lab import __version__
 from masking_lab.analysis.experiment import ExperimentResult
 from masking_lab.analysis.report import LogsInput, ShiftsTableInput, build_report
+from masking_lab.analysis.report_html import render_html
 from masking_lab.analysis.report_text import render_text
 from masking_lab.analysis.settings import AnalysisSettings
 from masking_lab.analysis.tables import (
@@ -31,7 +32,7 @@ from masking_lab.analysis.tables import (
     sphericity_rows,
 )
 from masking_lab.formats.csv_table import csv_text
-from masking_lab.formats.fileio import write_text_atomic
+from masking_lab.formats.fileio import write_bytes_atomic, write_text_atomic
 from masking_lab.formats.masking_params import masking_params_json
 
 __all__ = ["masking_params_document", "write_outputs"]
@@ -143,7 +144,10 @@ def write_outputs(
     report_inputs: LogsInput | ShiftsTableInput,
     thresholds: pd.DataFrame | None,
 ) -> list[Path]:
-    """Write the statistics tables, ``masking_params.json``, ``report.txt`` and figures.
+    """Write the statistics tables, ``masking_params.json``, the reports and the figures.
+
+    The reports are ``report.txt`` and ``report.html`` (the same model; the HTML embeds the
+    figures).
 
     Parameters
     ----------
@@ -186,6 +190,8 @@ def write_outputs(
         inputs=report_inputs,
         thresholds=thresholds,
         export_notes=export_notes,
+        provenance=inputs,
+        created_utc=created_utc,
     )
     tables = [
         ("anova.csv", ANOVA_COLUMNS, anova_rows(results)),
@@ -197,10 +203,13 @@ def write_outputs(
     files = [write_text_atomic(out / name, csv_text(cols, rows)) for name, cols, rows in tables]
     files.append(write_text_atomic(out / "masking_params.json", masking_params_json(doc)))
     files.append(write_text_atomic(out / "report.txt", render_text(report)))
+    figures: dict[str, bytes] = {}
     if settings.figures != "none":
-        from masking_lab.analysis.figures import experiment_figure, safe_stem
+        from masking_lab.analysis.figures import experiment_figure_png, safe_stem
 
         for r in results:
+            figures[r.experiment] = experiment_figure_png(r)
             path = out / "figures" / f"masking_{safe_stem(r.experiment)}.png"
-            files.append(experiment_figure(path, r))
+            files.append(write_bytes_atomic(path, figures[r.experiment]))
+    files.append(write_text_atomic(out / "report.html", render_html(report, figures)))
     return files

@@ -48,12 +48,16 @@ class PoolingDecision:
         Significance level of the ``paired`` rule.
     reasons : tuple[str, ...]
         One human-readable line per decision taken.
+    model_comparison : tuple[str, ...]
+        Pooled-against-separate ramp comparisons by likelihood ratio, AIC and BIC
+        (:mod:`masking_lab.analysis.pooling_lr`), reported beside the decision, not used by it.
     """
 
     groups: tuple[tuple[str, ...], ...]
     rule: str
     alpha: float | None
     reasons: tuple[str, ...]
+    model_comparison: tuple[str, ...] = ()
 
     def group_of(self, level: str) -> tuple[str, ...]:
         """The group containing ``level``."""
@@ -125,7 +129,8 @@ def pool_by_paired_tests(
             else:
                 p_eff = t.p_bonf
                 verdict = "not different" if p_eff >= alpha else "different"
-                reasons.append(f"{a} vs {b}: Bonferroni p = {p_eff:.3f} → {verdict}")
+                p_txt = "p < 0.001" if p_eff < 0.001 else f"p = {p_eff:.3f}"
+                reasons.append(f"{a} vs {b}: Bonferroni {p_txt} → {verdict}")
             if p_eff >= alpha:
                 same[frozenset((a, b))] = p_eff
     group_of = {lv: frozenset([lv]) for lv in levels}

@@ -9,14 +9,14 @@ read the same model.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import pandas as pd
 
 from masking_lab import __version__
-from masking_lab.analysis.experiment import ExperimentResult, GroupFit
+from masking_lab.analysis.experiment import ExperimentResult, GroupFit, result_warnings
 from masking_lab.analysis.pooling import PoolingDecision
 from masking_lab.analysis.settings import AnalysisSettings
 from masking_lab.analysis.stats import Effect, PairedTest
@@ -31,6 +31,7 @@ __all__ = [
     "ShiftsTableInput",
     "ThresholdsSection",
     "build_report",
+    "setting_text",
 ]
 
 
@@ -48,6 +49,9 @@ class LogsInput:
         Logs left out, paths relative to ``data_dir``.
     line_problems : tuple of (log, problem, action)
         Problems inside logs that were read (e.g. a truncated last line).
+    rig_warnings : tuple of str
+        Participants whose sessions ran on different rig records
+        (:func:`masking_lab.analysis.rig_check.rig_changes`).
     """
 
     data_dir: str
@@ -55,6 +59,7 @@ class LogsInput:
     n_analysed: int
     skipped: tuple[tuple[str, str], ...]
     line_problems: tuple[tuple[str, str, str], ...]
+    rig_warnings: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -139,12 +144,18 @@ class ShiftCell:
         Its two-tailed p (None if untested or not computable).
     differs_from_zero : bool or None
         ``p < test_alpha`` (None if there is no p).
+    se_db : float or None
+        Standard error of the mean shift, dB (None without participants or for n < 2).
+    note : str or None
+        Why a test could not be computed (e.g. zero variance), if it could not.
     """
 
     mean_shift_db: float
     tested: bool
     p: float | None
     differs_from_zero: bool | None
+    se_db: float | None = None
+    note: str | None = None
 
 
 @dataclass(frozen=True)
@@ -208,6 +219,11 @@ class ExperimentSection:
     pooling: PoolingDecision
     fits: tuple[GroupFit, ...]
 
+    @property
+    def untestable(self) -> bool:
+        """Whether a tested cell has no p (its test could not be computed)."""
+        return any(c is not None and c.tested and c.p is None for r in self.shifts for c in r.cells)
+
 
 @dataclass(frozen=True)
 class ReportModel:
@@ -221,23 +237,33 @@ class ReportModel:
         masking-lab version.
     inputs : LogsInput or ShiftsTableInput
         What was read.
-    settings : tuple of (name, value)
-        Settings that shape the numbers (as in the export's provenance).
+    settings : tuple of (name, text)
+        Settings that shape the numbers (as in the export's provenance), as display text: a
+        setting left at its default says what the default does (never ``None``).
     thresholds : ThresholdsSection or None
         Threshold status (None for ``fit``).
     experiments : tuple of ExperimentSection
         One per experiment, sorted by id.
     export_notes : tuple of str
         Notes on the export (pairs fitted in two experiments).
+    warnings : tuple of str
+        What the experimenter should look at (notes, ramps not fitted).
+    provenance : tuple of (path, sha256)
+        Every input file read, as recorded in ``masking_params.json``.
+    created_utc : str
+        ``created_utc`` of the export (``YYYY-MM-DDTHH:MM:SSZ``; empty if not exported).
     """
 
     source: str
     software_version: str
     inputs: LogsInput | ShiftsTableInput
-    settings: tuple[tuple[str, Any], ...]
+    settings: tuple[tuple[str, str], ...]
     thresholds: ThresholdsSection | None
     experiments: tuple[ExperimentSection, ...]
     export_notes: tuple[str, ...]
+    warnings: tuple[str, ...] = ()
+    provenance: tuple[tuple[str, str], ...] = ()
+    created_utc: str = ""
 
 
 # --------------------------------------------------------------------------------------------
@@ -252,6 +278,8 @@ def build_report(
     inputs: LogsInput | ShiftsTableInput,
     thresholds: pd.DataFrame | None = None,
     export_notes: Sequence[str] = (),
+    provenance: Sequence[Mapping[str, str]] = (),
+    created_utc: str = "",
 ) -> ReportModel:
     """Gather the numbers of the report from the analysis results.
 
@@ -269,6 +297,10 @@ def build_report(
         The thresholds table of ``analyze`` (columns of :mod:`masking_lab.analysis.thresholds`).
     export_notes : sequence of str
         Notes from :func:`masking_lab.analysis.export.masking_params_document`.
+    provenance : sequence of mapping
+        Input files read (``path``, ``sha256``).
+    created_utc : str
+        ``created_utc`` of the export.
 
     Returns
     -------
@@ -287,11 +319,71 @@ def build_report(
         source=source,
         software_version=__version__,
         inputs=inputs,
-        settings=tuple(settings.as_dict(source).items()),
+        settings=tuple(
+            (
+                k,
+                _created_text(source, created_utc)
+                if k == "created_utc" and v is None
+                else setting_text(k, v),
+            )
+            for k, v in settings.as_dict(source).items()
+        ),
         thresholds=None if thresholds is None else _thresholds_section(thresholds),
         experiments=tuple(_experiment_section(r, settings.test_alpha) for r in results),
         export_notes=tuple(export_notes),
+        warnings=tuple(result_warnings(results))
+        + (inputs.rig_warnings if isinstance(inputs, LogsInput) else ()),
+        provenance=tuple((str(i["path"]), str(i["sha256"])) for i in provenance),
+        created_utc=created_utc,
     )
+
+
+def _created_text(source: str, created_utc: str) -> str:
+    """What ``created_utc`` left at its default became, and why."""
+    if source == "fit":
+        return f"{created_utc or 'fixed'} (fixed default, so reruns give the same bytes)"
+    return (
+        f"{created_utc} (derived from the data: latest session header)"
+        if created_utc
+        else (_DEFAULT_MEANING["created_utc"])
+    )
+
+
+# What a setting left at None means, so the report never prints "None".
+_DEFAULT_MEANING = {
+    "n_reversals_averaged": "as logged (the n_reversals_averaged of each set)",
+    "created_utc": "derived from the data (latest session header)",
+}
+
+
+def setting_text(name: str, value: Any) -> str:
+    """A setting's value as the report shows it.
+
+    Parameters
+    ----------
+    name : str
+        Setting name (a key of :meth:`AnalysisSettings.as_dict`).
+    value : object
+        Its value (JSON types).
+
+    Returns
+    -------
+    str
+        ``None`` becomes what the default does, an empty list ``none``, a list its items joined
+        by ``, ``.
+
+    Examples
+    --------
+    >>> setting_text("n_reversals_averaged", None), setting_text("pool_groups", [])
+    ('as logged (the n_reversals_averaged of each set)', 'none')
+    >>> setting_text("n_boot", 2000)
+    '2000'
+    """
+    if value is None:
+        return _DEFAULT_MEANING.get(name, "default")
+    if isinstance(value, list | tuple):
+        return ", ".join(str(v) for v in value) or "none"
+    return str(value)
 
 
 def _thresholds_section(thresholds: pd.DataFrame) -> ThresholdsSection:
@@ -337,6 +429,8 @@ def _experiment_section(r: ExperimentResult, test_alpha: float) -> ExperimentSec
                     tested=c.test is not None,
                     p=p,
                     differs_from_zero=None if p is None else bool(p < test_alpha),
+                    se_db=None if c.test is None else c.test.se,
+                    note=None if c.test is None else c.test.note,
                 )
             )
         rows.append(ShiftRow(lv, tuple(cells)))

@@ -1,7 +1,7 @@
 """The analysis report as fixed-width plain text (``report.txt``), from the report model.
 
-Reads only :class:`masking_lab.analysis.report.ReportModel`; the layout is that of every earlier
-release, so the same inputs and settings still give the same bytes.
+Reads only :class:`masking_lab.analysis.report.ReportModel`, so the same inputs and settings give
+the same bytes. :mod:`masking_lab.analysis.report_html` renders the same model as HTML.
 """
 
 from __future__ import annotations
@@ -78,6 +78,7 @@ def _input_lines(inputs: LogsInput | ShiftsTableInput) -> list[str]:
     ]
     out += [f"  SKIPPED {path}: {reason}" for path, reason in inputs.skipped]
     out += [f"  {log}: {problem} ({action})" for log, problem, action in inputs.line_problems]
+    out += [f"  RIG CHANGED {w}" for w in inputs.rig_warnings]
     return out
 
 
@@ -147,8 +148,11 @@ def _posthoc_lines(tests: Sequence[PairedTest]) -> list[str]:
 
 
 def _shift_grid_lines(e: ExperimentSection) -> list[str]:
+    legend = "* = not different from 0 (two-tailed t-test)"
+    if e.untestable:
+        legend += "; ? = test not computable (zero variance or one participant)"
     out = [
-        "  Mean AL shift per cell (dB); * = not different from 0 (two-tailed t-test)"
+        f"  Mean AL shift per cell (dB); {legend}"
         if e.tested
         else "  Mean AL shift per cell (dB; not tested against 0: no participant data)",
         "    " + f"{'':<10}" + "".join(f"{v:>11g}" for v in e.masker_levels_db_sl) + "  dB SL",
@@ -169,7 +173,11 @@ def _shift_grid_lines(e: ExperimentSection) -> list[str]:
 
 def _pooling_lines(pooling: PoolingDecision) -> list[str]:
     groups = "; ".join("+".join(g) for g in pooling.groups)
-    return [f"  Pooling ({pooling.rule}): {groups}", *(f"    {r}" for r in pooling.reasons)]
+    lines = [f"  Pooling ({pooling.rule}): {groups}", *(f"    {r}" for r in pooling.reasons)]
+    if pooling.model_comparison:
+        lines.append("    Model comparison (likelihood ratio, AIC, BIC; reported, not used):")
+        lines += [f"      {r}" for r in pooling.model_comparison]
+    return lines
 
 
 def _fit_lines(fits: Sequence[GroupFit]) -> list[str]:

@@ -114,7 +114,8 @@ class AnalysisSettings:
     created_utc : str or None
         Value for ``created_utc`` in the export (None: derived, see docs).
     figures : {"all", "summary", "none"}
-        Figures to draw (``all`` adds one staircase-track figure per session).
+        Figures to draw (default ``summary``: the masking functions; ``all`` adds one
+        staircase-track figure per session, slow for big studies).
     """
 
     estimator: str = "reversals"
@@ -130,7 +131,7 @@ class AnalysisSettings:
     seed: int = 0
     test_alpha: float = 0.05
     created_utc: str | None = None
-    figures: str = "all"
+    figures: str = "summary"
 
     def __post_init__(self) -> None:
         checks = [

@@ -1,5 +1,14 @@
-"""``masking-lab analyze DATA_DIR --out OUT_DIR``: every session log of a study → thresholds,
-statistics, pooled ramp fits, ``masking_params.json``, figures and a text report."""
+"""``masking-lab analyze DATA_DIR --out OUT_DIR``: analyse every session log in a folder: ALs,
+shifts, statistics, ramp fits, export.
+
+Read every session log (*.jsonl) under DATA_DIR, re-estimate each set's AL, compute AL shifts,
+run the repeated-measures statistics per experiment, pool frequency levels, fit the masking
+ramps and write thresholds.csv, anova.csv, sphericity.csv, posthoc.csv, one_sample.csv,
+ramp_fits.csv, problems.csv, masking_params.json, report.txt, report.html and figures/ into
+OUT_DIR. Truncated or invalid logs are reported and skipped. Same inputs and settings give the
+same bytes. OUT_DIR is written as a fresh folder swapped in only when the run completes: a
+failed run leaves the previous results untouched.
+"""
 
 from __future__ import annotations
 
@@ -7,10 +16,13 @@ import argparse
 import os
 import sys
 from datetime import UTC, datetime
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
+
+from masking_lab.commands.options import command_texts
 
 if TYPE_CHECKING:  # the analysis imports pandas; keep `masking-lab --help` fast
     from masking_lab.analysis.batch import RunSummary
+    from masking_lab.analysis.settings import AnalysisSettings
 
 
 def add_fit_options(p: argparse.ArgumentParser) -> None:
@@ -66,11 +78,30 @@ def add_fit_options(p: argparse.ArgumentParser) -> None:
     o.add_argument(
         "--figures",
         choices=("all", "summary", "none"),
-        default="all",
-        help="figures to draw: 'all' adds a staircase-track figure per session (analyze only; "
-        "slow for big studies), 'summary' only the masking-function figures",
+        default="summary",
+        help="figures to draw: 'summary' the masking-function figures (default), 'all' adds a "
+        "staircase-track figure per session (analyze only; drawn in parallel, slow for big "
+        "studies), 'none' no figures",
     )
     o.add_argument("--quiet", action="store_true", help="no progress display")
+
+
+def fit_settings(args: argparse.Namespace, **analyze_only: Any) -> AnalysisSettings:
+    """The :class:`AnalysisSettings` of :func:`add_fit_options`, plus ``analyze``'s own."""
+    from masking_lab.analysis.settings import AnalysisSettings
+
+    return AnalysisSettings(
+        pooling=args.pooling,
+        pool_alpha=args.pool_alpha,
+        pool_groups=tuple(args.pool),
+        uncertainty=args.uncertainty,
+        n_boot=args.n_boot,
+        ci_level=args.ci_level,
+        seed=args.seed,
+        test_alpha=args.test_alpha,
+        created_utc=created_utc_from(args),
+        **analyze_only,
+    )
 
 
 def created_utc_from(args: argparse.Namespace) -> str | None:
@@ -89,7 +120,10 @@ def created_utc_from(args: argparse.Namespace) -> str | None:
 def print_summary(command: str, summary: RunSummary) -> None:
     """Files written on stdout; warnings on stderr."""
     out_dir, files, warnings = summary.out_dir, summary.files, summary.warnings
-    print(f"wrote {len(files)} files to {out_dir} (see {out_dir / 'report.txt'})")
+    print(
+        f"wrote {len(files)} files to {out_dir} (see {out_dir / 'report.html'} or "
+        f"{out_dir / 'report.txt'})"
+    )
     if warnings:
         print(f"masking-lab {command}: {len(warnings)} warning(s):", file=sys.stderr)
         for w in warnings[:20]:
@@ -99,16 +133,7 @@ def print_summary(command: str, summary: RunSummary) -> None:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "analyze",
-        help="analyse every session log in a folder: ALs, shifts, statistics, ramp fits, export",
-        description="Read every session log (*.jsonl) under DATA_DIR, re-estimate each set's AL, "
-        "compute AL shifts, run the repeated-measures statistics per experiment, pool frequency "
-        "levels, fit the masking ramps and write thresholds.csv, anova.csv, sphericity.csv, "
-        "posthoc.csv, one_sample.csv, ramp_fits.csv, problems.csv, masking_params.json, "
-        "report.txt and figures/ into OUT_DIR. Truncated or invalid logs are reported and "
-        "skipped. Same inputs and settings give the same bytes.",
-    )
+    p = sub.add_parser("analyze", **command_texts(__doc__))
     p.add_argument(
         "data_dir", metavar="DATA_DIR", help="folder of session logs (searched recursively)"
     )
@@ -145,22 +170,14 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from masking_lab.analysis.batch import progress_printer, run_analyze
-    from masking_lab.analysis.settings import AnalysisSettings, parse_lapse
+    from masking_lab.analysis.settings import parse_lapse
 
-    settings = AnalysisSettings(
+    settings = fit_settings(
+        args,
         estimator=args.estimator,
         n_reversals_averaged=args.reversals,
         lapse=parse_lapse(args.lapse),
         unmasked_al=args.unmasked_al,
-        pooling=args.pooling,
-        pool_alpha=args.pool_alpha,
-        pool_groups=tuple(args.pool),
-        uncertainty=args.uncertainty,
-        n_boot=args.n_boot,
-        ci_level=args.ci_level,
-        seed=args.seed,
-        test_alpha=args.test_alpha,
-        created_utc=created_utc_from(args),
         figures=args.figures,
     )
     show = not args.quiet and sys.stderr.isatty()

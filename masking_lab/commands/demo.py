@@ -1,22 +1,33 @@
-"""``masking-lab demo --out DIR``: a simulated study end to end, with no hardware."""
+"""``masking-lab demo --out DIR``: simulated study end to end: sessions over the emulator,
+analysis, export, a scene.
+
+Run baseline, experiment I and experiment II for simulated participants through the firmware
+emulator on a pseudo-terminal (virtual clock), analyse the logs, export masking_params.json and
+render the paper's bump-with-rough-texture scene with and without compensation. Prints where
+everything went and the fitted masking parameters beside the simulation's ground truth.
+"""
 
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
 
+from masking_lab.commands.options import command_texts
+
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "demo",
-        help="simulated study end to end: sessions over the emulator, analysis, export, a scene",
-        description="Run baseline, experiment I and experiment II for simulated participants "
-        "through the firmware emulator on a pseudo-terminal (virtual clock), analyse the logs, "
-        "export masking_params.json and render the paper's bump-with-rough-texture scene with "
-        "and without compensation. Prints where everything went and the fitted masking "
-        "parameters beside the simulation's ground truth.",
+    p = sub.add_parser("demo", **command_texts(__doc__))
+    p.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        help="output folder [demo_out, or demo_out-2, -3, ... when that holds a demo already]",
     )
-    p.add_argument("--out", type=Path, default=Path("demo_out"), help="output folder (new)")
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="overwrite the demo already in --out (its data/, analysis/ and render/ folders)",
+    )
     p.add_argument("--participants", type=int, default=10, help="simulated participants [10]")
     p.add_argument("--seed", type=int, default=2020, help="master seed [2020]")
     p.add_argument(
@@ -32,12 +43,13 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from masking_lab.core.errors import MaskingLabError
-    from masking_lab.demo import DemoSettings, default_jobs, run_demo
+    from masking_lab.demo import DemoSettings, default_jobs, new_demo_folder, run_demo
 
     if args.participants < 2:
         raise MaskingLabError("--participants: the statistics need at least 2 participants")
     settings = DemoSettings(
-        out=args.out,
+        out=args.out if args.out is not None else new_demo_folder(Path("demo_out")),
+        force=args.force,
         participants=args.participants,
         seed=args.seed,
         device=args.device,

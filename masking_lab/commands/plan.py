@@ -1,9 +1,18 @@
-"""``masking-lab plan PROTOCOL``: session time against threshold precision, before a participant.
+"""``masking-lab plan PROTOCOL``: simulate a protocol to trade session time against threshold
+precision.
+
+Run the protocol's staircases against simulated observers for a grid of stop rules, step
+schedules and estimators, and QUEST+ at posterior-SD stop rules beside them; print trials,
+minutes, AL bias, SD and RMSE per setting with its efficiency against the Cramér-Rao bound,
+answer 'fewest trials for ±X dB' across procedures, and write CSV tables, report.html and the
+speed–accuracy figure to --out.
 
 Simulated observers run the protocol's staircases thousands of times under a grid of stop
-rules, step schedules and estimators; the command prints what each setting costs (trials,
-minutes) and buys (AL bias and SD), answers "how many reversals for ±X dB", and writes CSV
-tables and the speed–accuracy figure to ``--out`` (see docs/speed-accuracy.md).
+rules, step schedules and estimators, and QUEST+ on the same observers; the command prints what
+each setting costs (trials, minutes) and buys (AL bias, SD, RMSE), its efficiency against the
+Cramér-Rao bound, answers "how many reversals for ±X dB" and "fewest trials for ±X dB" across
+procedures, and writes CSV tables and figures to ``--out`` (see docs/speed-accuracy.md and
+docs/procedures.md).
 """
 
 from __future__ import annotations
@@ -12,6 +21,8 @@ import argparse
 import math
 import sys
 from collections.abc import Callable
+
+from masking_lab.commands.options import command_texts
 
 
 def _checked(
@@ -44,14 +55,7 @@ _finite_float = _checked(float, "a number", math.isfinite, "a finite number")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "plan",
-        help="simulate a protocol to trade session time against threshold precision",
-        description="Run the protocol's staircases against simulated observers for a grid of "
-        "stop rules, step schedules and estimators; print trials, minutes, AL bias and SD per "
-        "setting, answer 'how many reversals for ±X dB', and write CSV tables and the "
-        "speed–accuracy figure to --out.",
-    )
+    p = sub.add_parser("plan", **command_texts(__doc__))
     p.add_argument("protocol", metavar="PROTOCOL", help="protocol YAML file")
     p.add_argument(
         "--replicates",
@@ -81,7 +85,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--ratios",
         metavar="RATIOS",
-        help="down/up step ratios crossed with the schedules, e.g. 1,0.7393 (default: the "
+        help="down/up step ratios crossed with the schedules, e.g. 1,0.7393 (0.7393: "
+        "García-Pérez's 2AFC value; see docs/speed-accuracy.md) (default: the "
         "protocol's)",
     )
     p.add_argument(
@@ -145,6 +150,17 @@ def register(sub: argparse._SubParsersAction) -> None:
         action="store_true",
         help="fix the ML fit's scale at the observers' true one (optimistic; the analysis fits it)",
     )
+    p.add_argument(
+        "--quest-replicates",
+        type=_count,
+        default=400,
+        help="QUEST+ tracks per set for the procedures comparison (default 400; 0 skips it)",
+    )
+    p.add_argument(
+        "--psi",
+        action="store_true",
+        help="add the psi-marginal (slope unknown) to the procedures comparison (slow)",
+    )
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--out", default="plan_out", help="output folder (default ./plan_out)")
     p.add_argument(
@@ -164,7 +180,14 @@ def run(args: argparse.Namespace) -> int:
     from masking_lab.formats.protocol import load_protocol
     from masking_lab.planning import plan as P
     from masking_lab.planning.figures import png_bytes, speed_accuracy
+    from masking_lab.planning.procedure_plan import compare_procedures
+    from masking_lab.planning.procedure_report import (
+        format_comparison,
+        format_fewest,
+        procedures_figure,
+    )
     from masking_lab.planning.report import answer_text, format_per_set, format_table, rows_to_csv
+    from masking_lab.planning.report_html import render_plan_html
     from masking_lab.procedures.staircase_batch import Observer
     from masking_lab.simulation.observer import load_ground_truth
 
@@ -226,6 +249,17 @@ def run(args: argparse.Namespace) -> int:
         print(f"plan: {msg}", file=sys.stderr, flush=True)
 
     result = P.run_plan(protocol, settings, thresholds, progress=progress)
+    comparison = None
+    if args.quest_replicates:
+        comparison = compare_procedures(
+            protocol,
+            result,
+            settings,
+            thresholds,
+            quest_replicates=args.quest_replicates,
+            psi=args.psi,
+            progress=progress,
+        )
     cap = P.protocol_staircase(protocol).max_trials
     unit = "dB SL" if protocol.level_unit == "db_sl" else "dB re 1 V"
     header = [
@@ -257,6 +291,8 @@ def run(args: argparse.Namespace) -> int:
             *(f"  {answer_text(a, settings, cap)}" for a in result.answers),
         ]
     )
+    if comparison is not None:
+        text += "\n\n" + format_comparison(comparison) + "\n\n" + format_fewest(comparison)
     print(text)
 
     out = Path(args.out)
@@ -266,12 +302,28 @@ def run(args: argparse.Namespace) -> int:
         "plan_sets.csv": rows_to_csv(result.per_set),
         "plan_ladder.csv": rows_to_csv(result.ladder),
     }
+    figures = {
+        "plan_speed_accuracy.png": speed_accuracy(
+            result, title=f"{protocol.experiment}: speed against accuracy"
+        )
+    }
+    if comparison is not None:
+        files["plan_procedures.csv"] = rows_to_csv(comparison.rows)
+        files["plan_procedures_sets.csv"] = rows_to_csv(comparison.per_set)
+        figures["plan_procedures.png"] = procedures_figure(
+            comparison, title=f"{protocol.experiment}: procedures against the Cramér-Rao bound"
+        )
+    pngs = {name: png_bytes(fig) for name, fig in figures.items()}
+    files["report.html"] = render_plan_html(
+        result,
+        title=f"masking-lab plan: {protocol.experiment}",
+        header=header,
+        answers=[answer_text(a, settings, cap) for a in result.answers],
+        figures=pngs,
+    )
     for name, content in files.items():
         write_text_atomic(out / name, content)
-    fig = speed_accuracy(result, title=f"{protocol.experiment}: speed against accuracy")
-    write_bytes_atomic(out / "plan_speed_accuracy.png", png_bytes(fig))
-    print(
-        f"\nwrote {', '.join(str(out / n) for n in [*files, 'plan_speed_accuracy.png'])}",
-        file=sys.stderr,
-    )
+    for name, png in pngs.items():
+        write_bytes_atomic(out / name, png)
+    print(f"\nwrote {', '.join(str(out / n) for n in [*files, *figures])}", file=sys.stderr)
     return 0

@@ -1,25 +1,24 @@
-"""``masking-lab render SCENE --params P --out DIR``: compensated inputs along a scene's path."""
+"""``masking-lab render SCENE --params P --out DIR``: render a scene: per-point targets,
+compensated inputs, perceived intensities.
+
+Render a scene file (protocols/scenes/*.yaml): for every interaction point write the perceived
+targets, the masking-compensated inputs (paper Table 4), and the masked ALs and perceived
+intensities with and without compensation (points.csv), a summary (summary.json) and a figure
+like the paper's Figure 4 (figure4.png). Only the masking functions of the scene's own stimulus
+pair are loaded; a single-channel scene needs none. If they are not fitted, the protocol that
+measures just that pair is written to DIR and the command exits 2. Points needing more than the
+rated level are reported, never clipped. Exit 1 if some points have no unique compensated input.
+"""
 
 from __future__ import annotations
 
 import argparse
 
-from masking_lab.commands.options import rating_options
+from masking_lab.commands.options import command_texts, rating_options
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "render",
-        help="render a scene: per-point targets, compensated inputs, perceived intensities",
-        description="Render a scene file (protocols/scenes/*.yaml): for every interaction point "
-        "write the perceived targets, the masking-compensated inputs (paper Table 4), and the "
-        "masked ALs and perceived intensities with and without compensation (points.csv), a "
-        "summary (summary.json) and a figure like the paper's Figure 4 (figure4.png). Only the "
-        "masking functions of the scene's own stimulus pair are loaded; a single-channel scene "
-        "needs none. If they are not fitted, the protocol that measures just that pair is "
-        "written to DIR and the command exits 2. Points needing more than the rated level are "
-        "reported, never clipped. Exit 1 if some points have no unique compensated input.",
-    )
+    p = sub.add_parser("render", **command_texts(__doc__))
     p.add_argument("scene", metavar="SCENE", help="scene YAML file")
     p.add_argument("--params", metavar="FILE", help="masking_params.json from `masking-lab fit`")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder (created)")
@@ -37,7 +36,7 @@ def run(args: argparse.Namespace) -> int:
     from masking_lab.device.rig_limits import max_level_db_sl
     from masking_lab.formats.masking_params import read_masking_params
     from masking_lab.rendering.outputs import (
-        measurement_protocol,
+        measurement_protocols,
         write_measurement_protocol,
         write_rendering,
     )
@@ -61,11 +60,15 @@ def run(args: argparse.Namespace) -> int:
             params = read_masking_params(args.params)
             pair = pair_from_params(params, mv=mv, ev=ev, source=args.params)
         except MissingMaskingError as exc:
-            written = write_measurement_protocol(measurement_protocol(exc.problems), args.out)
+            written = " and ".join(
+                str(write_measurement_protocol(doc, args.out, writer="render"))
+                for doc in measurement_protocols(exc.problems, writer="render")
+            )
             raise SolverError(
-                f"{exc}\n  wrote {written}: the protocol that measures just this pair. Check it "
-                f"with `masking-lab validate {written}`, run it after the participants' baseline, "
-                "fit, and render again"
+                f"{exc}\n  wrote {written}: the protocol(s) that measure just this pair, one per "
+                f"masking direction. Check them with `masking-lab validate`, run them after the "
+                "participants' baseline, analyse them together with the rest of the study, and "
+                "render again"
             ) from exc
     rendering = render_scene(scene, pair, max_mv_db_sl=max_mv, max_ev_db_sl=max_ev)
     written = write_rendering(rendering, args.out, figure=not args.no_figure)

@@ -3,22 +3,62 @@
 Three rows — (a) no masking (ideal), (b) masking without compensation, (c) with compensation —
 and two columns: input intensities with the masked ALs they cause (left), perceived intensities
 against the intended ones (right). Grey shading marks where a channel falls below its masked AL
-and is not felt.
+and is not felt. In row (c), hatching marks the points whose compensated input is above the
+rig's rated maximum (the rig cannot play them), and dotted lines show what would be perceived
+there if the input were clipped at that maximum. Drawn in the package's legible style (fonts
+≥ 8 pt at the saved size, constrained layout).
 """
 
 from __future__ import annotations
 
-import io
-
 import numpy as np
+from numpy.typing import NDArray
 
+from masking_lab.formats.png_figure import legible, png_bytes
 from masking_lab.rendering.render import Rendering
+from masking_lab.rendering.solver import forward
+
+__all__ = ["clipped_perceived", "figure4_png"]
 
 MV_COLOUR = "tab:red"
 EV_COLOUR = "tab:blue"
 
 
-def figure4_png(r: Rendering, *, dpi: int = 110) -> bytes:
+def clipped_perceived(
+    r: Rendering,
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]:
+    """What would be perceived with the compensated inputs clipped at the rig's maximum.
+
+    Parameters
+    ----------
+    r : Rendering
+        A rendered scene (with a masking pair and rated maxima, dB SL).
+
+    Returns
+    -------
+    mv_perceived_db_sl, ev_perceived_db_sl : ndarray
+        Perceived intensities (dB SL) under the clipped inputs.
+    unplayable : ndarray of bool
+        Points where some compensated input is above its channel's rated maximum.
+
+    Examples
+    --------
+    >>> mv, ev, over = clipped_perceived(rendering)  # doctest: +SKIP
+    """
+    sol = r.solution
+    over = np.asarray(sol.mv_exceeds_rating, bool) | np.asarray(sol.ev_exceeds_rating, bool)
+    mv_in, ev_in = r.mv_input_db_sl, r.ev_input_db_sl
+    if sol.max_mv_db_sl is not None:
+        mv_in = np.minimum(mv_in, sol.max_mv_db_sl)
+    if sol.max_ev_db_sl is not None:
+        ev_in = np.minimum(ev_in, sol.max_ev_db_sl)
+    if r.pair is None:
+        return mv_in, ev_in, over
+    mv_p, ev_p = forward(r.pair, mv_in, ev_in)
+    return mv_p, ev_p, over
+
+
+def figure4_png(r: Rendering, *, dpi: int = 100) -> bytes:
     """The Figure-4-like panel for ``r`` as PNG bytes.
 
     Parameters
@@ -26,16 +66,22 @@ def figure4_png(r: Rendering, *, dpi: int = 110) -> bytes:
     r : Rendering
         A rendered scene.
     dpi : int
-        Resolution, dots per inch.
+        Resolution, dots per inch (font sizes are in points, the same at any dpi).
+
+    Returns
+    -------
+    bytes
+        A 14 × 10.5 inch PNG.
+
+    Examples
+    --------
+    >>> png = figure4_png(render_scene(scene, pair))  # doctest: +SKIP
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     x = r.x_mm
-    has_mv = bool(np.any(np.isfinite(r.mv_target_db_sl)))
-    has_ev = bool(np.any(np.isfinite(r.ev_target_db_sl)))
+    has = (
+        bool(np.any(np.isfinite(r.mv_target_db_sl))),
+        bool(np.any(np.isfinite(r.ev_target_db_sl))),
+    )
     zeros = np.zeros_like(x)
     rows = [
         (
@@ -57,19 +103,23 @@ def figure4_png(r: Rendering, *, dpi: int = 110) -> bytes:
             (r.mv_perceived_db_sl, r.ev_perceived_db_sl),
         ),
     ]
-    fig, axes = plt.subplots(3, 2, figsize=(10, 9), sharex=True, squeeze=False)
-    try:
+    mv_clip, ev_clip, over = clipped_perceived(r)
+    with legible() as plt:
+        fig, axes = plt.subplots(3, 2, figsize=(14, 10.5), sharex=True, squeeze=False)
         for row, (title, inputs, masked, perceived) in enumerate(rows):
             left, right = axes[row]
-            for k, present, colour, other, name, by in (
-                (0, has_mv, MV_COLOUR, EV_COLOUR, "MV", "EV"),
-                (1, has_ev, EV_COLOUR, MV_COLOUR, "EV", "MV"),
+            for k, colour, other, name, by in (
+                (0, MV_COLOUR, EV_COLOUR, "MV", "EV"),
+                (1, EV_COLOUR, MV_COLOUR, "EV", "MV"),
             ):
-                if not present:
+                if not has[k]:
                     continue
                 target = r.mv_target_db_sl if k == 0 else r.ev_target_db_sl
                 left.plot(x, inputs[k], color=colour, label=f"{name} input")
-                left.plot(x, masked[k], "--", color=other, label=f"masked AL of {name} (by {by})")
+                if row > 0:
+                    left.plot(
+                        x, masked[k], "--", color=other, label=f"masked AL of {name} (by {by})"
+                    )
                 right.plot(x, perceived[k], color=colour, label=f"{name} perceived")
                 right.plot(x, target, "--", color=colour, alpha=0.6, label=f"{name} intended")
                 # Grey where this channel is below its masked AL: not felt.
@@ -81,33 +131,67 @@ def figure4_png(r: Rendering, *, dpi: int = 110) -> bytes:
                     color="0.85",
                     lw=0,
                     transform=right.get_xaxis_transform(),
+                    label=f"{name} not felt" if np.any(perceived[k] < 0) else None,
                 )
             if row == 2:
-                for limit, colour, name in (
-                    (r.solution.max_mv_db_sl, MV_COLOUR, "MV"),
-                    (r.solution.max_ev_db_sl, EV_COLOUR, "EV"),
-                ):
-                    if limit is not None:
-                        left.axhline(limit, ls=":", color=colour, label=f"{name} rated maximum")
-                left.legend(fontsize=7, loc="upper right")
+                _mark_unplayable(r, left, right, over, (mv_clip, ev_clip), has)
             left.set_ylabel("input (dB SL)")
             right.set_ylabel("perceived (dB SL)")
-            left.set_title(f"{title}: input", fontsize=10)
-            right.set_title(f"{title}: perceived", fontsize=10)
+            left.set_title(f"{title}: inputs" + (" and masked ALs" if row else ""))
+            right.set_title(f"{title}: perceived vs intended")
             right.axhline(0.0, color="k", lw=0.5)
+            # Legends beside the axes, never over the curves.
+            for ax in (left, right):
+                ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, frameon=False)
         for ax in axes[-1]:
-            ax.set_xlabel("haptic interaction point (mm)")
-        axes[0][0].legend(fontsize=7, loc="upper right")
-        axes[0][1].legend(fontsize=7, loc="upper right")
-        pair = ""
-        if r.pair is not None:
-            p = r.pair
-            pair = f" ({p.mv}, {p.ev}: a={p.a_db:.3g}, b={p.b:.3g}, c={p.c_db:.3g}, d={p.d:.3g})"
-        fig.suptitle(f"scene {r.scene.name}{pair}", fontsize=11)
-        # Fixed margins: tight_layout costs a full extra draw per figure.
-        fig.subplots_adjust(left=0.07, right=0.98, top=0.92, bottom=0.06, hspace=0.35, wspace=0.2)
-        buf = io.BytesIO()
-        fig.savefig(buf, format="png", dpi=dpi)
-        return buf.getvalue()
-    finally:
-        plt.close(fig)
+            ax.set_xlabel("position along the path (mm)")
+        fig.suptitle(_suptitle(r))
+        return png_bytes(fig, dpi=dpi)
+
+
+def _mark_unplayable(
+    r: Rendering,
+    left: object,
+    right: object,
+    over: NDArray[np.bool_],
+    clipped: tuple[NDArray[np.float64], NDArray[np.float64]],
+    has: tuple[bool, bool],
+) -> None:
+    """Row (c): rated maxima, hatching where the rig cannot play, perceived if clipped."""
+    x = r.x_mm
+    for limit, colour, name in (
+        (r.solution.max_mv_db_sl, MV_COLOUR, "MV"),
+        (r.solution.max_ev_db_sl, EV_COLOUR, "EV"),
+    ):
+        if limit is not None:
+            left.axhline(limit, ls=":", color=colour, label=f"{name} rated maximum")  # type: ignore[attr-defined]
+    if not np.any(over):
+        return
+    n = int(np.sum(over))
+    for ax, label in ((left, f"rig cannot play ({n} of {len(x)} points)"), (right, None)):
+        ax.fill_between(  # type: ignore[attr-defined]
+            x,
+            0,
+            1,
+            where=over,
+            facecolor="none",
+            edgecolor="0.7",
+            hatch="///",
+            lw=0,
+            transform=ax.get_xaxis_transform(),  # type: ignore[attr-defined]
+            label=label,
+        )
+    for k, colour, name in ((0, MV_COLOUR, "MV"), (1, EV_COLOUR, "EV")):
+        if has[k]:
+            shown = np.where(over, clipped[k], np.nan)
+            right.plot(x, shown, ":", color=colour, lw=2, label=f"{name} perceived if clipped")  # type: ignore[attr-defined]
+
+
+def _suptitle(r: Rendering) -> str:
+    if r.pair is None:
+        return f"scene {r.scene.name}: one channel, no mutual masking"
+    p = r.pair
+    return (
+        f"scene {r.scene.name}: {p.mv} masked by {p.ev} (f: a = {p.a_db:.3g} dB, b = {p.b:.3g}) "
+        f"and {p.ev} masked by {p.mv} (g: c = {p.c_db:.3g} dB, d = {p.d:.3g})"
+    )

@@ -4,9 +4,10 @@
   columns :data:`POINT_COLUMNS`, levels in dB SL), ``summary.json``
   (:func:`masking_lab.rendering.render.summarize`) and ``figure4.png``
   (:mod:`masking_lab.rendering.figures`).
-- :func:`measurement_protocol` / :func:`write_measurement_protocol`: when a scene's masking
-  functions are not fitted, the masked-threshold protocol that measures just that pair (staircase
-  and timing of the shipped experiment I protocol, masker levels in dB SL).
+- :func:`measurement_protocols` / :func:`write_measurement_protocol`: when a scene's masking
+  functions are not fitted, the masked-threshold protocols that measure just that pair, one per
+  masking direction like experiments I and II (staircase and timing of the shipped experiment I
+  protocol, masker levels in dB SL).
 
 This is the I/O side of rendering; :mod:`masking_lab.rendering.render` stays pure.
 """
@@ -14,6 +15,7 @@ This is the I/O side of rendering; :mod:`masking_lab.rendering.render` stays pur
 from __future__ import annotations
 
 import json
+import math
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -32,6 +34,7 @@ __all__ = [
     "MEASURE_LEVELS_DB_SL",
     "POINT_COLUMNS",
     "measurement_protocol",
+    "measurement_protocols",
     "points_csv",
     "write_measurement_protocol",
     "write_rendering",
@@ -63,7 +66,11 @@ POINT_COLUMNS = (
 
 
 def points_csv(r: Rendering) -> str:
-    """The per-point table as CSV text (floats round-trip exactly; −inf is a silent channel)."""
+    """The per-point table as CSV text (floats round-trip exactly).
+
+    No non-finite number reaches the file: a silent channel (−inf dB SL) and a point without a
+    unique answer (NaN) are empty fields; ``status`` tells them apart.
+    """
     sol = r.solution
     cols: list[Sequence[Any]] = []
     for name in POINT_COLUMNS:
@@ -74,10 +81,15 @@ def points_csv(r: Rendering) -> str:
         elif name.endswith("exceeds_rating"):
             cols.append(["1" if v else "0" for v in getattr(sol, name)])
         else:
-            cols.append([repr(float(v)) for v in getattr(r, name)])
+            cols.append([_number(v) for v in getattr(r, name)])
     lines = [",".join(POINT_COLUMNS)]
     lines += [",".join(row) for row in zip(*cols, strict=True)]
     return "\n".join(lines) + "\n"
+
+
+def _number(v: float) -> str:
+    x = float(v)
+    return repr(x) if math.isfinite(x) else ""
 
 
 def write_rendering(r: Rendering, out_dir: str | Path, *, figure: bool = True) -> list[Path]:
@@ -98,24 +110,56 @@ def write_rendering(r: Rendering, out_dir: str | Path, *, figure: bool = True) -
 
 
 def measurement_protocol(
-    problems: Sequence[PairProblem], *, levels_db_sl: Sequence[float] = MEASURE_LEVELS_DB_SL
+    problems: Sequence[PairProblem],
+    *,
+    levels_db_sl: Sequence[float] = MEASURE_LEVELS_DB_SL,
+    writer: str = "render",
 ) -> dict[str, Any]:
-    """A masked-threshold protocol measuring only the masking functions in ``problems``.
+    """A masked-threshold protocol measuring the masking functions in ``problems``, one direction.
 
     One set per (target, masker, level); the staircase and timing are those of the shipped
-    experiment I protocol, so the new data pool with the paper's.
+    experiment I protocol, so the new data pool with the paper's. Every problem must have the
+    same direction (all targets EV, or all MV), as in experiments I and II: ``analyze`` treats
+    an experiment's MV stimuli as the levels of one frequency factor, so both directions under
+    one experiment id would make one level belong to two pairs. Use
+    :func:`measurement_protocols` to split a mixed list.
 
     Parameters
     ----------
     problems : sequence of PairProblem
-        The directions to measure (target stimulus, masker stimulus).
+        The pairs to measure (target stimulus, masker stimulus), one direction.
     levels_db_sl : sequence of float
         Masker levels, dB SL (default the paper's 5–25 dB SL).
+    writer : str
+        The command that writes it (``render`` or ``run``), named in the description.
+
+    Returns
+    -------
+    dict
+        The protocol document (``experiment`` = ``measure_<targets>_by_<maskers>``).
+
+    Raises
+    ------
+    SolverError
+        Nothing to measure, or both directions in ``problems``.
+
+    Examples
+    --------
+    >>> from masking_lab.rendering.solver import PairProblem
+    >>> doc = measurement_protocol([PairProblem("EV270", "MV180", "missing")], levels_db_sl=[5])
+    >>> doc["experiment"], [s["id"] for s in doc["sets"]]
+    ('measure_EV270_by_MV180', ['EV270_by_MV180_05'])
     """
     if not problems:
         raise SolverError("nothing to measure: every masking function the scene needs is fitted")
+    if len({p.target.startswith("EV") for p in problems}) > 1:
+        raise SolverError(
+            "one measurement protocol measures one masking direction (EV masked by MV, or MV "
+            "masked by EV); split the pairs with measurement_protocols()"
+        )
     template = yaml.safe_load(shipped("protocols", "experiment1.yaml").read_text(encoding="utf-8"))
-    stimuli = sorted({p.target for p in problems} | {p.masker for p in problems})
+    targets = sorted({p.target for p in problems})
+    maskers = sorted({p.masker for p in problems})
     sets = []
     for p in problems:
         for level in levels_db_sl:
@@ -130,10 +174,10 @@ def measurement_protocol(
     listed = ", ".join(f"{p.target} masked by {p.masker}" for p in problems)
     return {
         "schema_version": 1,
-        "experiment": "measure_" + "_".join(stimuli),
+        "experiment": f"measure_{'_'.join(targets)}_by_{'_'.join(maskers)}",
         "description": f"Measures only what a scene needs and the parameters lack: {listed}, "
         f"at {', '.join(f'{lv:g}' for lv in levels_db_sl)} dB SL. Written by masking-lab "
-        "render; run after the baseline of every stimulus involved.",
+        f"{writer}; run after the baseline of every stimulus involved.",
         "kind": "masked",
         "staircase": template["staircase"],
         "timing": template["timing"],
@@ -142,7 +186,51 @@ def measurement_protocol(
     }
 
 
-def write_measurement_protocol(protocol: Mapping[str, Any], out_dir: str | Path) -> Path:
+def measurement_protocols(
+    problems: Sequence[PairProblem],
+    *,
+    levels_db_sl: Sequence[float] = MEASURE_LEVELS_DB_SL,
+    writer: str = "render",
+) -> list[dict[str, Any]]:
+    """The protocols measuring ``problems``: one per masking direction (EV targets first).
+
+    Parameters
+    ----------
+    problems : sequence of PairProblem
+        The pairs to measure, in either direction.
+    levels_db_sl : sequence of float
+        Masker levels, dB SL.
+    writer : str
+        The command that writes them (``render`` or ``run``).
+
+    Returns
+    -------
+    list of dict
+        One or two protocol documents (see :func:`measurement_protocol`).
+
+    Examples
+    --------
+    >>> from masking_lab.rendering.solver import PairProblem
+    >>> docs = measurement_protocols(
+    ...     [PairProblem("MV180", "EV270", "missing"), PairProblem("EV270", "MV180", "missing")]
+    ... )
+    >>> [d["experiment"] for d in docs]
+    ['measure_EV270_by_MV180', 'measure_MV180_by_EV270']
+    """
+    if not problems:
+        raise SolverError("nothing to measure: every masking function the scene needs is fitted")
+    ev_targets = [p for p in problems if p.target.startswith("EV")]
+    mv_targets = [p for p in problems if not p.target.startswith("EV")]
+    return [
+        measurement_protocol(group, levels_db_sl=levels_db_sl, writer=writer)
+        for group in (ev_targets, mv_targets)
+        if group
+    ]
+
+
+def write_measurement_protocol(
+    protocol: Mapping[str, Any], out_dir: str | Path, *, writer: str = "render"
+) -> Path:
     """Validate ``protocol`` with the protocol loader and write it as ``<experiment>.yaml``.
 
     Parameters
@@ -151,14 +239,21 @@ def write_measurement_protocol(protocol: Mapping[str, Any], out_dir: str | Path)
         From :func:`measurement_protocol`.
     out_dir : str or Path
         Folder to write into.
+    writer : str
+        The command that writes it (``render`` or ``run``), named in the header comment.
 
     Returns
     -------
     Path
         The file written (atomically).
+
+    Examples
+    --------
+    >>> write_measurement_protocol(doc, "out", writer="run")  # doctest: +SKIP
+    PosixPath('out/measure_EV270_by_MV180.yaml')
     """
     text = (
-        "# Written by masking-lab render: measures the masking a scene needs.\n"
+        f"# Written by masking-lab {writer}: measures the masking a scene needs.\n"
         + yaml.safe_dump(dict(protocol), sort_keys=False, allow_unicode=True)
     )
     path = Path(out_dir) / f"{protocol['experiment']}.yaml"

@@ -18,7 +18,6 @@ from typing import Any
 
 import yaml
 
-from masking_lab import __version__
 from masking_lab.core.errors import (
     CalibrationError,
     LevelError,
@@ -28,14 +27,13 @@ from masking_lab.core.errors import (
     SolverError,
 )
 from masking_lab.device.base import Device
-from masking_lab.device.config import load_device_config
 from masking_lab.formats.calibration import calibration_path, load_calibration
 from masking_lab.formats.fileio import write_text_atomic
 from masking_lab.formats.records import jsonable
 from masking_lab.rendering.scene import parse_scene_text
 from masking_lab.rendering.solver import MissingMaskingError, MutualMasking, PairProblem
+from masking_lab.session.header import session_header
 from masking_lab.session.progress import ProgressLine
-from masking_lab.session.shell import device_record, utc_now
 from masking_lab.usertest.design import (
     UserTestDesign,
     UserTrial,
@@ -138,7 +136,7 @@ def masking_pairs(
 ) -> tuple[dict[tuple[str, str], MutualMasking], dict[str, Any] | None]:
     """The fitted masking of every stimulus pair, and the params file's path and hash."""
     from masking_lab.formats.masking_params import read_masking_params
-    from masking_lab.rendering.outputs import measurement_protocol, write_measurement_protocol
+    from masking_lab.rendering.outputs import measurement_protocols, write_measurement_protocol
     from masking_lab.rendering.solver import pair_from_params
 
     needed = design.stimulus_pairs()
@@ -161,7 +159,10 @@ def masking_pairs(
         except MissingMaskingError as exc:
             problems += exc.problems
     if problems:
-        written = write_measurement_protocol(measurement_protocol(problems), data_dir)
+        written = " and ".join(
+            str(write_measurement_protocol(doc, data_dir, writer="run"))
+            for doc in measurement_protocols(problems, writer="run")
+        )
         listed = "; ".join(
             f"{p.target} masked by {p.masker} ("
             + ("no entry" if p.status == "missing" else f"status {p.status!r}")
@@ -170,9 +171,10 @@ def masking_pairs(
         )
         raise SolverError(
             f"{params}: the user test compensates every object, but these masking functions are "
-            f"not fitted: {listed}.\n  wrote {written}: the protocol that measures just these "
-            f"pairs. Check it with `masking-lab validate {written}`, run it after the "
-            "participants' baseline, fit, and start the user test again"
+            f"not fitted: {listed}.\n  wrote {written}: the protocol(s) that measure just these "
+            "pairs, one per masking direction. Check them with `masking-lab validate`, run them "
+            "after the participants' baseline, analyse them with the rest of the study, and "
+            "start the user test again"
         )
     raw = Path(params).read_bytes()
     record = {"path": str(Path(params).resolve()), "sha256": hashlib.sha256(raw).hexdigest()}
@@ -241,25 +243,19 @@ def header_record(
                 "text": _text_with_hash(Path(scene.source), scene.sha256),
             }
         )
-    header: dict[str, Any] = {
-        "schema_version": 1,
-        "created_utc": utc_now(),
-        "software_version": __version__,
-        "protocol": {
-            "path": str(Path(design.path).resolve()),
-            "sha256": design.sha256,
-            "experiment": design.experiment,
-            "content": jsonable(design.content),
-        },
-        "participant": participant,
-        "calibration": dict(calibration),
-        "device": device_record(device.identity),
-        "responder": responder,
-        "seed": int(seed),
-        "set_order": [],
-        "clock": "virtual" if virtual else "real",
-        "kind": KIND,
-        "usertest": {
+    return session_header(
+        source=design,
+        participant=participant,
+        calibration=calibration,
+        device=device.identity,
+        responder=responder,
+        seed=seed,
+        order=[],
+        virtual=virtual,
+        observer=observer,
+        device_config=device_config,
+        kind=KIND,
+        usertest={
             "protocol_text": protocol_text,
             "scenes": scenes,
             "masking": [
@@ -283,13 +279,7 @@ def header_record(
             "max_level_db_sl": {k: round(v.max_db_sl, 6) for k, v in sorted(limits.items())},
             "clipped_objects": [e.as_record() for e in over],
         },
-    }
-    if observer is not None:
-        header["simulated_observer"] = observer
-    if device_config is not None:
-        header["device_config"] = str(Path(device_config).resolve())
-    header["rig"] = load_device_config(device_config).rig_record()
-    return header
+    )
 
 
 def _text_with_hash(path: Path, sha256: str) -> str:

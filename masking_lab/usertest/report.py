@@ -5,9 +5,9 @@
 :func:`masking_lab.usertest.design.analyze_usertest` does the arithmetic (paper §3.4: "both",
 "geometry"
 and "texture" correct rates per participant and condition, a two-sided paired t-test per measure,
-confusion matrices). :func:`write_usertest_report` writes the tables, a text report and a bar
-chart like the paper's Figure 8a (mean correct rate per measure and condition, SD error bars,
-asterisks for the paired tests).
+confusion matrices). :func:`write_usertest_report` writes the tables, the report (a model from
+:mod:`masking_lab.usertest.report_model`, rendered as text and as HTML) and a bar chart like the
+paper's Figure 8a (:mod:`masking_lab.usertest.figures`).
 
 Every output is deterministic: the same logs give the same bytes (sorted inputs, fixed number
 formats, no dates or software versions in the PNG), written atomically.
@@ -15,20 +15,20 @@ formats, no dates or software versions in the PNG), written atomically.
 
 from __future__ import annotations
 
-import io
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from masking_lab.core.errors import AnalysisError, LogError
 from masking_lab.formats.fileio import write_bytes_atomic, write_text_atomic
-from masking_lab.usertest.design import CONDITIONS, MEASURES
+from masking_lab.formats.output_dir import staged_output
+from masking_lab.usertest.design import MEASURES
+from masking_lab.usertest.figures import figure8a_png
+from masking_lab.usertest.report_html import render_usertest_html
+from masking_lab.usertest.report_model import build_usertest_model, render_usertest_text
 from masking_lab.usertest.stats import UserTestAnalysis, analyze_usertest
 
 RECORD = "usertest_trial"
-COMPENSATED_COLOUR = "tab:blue"
-UNCOMPENSATED_COLOUR = "tab:gray"
 
 
 @dataclass(frozen=True)
@@ -209,108 +209,6 @@ def confusion_csv(table: Any) -> str:
     return csv_text(columns, rows)
 
 
-def report_text(data: UserTestData, analysis: UserTestAnalysis) -> str:
-    """The text report: inputs, correct rates per condition, paired tests, confusion matrices."""
-    lines = ["User test (Ryu et al. 2020, section 3.3): identification of geometry and texture", ""]
-    n_part = analysis.rates["participant"].nunique()
-    lines.append(
-        f"Logs: {len(data.sessions)} user-test session(s), {n_part} participant(s), "
-        f"{len(data.records)} trials; {len(data.skipped)} other file(s) skipped."
-    )
-    for s in data.sessions:
-        state = "completed" if s.ended else "INCOMPLETE"
-        lines.append(f"  {s.log}: {s.participant}, {s.n_logged}/{s.n_trials} trials, {state}")
-    for s in data.skipped:
-        lines.append(f"  skipped {s['log']}: {s['reason']}")
-    for note in data.notes:
-        lines.append(f"  note: {note}")
-    lines += ["", "Correct rate, mean ± SD over participants (no answer counts as wrong):"]
-    summary = {(r["condition"], r["measure"]): r for r in summary_rows(analysis)}
-    lines.append(f"  {'condition':<15}" + "".join(f"{m:>18}" for m in MEASURES))
-    for cond in CONDITIONS:
-        if not any((cond, m) in summary for m in MEASURES):
-            continue
-        cells = []
-        for m in MEASURES:
-            r = summary.get((cond, m))
-            cells.append(f"{_pm(r['mean'], r['sd']):>18}" if r else f"{'-':>18}")
-        lines.append(f"  {cond:<15}" + "".join(cells))
-    lines += ["", "Paired t-tests, compensated vs uncompensated (two-sided):"]
-    for t in analysis.tests:
-        if t.t is None:
-            lines.append(f"  {t.measure:<9} not tested: {t.note}")
-            continue
-        lines.append(
-            f"  {t.measure:<9} {t.mean_compensated:.3f} vs {t.mean_uncompensated:.3f}, "
-            f"difference {t.mean_difference:+.3f}, t({t.n - 1}) = {t.t:.3f}, {_p(t.p)}, "
-            f"d_z = {t.dz:.2f}"
-        )
-    for cond, tables in sorted(analysis.confusion.items()):
-        for measure in ("geometry", "texture"):
-            lines += ["", f"Confusion, {measure}, {cond} (rows presented, columns answered):"]
-            lines += ["  " + line for line in tables[measure].to_string().splitlines()]
-    lines.append("")
-    return "\n".join(lines)
-
-
-def figure8a_png(analysis: UserTestAnalysis, *, dpi: int = 110) -> bytes:
-    """Bar chart like the paper's Figure 8a: mean correct rate per measure and condition.
-
-    Error bars are the between-participant SD; ``*`` marks p < 0.05 and ``**`` p < 0.01 in the
-    paired t-test of a measure.
-    """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    summary = {(r["condition"], r["measure"]): r for r in summary_rows(analysis)}
-    conditions = [c for c in CONDITIONS if any((c, m) in summary for m in MEASURES)]
-    colours = {"compensated": COMPENSATED_COLOUR, "uncompensated": UNCOMPENSATED_COLOUR}
-    labels = {"compensated": "with compensation", "uncompensated": "without compensation"}
-    fig, ax = plt.subplots(figsize=(6.4, 4.2))
-    width = 0.8 / max(1, len(conditions))
-    for j, cond in enumerate(conditions):
-        xs = [i + (j - (len(conditions) - 1) / 2) * width for i in range(len(MEASURES))]
-        means = [_finite(summary.get((cond, m), {}).get("mean")) for m in MEASURES]
-        sds = [_finite(summary.get((cond, m), {}).get("sd")) for m in MEASURES]
-        ax.bar(
-            xs,
-            means,
-            width * 0.95,
-            yerr=sds,
-            capsize=4,
-            color=colours[cond],
-            label=labels[cond],
-            edgecolor="black",
-            linewidth=0.6,
-        )
-    tests = {t.measure: t for t in analysis.tests}
-    for i, m in enumerate(MEASURES):
-        t = tests.get(m)
-        if t is None or t.p is None or t.p >= 0.05:
-            continue
-        top = max(
-            _finite(summary.get((c, m), {}).get("mean"))
-            + _finite(summary.get((c, m), {}).get("sd"))
-            for c in conditions
-        )
-        ax.text(i, min(top + 0.03, 1.08), "**" if t.p < 0.01 else "*", ha="center", fontsize=13)
-    ax.set_xticks(range(len(MEASURES)))
-    ax.set_xticklabels(["geometry and texture", "geometry", "texture"])
-    ax.set_ylabel("correct rate")
-    ax.set_ylim(0.0, 1.15)
-    ax.set_yticks([0.0, 0.2, 0.4, 0.6, 0.8, 1.0])
-    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.09), ncol=2, fontsize=9, frameon=False)
-    n = analysis.rates["participant"].nunique()
-    ax.set_title(f"User test: correct answers (mean ± SD, {n} participants)", fontsize=10)
-    fig.tight_layout()
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=dpi, metadata={"Software": None})
-    plt.close(fig)
-    return buf.getvalue()
-
-
 @dataclass(frozen=True)
 class UserTestReport:
     """What :func:`write_usertest_report` produced.
@@ -336,19 +234,48 @@ def write_usertest_report(
     """Analyse the user-test logs under ``data_dir`` and write every output into ``out_dir``.
 
     Writes ``rates.csv``, ``summary.csv``, ``tests.csv``, ``confusion_<condition>_<geometry|
-    texture>.csv``, ``sessions.csv``, ``report.txt`` and (unless ``figure`` is False)
-    ``figure8a.png``.
+    texture>.csv``, ``sessions.csv``, ``report.html``, ``report.txt`` and (unless ``figure`` is
+    False) ``figure8a.png``, into a fresh folder that replaces ``out_dir`` only when every file
+    is written (:func:`masking_lab.formats.output_dir.staged_output`).
+
+    Parameters
+    ----------
+    data_dir : str or Path
+        Folder holding the logs (searched recursively).
+    out_dir : str or Path
+        Output folder: missing, empty or a previous report (replaced as a whole).
+    figure : bool
+        Draw Figure 8a.
+
+    Returns
+    -------
+    UserTestReport
+        The data, the analysis and the files written (paths inside ``out_dir``).
 
     Raises
     ------
     AnalysisError
-        No user-test logs, inconsistent designs, or records that do not fit the design.
+        No user-test logs, inconsistent designs, or records that do not fit the design; the
+        previous report stays in place.
+
+    Examples
+    --------
+    >>> write_usertest_report("data", "usertest_report")  # doctest: +SKIP
     """
+    final = Path(out_dir)
+    with staged_output(final, protect=[Path(data_dir)]) as staging:
+        data = collect_usertest(data_dir)
+        analysis = analyze_usertest(data.records, data.geometries, data.textures)
+        written = _write_report(data, analysis, staging, figure=figure)
+    return UserTestReport(data, analysis, [final / p.relative_to(staging) for p in written])
+
+
+def _write_report(
+    data: UserTestData, analysis: UserTestAnalysis, out: Path, *, figure: bool
+) -> list[Path]:
+    """Every output file of :func:`write_usertest_report`, into ``out``."""
     from masking_lab.formats.csv_table import csv_text
 
-    data = collect_usertest(data_dir)
-    analysis = analyze_usertest(data.records, data.geometries, data.textures)
-    out = Path(out_dir)
     rate_cols = ["participant", "condition", "n_trials", "n_no_answer", *MEASURES]
     test_cols = [
         "measure",
@@ -389,10 +316,13 @@ def write_usertest_report(
                 )
             )
     written.append(write_text_atomic(out / "sessions.csv", csv_text(session_cols, sessions)))
-    written.append(write_text_atomic(out / "report.txt", report_text(data, analysis)))
-    if figure:
-        written.append(write_bytes_atomic(out / "figure8a.png", figure8a_png(analysis)))
-    return UserTestReport(data, analysis, written)
+    model = build_usertest_model(data, analysis)
+    png = figure8a_png(model) if figure else None
+    written.append(write_text_atomic(out / "report.html", render_usertest_html(model, png)))
+    written.append(write_text_atomic(out / "report.txt", render_usertest_text(model)))
+    if png is not None:
+        written.append(write_bytes_atomic(out / "figure8a.png", png))
+    return written
 
 
 def _repeated_trial(trials: list[dict[str, Any]]) -> Any:
@@ -406,33 +336,11 @@ def _repeated_trial(trials: list[dict[str, Any]]) -> Any:
     return None
 
 
-def _pm(mean: Any, sd: Any) -> str:
-    m = float(mean)
-    s = float(sd) if sd is not None else math.nan
-    return f"{m:.3f} ± {s:.3f}" if math.isfinite(s) else f"{m:.3f} (n = 1)"
-
-
-def _p(p: float | None) -> str:
-    if p is None:
-        return "p n/a"
-    return "p < 0.001" if p < 0.001 else f"p = {p:.3f}"
-
-
-def _finite(value: Any) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        return 0.0
-    return v if math.isfinite(v) else 0.0
-
-
 __all__ = [
     "UserTestData",
     "UserTestReport",
     "UserTestSession",
     "collect_usertest",
     "confusion_csv",
-    "figure8a_png",
-    "report_text",
     "write_usertest_report",
 ]
