@@ -18,7 +18,7 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
-__all__ = ["RigUse", "rig_changes"]
+__all__ = ["RigUse", "rig_changes", "rig_use"]
 
 
 @dataclass(frozen=True)
@@ -41,6 +41,25 @@ class RigUse:
     log_name: str
     experiment: str
     rig: Mapping[str, Any] | None
+
+
+def rig_use(header: Mapping[str, Any], log_name: str) -> RigUse:
+    """The :class:`RigUse` of one log, from its header (as :func:`read_log` gives it).
+
+    Examples
+    --------
+    >>> rig_use({"participant": "S01", "protocol": {"experiment": "I"}}, "m.jsonl")
+    RigUse(participant='S01', log_name='m.jsonl', experiment='I', rig=None)
+    """
+    protocol = header.get("protocol")
+    experiment = protocol.get("experiment") if isinstance(protocol, Mapping) else None
+    rig = header.get("rig")
+    return RigUse(
+        str(header.get("participant", "")),
+        log_name,
+        str(experiment or "?"),
+        rig if isinstance(rig, Mapping) else None,
+    )
 
 
 def _identity(rig: Mapping[str, Any]) -> str:

@@ -1,4 +1,10 @@
-"""``masking-lab emulate``: run the firmware emulator on a pseudo-terminal until interrupted."""
+"""``masking-lab emulate``: run the device firmware emulator on a pseudo-terminal (prints its
+port).
+
+Start the firmware emulator on a fresh pseudo-terminal, print 'emulator listening on PORT', and
+serve it until Ctrl-C or SIGTERM; outputs are zeroed on exit. Connect with --device serial:PORT.
+SIGUSR1 opens or closes the emulated interlock input.
+"""
 
 from __future__ import annotations
 
@@ -7,16 +13,11 @@ import signal
 import sys
 import threading
 
+from masking_lab.commands.options import command_texts
+
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "emulate",
-        help="run the device firmware emulator on a pseudo-terminal (prints its port)",
-        description="Start the firmware emulator on a fresh pseudo-terminal, print "
-        "'emulator listening on PORT', and serve it until Ctrl-C or SIGTERM; outputs are zeroed "
-        "on exit. Connect with --device serial:PORT. SIGUSR1 opens or closes the emulated "
-        "interlock input.",
-    )
+    p = sub.add_parser("emulate", **command_texts(__doc__))
     p.add_argument(
         "--config", metavar="FILE", help="device config (default: protocols/devices/default.yaml)"
     )

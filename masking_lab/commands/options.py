@@ -3,8 +3,31 @@
 from __future__ import annotations
 
 import argparse
+import textwrap
 
-__all__ = ["progress_flags", "rating_options", "session_options"]
+__all__ = ["command_texts", "progress_flags", "rating_options", "session_options"]
+
+
+def finite_float(text: str) -> float:
+    """argparse type: a finite number (NaN and infinities are refused with a usage error).
+
+    Examples
+    --------
+    >>> finite_float("30")
+    30.0
+    >>> finite_float("inf")
+    Traceback (most recent call last):
+    argparse.ArgumentTypeError: 'inf' is not a finite number
+    """
+    import math
+
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text[:40]!r} is not a number") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"{text[:40]!r} is not a finite number")
+    return value
 
 
 def rating_options(p: argparse.ArgumentParser, device_config_help: str) -> None:
@@ -24,8 +47,12 @@ def rating_options(p: argparse.ArgumentParser, device_config_help: str) -> None:
     >>> p.parse_args(["--max-mv-db-sl", "30"]).max_mv_db_sl
     30.0
     """
-    p.add_argument("--max-mv-db-sl", type=float, metavar="DB", help="rated maximum MV input, dB SL")
-    p.add_argument("--max-ev-db-sl", type=float, metavar="DB", help="rated maximum EV input, dB SL")
+    p.add_argument(
+        "--max-mv-db-sl", type=finite_float, metavar="DB", help="rated maximum MV input, dB SL"
+    )
+    p.add_argument(
+        "--max-ev-db-sl", type=finite_float, metavar="DB", help="rated maximum EV input, dB SL"
+    )
     p.add_argument("--device-config", metavar="FILE", help=device_config_help)
 
 
@@ -72,3 +99,20 @@ def progress_flags(p: argparse.ArgumentParser) -> None:
     group.add_argument(
         "--no-progress", dest="progress", action="store_const", const=False, help="hide it"
     )
+
+
+def command_texts(doc: str | None) -> dict[str, str]:
+    """``help`` and ``description`` for a sub-parser, from its command module's docstring.
+
+    The docstring's first paragraph is ``\\`\\`SYNTAX\\`\\`: help.``; its second paragraph is the
+    description (later paragraphs are notes for developers). Keeping the texts there puts
+    what a command does at the top of its module.
+
+    Examples
+    --------
+    >>> command_texts("``masking-lab x``: do a thing.\\n\\nLonger\\nwords.\\n\\nDev notes.")
+    {'help': 'do a thing', 'description': 'Longer words.'}
+    """
+    first, description, *_ = [*(doc or "").split("\n\n"), ""]
+    help_text = " ".join(first.split()).split(": ", 1)[-1].removesuffix(".")
+    return {"help": help_text, "description": textwrap.fill(" ".join(description.split()), 78)}

@@ -1,21 +1,20 @@
-"""``masking-lab resume LOG``: continue an interrupted session exactly where it stopped."""
+"""``masking-lab resume LOG``: continue an interrupted session in its own log.
+
+Continue a session stopped by a device fault, Ctrl-C, a kill or a power cut. An incomplete last
+line is cut and reported; every set is rebuilt from its logged responses and the session goes on
+with the same protocol (the copy in the log), calibration, seed and set order. Exit codes as for
+`run`.
+"""
 
 from __future__ import annotations
 
 import argparse
 
-from masking_lab.commands.options import session_options
+from masking_lab.commands.options import command_texts, session_options
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "resume",
-        help="continue an interrupted session in its own log",
-        description="Continue a session stopped by a device fault, Ctrl-C, a kill or a power "
-        "cut. An incomplete last line is cut and reported; every set is rebuilt from its "
-        "logged responses and the session goes on with the same protocol (the copy in the "
-        "log), calibration, seed and set order. Exit codes as for `run`.",
-    )
+    p = sub.add_parser("resume", **command_texts(__doc__))
     p.add_argument("log", metavar="LOG", help="session log (.jsonl) to continue")
     p.add_argument(
         "--device",

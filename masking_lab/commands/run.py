@@ -1,24 +1,24 @@
-"""``masking-lab run PROTOCOL --participant ID --device SPEC --responder R``: run a session."""
+"""``masking-lab run PROTOCOL --participant ID --device SPEC --responder R``: run a protocol's sets
+(3IFC staircases or QUEST+) for one participant.
+
+Run the sets of a protocol as 3IFC one-up three-down staircases (or QUEST+, where the protocol
+says `procedure: {kind: quest_plus}`) and write a crash-safe session log to DATA/<participant>/.
+Baseline sessions write the participant's calibration; masked sessions need it. Exit 0 when the
+session completes, 2 on bad input, 3 on a device fault (or a device that cannot be opened), 130
+when interrupted (a fault or interruption mid-session prints the `masking-lab resume` command
+that continues it).
+"""
 
 from __future__ import annotations
 
 import argparse
 import sys
 
-from masking_lab.commands.options import session_options
+from masking_lab.commands.options import command_texts, session_options
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "run",
-        help="run a protocol's sets as 3IFC staircases for one participant",
-        description="Run the sets of a protocol as 3IFC one-up three-down staircases and write "
-        "a crash-safe session log to DATA/<participant>/. Baseline sessions write the "
-        "participant's calibration; masked sessions need it. Exit 0 when the session "
-        "completes, 2 on bad input, 3 on a device fault (or a device that cannot be opened), "
-        "130 when interrupted (a fault or interruption mid-session prints the "
-        "`masking-lab resume` command that continues it).",
-    )
+    p = sub.add_parser("run", **command_texts(__doc__))
     p.add_argument("protocol", metavar="PROTOCOL", help="protocol YAML file")
     p.add_argument("--participant", required=True, metavar="ID", help="participant id, e.g. S01")
     p.add_argument(

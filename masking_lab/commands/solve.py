@@ -1,4 +1,11 @@
-"""``masking-lab solve``: the inputs that are perceived as the wanted MV and EV intensities."""
+"""``masking-lab solve``: input intensities that produce wanted perceived MV/EV intensities (Table
+4).
+
+Invert the mutual masking of an MV stimulus and EV (paper §3.2, Table 4): for each wanted
+perceived pair (m_p, e_p) in dB SL print the input pair (m_i, e_i) in dB SL, the case that
+applied and whether the answer is unique. Points whose answer needs more than the device's rated
+level are flagged, never clipped.
+"""
 
 from __future__ import annotations
 
@@ -7,7 +14,7 @@ import json
 import math
 from typing import Any
 
-from masking_lab.commands.options import rating_options
+from masking_lab.commands.options import command_texts, rating_options
 
 EPILOG = """\
 examples:
@@ -24,11 +31,7 @@ Exit status: 0 when every target has exactly one answer, 1 when some have none o
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "solve",
-        help="input intensities that produce wanted perceived MV/EV intensities (Table 4)",
-        description="Invert the mutual masking of an MV stimulus and EV (paper §3.2, Table 4): "
-        "for each wanted perceived pair (m_p, e_p) in dB SL print the input pair (m_i, e_i) in "
-        "dB SL, the case that applied and whether the answer is unique. Points whose answer "
-        "needs more than the device's rated level are flagged, never clipped.",
+        **command_texts(__doc__),
         epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )

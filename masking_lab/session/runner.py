@@ -36,6 +36,7 @@ from masking_lab.responders.base import Responder
 from masking_lab.session import frame
 
 # EXIT_* and the signal classes were public here first; the noqa lines re-export them.
+from masking_lab.session.header import session_header
 from masking_lab.session.opening import DeviceOpener, observer_record
 from masking_lab.session.progress import ProgressLine
 from masking_lab.session.shell import (
@@ -48,7 +49,6 @@ from masking_lab.session.shell import (
 from masking_lab.session.threshold_loop import SessionResult, ThresholdSession
 from masking_lab.session.threshold_plan import (
     check_trials,
-    header_record,
     position,
     protocol_from_header,
     select_sets,
@@ -245,8 +245,10 @@ class ThresholdKind:
         order = select_sets(protocol, protocol.set_order(seed), options.sets)
         data_dir = Path(options.data_dir)
         calibration: dict[str, float] = {}
+        # Read (and so validate) the calibration file before anything plays: a baseline session
+        # writes its ALs into it, and a broken file must not surface after a set was played.
+        cal = load_calibration(data_dir, participant)
         if protocol.kind == "masked":
-            cal = load_calibration(data_dir, participant)
             needed = stimuli_of(protocol, order)
             require(cal, needed, data_dir)
             calibration = {name: float(cal.unmasked_al_db_v[name]) for name in sorted(needed)}
@@ -263,6 +265,8 @@ class ThresholdKind:
         protocol = protocol_from_header(header, path, options.allow_changed_protocol, out)
         existing = log.sets()
         check_trials(path, protocol, existing)
+        if protocol.kind == "baseline":  # its ALs go into this file: refuse a broken one now
+            load_calibration(path.parent.parent, str(header["participant"]))
         return _ThresholdPlan(
             protocol,
             path.parent.parent,
@@ -298,8 +302,8 @@ class _ThresholdPlan:
         return None
 
     def header(self, opening: frame.Opening, device: Device) -> dict[str, Any]:
-        return header_record(
-            protocol=self.protocol,
+        return session_header(
+            source=self.protocol,
             calibration=self.calibration,
             device=device.identity,
             order=self.order,

@@ -12,19 +12,15 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from masking_lab import __version__
 from masking_lab.core.errors import (
     LogError,
     ProtocolError,
 )
-from masking_lab.device.base import DeviceIdentity
-from masking_lab.device.config import load_device_config
-from masking_lab.formats.protocol import Protocol, SetSpec, protocol_from_mapping
-from masking_lab.formats.records import jsonable
+from masking_lab.formats.protocol import Protocol, protocol_from_mapping
 from masking_lab.formats.session_log import SessionLog, SetRecords
-from masking_lab.procedures.staircase import StaircaseSettings, start
 
 # EXIT_* and the signal classes were public here first; the noqa lines re-export them.
+from masking_lab.session.procedure_records import settings_from_record
 from masking_lab.session.progress import ProgressLine
 from masking_lab.session.shell import (
     EXIT_COMPLETED,  # noqa: F401
@@ -32,59 +28,7 @@ from masking_lab.session.shell import (
     EXIT_INTERRUPTED,  # noqa: F401
     SessionInterrupted,  # noqa: F401
     SessionSignals,  # noqa: F401
-    device_record,
-    utc_now,
 )
-
-
-def header_record(
-    *,
-    protocol: Protocol,
-    participant: str,
-    calibration: Mapping[str, float],
-    device: DeviceIdentity,
-    responder: str,
-    seed: int,
-    order: Sequence[str],
-    virtual: bool,
-    observer: dict[str, Any] | None,
-    device_config: Path | None,
-) -> dict[str, Any]:
-    header: dict[str, Any] = {
-        "schema_version": 1,
-        "created_utc": utc_now(),
-        "software_version": __version__,
-        "protocol": {
-            # Absolute, so resume can compare the file from any working directory.
-            "path": str(Path(protocol.path).resolve()),
-            "sha256": protocol.sha256,
-            "experiment": protocol.experiment,
-            "content": jsonable(protocol.content),
-        },
-        "participant": participant,
-        "calibration": dict(calibration),
-        "device": device_record(device),
-        "responder": responder,
-        "seed": int(seed),
-        "set_order": list(order),
-        "clock": "virtual" if virtual else "real",
-    }
-    if observer is not None:
-        header["simulated_observer"] = observer
-    if device_config is not None:
-        header["device_config"] = str(Path(device_config).resolve())
-    header["rig"] = load_device_config(device_config).rig_record()
-    return header
-
-
-def settings_from_record(start_record: Mapping[str, Any], spec: SetSpec) -> StaircaseSettings:
-    data = dict(start_record.get("staircase") or {})
-    if not data:
-        return spec.staircase
-    known = {f.name for f in dataclasses.fields(StaircaseSettings)}
-    data = {k: v for k, v in data.items() if k in known}
-    data["step_sizes_db"] = tuple(data.get("step_sizes_db", spec.staircase.step_sizes_db))
-    return StaircaseSettings(**data)
 
 
 def select_sets(protocol: Protocol, order: list[str], wanted: Sequence[str] | None) -> list[str]:
@@ -145,7 +89,7 @@ def protocol_from_header(
 
 
 def check_trials(path: Path, protocol: Protocol, existing: Mapping[str, SetRecords]) -> None:
-    """Logged trials must be contiguous and replay to their logged levels."""
+    """Logged trials must be contiguous and replay to their logged levels (any procedure)."""
     level_key = "level_db_sl" if protocol.level_unit == "db_sl" else "level_db_v"
     for set_id, rec in existing.items():
         try:
@@ -159,14 +103,15 @@ def check_trials(path: Path, protocol: Protocol, existing: Mapping[str, SetRecor
                 "been edited or merged and cannot be resumed safely"
             )
         settings = settings_from_record(rec.start, spec)
-        state = start(settings)
+        state = settings.start()
         for t in rec.trials:
             logged = t.get(level_key)
-            if state.finished or logged is None or abs(float(logged) - state.level_db) > 1e-6:
+            level = state.next_level()
+            if state.finished or logged is None or abs(float(logged) - level) > 1e-6:
                 raise LogError(
                     f"{path}: set {set_id}, trial {t.get('trial_index')}: logged level {logged} "
-                    f"but replaying the logged responses gives {state.level_db}; the log does not "
-                    "match its staircase settings and cannot be resumed"
+                    f"but replaying the logged responses gives {level}; the log does not "
+                    f"match its {settings.kind} settings and cannot be resumed"
                 )
             state = state.update(bool(t["correct"]))
 

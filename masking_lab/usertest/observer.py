@@ -71,6 +71,15 @@ class IdentificationObserver:
     ('hole', 'smooth', 'uncompensated')
     >>> observer.respond(design, objects, trial, np.random.default_rng(0))  # (geometry, texture)
     (2, 1)
+
+    The bump's EV peak of 10 dB SL is felt at 6.2 dB SL under the rough texture unless
+    compensated (:meth:`felt`, dB SL):
+
+    >>> for compensated in (False, True):
+    ...     mv, ev = observer.felt(objects[("bump", "rough")], compensated)
+    ...     print(compensated, round(float(ev.max()), 2), round(float(mv.max()), 2))
+    False 6.2 12.0
+    True 10.0 12.0
     """
 
     truth: Mapping[tuple[str, str], MutualMasking]
@@ -89,24 +98,7 @@ class IdentificationObserver:
         SolverError
             If the observer has no true masking for the object's stimulus pair.
 
-        Examples
-        --------
-        The bump's EV peak of 10 dB SL is felt at 6.2 dB SL under the rough texture unless
-        compensated:
-
-        >>> from masking_lab.formats.resources import shipped
-        >>> from masking_lab.usertest.design import load_usertest
-        >>> from masking_lab.usertest.playback import render_objects
-        >>> design = load_usertest(str(shipped("protocols", "usertest.yaml")))
-        >>> pairs = {pair: MutualMasking(-2.0, 0.5, -1.0, 0.4, mv=pair[0], ev=pair[1])
-        ...          for pair in design.stimulus_pairs()}
-        >>> objects = render_objects(design, pairs)
-        >>> observer = IdentificationObserver(pairs)
-        >>> for compensated in (False, True):
-        ...     mv, ev = observer.felt(objects[("bump", "rough")], compensated)
-        ...     print(compensated, round(float(ev.max()), 2), round(float(mv.max()), 2))
-        False 6.2 12.0
-        True 10.0 12.0
+        The class's example shows it on the bump under the rough texture.
         """
         mv_in, ev_in = r.inputs(compensated)
         needs = r.scene.stimulus_pairs()

@@ -35,8 +35,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TextIO, Unpack
 
-import yaml
-
 from masking_lab.core.clock import Clock
 from masking_lab.core.errors import (
     LogError,
@@ -181,10 +179,12 @@ class UserTestContext:
 
 def is_usertest_protocol(path: str | Path) -> bool:
     """True if ``path`` parses as a mapping with ``kind: usertest`` (False if unreadable)."""
-    try:
-        data = yaml.safe_load(Path(path).read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, yaml.YAMLError):
-        return False
+    from masking_lab.formats.reader import load_document
+
+    try:  # the shared reader: no alias bomb, deep nesting or bad byte gets past this probe
+        data = load_document(path, what="protocol").data
+    except MaskingLabError:
+        return False  # the protocol loader reports what is wrong
     return isinstance(data, dict) and data.get("kind") == KIND
 
 
