@@ -58,11 +58,14 @@ __all__ = [
     "Opened",
     "Opening",
     "ResumeChanges",
+    "ResumeKeywords",
     "ResumeOptions",
+    "SessionHooks",
     "SessionKind",
     "SessionPlan",
     "StartOptions",
     "resume",
+    "resume_with",
     "start",
 ]
 
@@ -122,6 +125,39 @@ class ResumeChanges(TypedDict, total=False):
     device_config: Path | None
     participant_tty: str | None
     progress: bool | None
+
+
+class SessionHooks(TypedDict, total=False):
+    """Where a session's device, responder and messages come from (tests, embedding programs).
+
+    ``open_device``: ``(spec, clock) -> Device`` (default: the registry with the rig config);
+    ``make_responder``: ``(name, context) -> responder`` (default: the kind's sim, keys or
+    psychopy); ``stream``: where progress and messages go (default: stderr).
+    """
+
+    open_device: DeviceOpener | None
+    make_responder: ResponderFactory | None
+    stream: TextIO | None
+
+
+class ResumeKeywords(SessionHooks, ResumeChanges, total=False):
+    """The keywords of the kinds' ``resume_*`` functions: hooks and what resume may change."""
+
+
+def resume_with(
+    kind: SessionKind[ResultT], log_path: str | Path, keywords: Mapping[str, Any]
+) -> ResultT:
+    """:func:`resume` with :class:`ResumeKeywords` (hooks and changes in one mapping).
+
+    Examples
+    --------
+    >>> resume_with(None, "nowhere.jsonl", {"colour": "red"})  # doctest: +ELLIPSIS
+    Traceback (most recent call last):
+    TypeError: ...unexpected keyword argument 'colour'
+    """
+    hooks = {k: v for k, v in keywords.items() if k in SessionHooks.__annotations__}
+    changes = {k: v for k, v in keywords.items() if k not in hooks}
+    return resume(kind, log_path, ResumeOptions(**changes), **hooks)
 
 
 @dataclass(frozen=True)

@@ -17,10 +17,10 @@ Exit codes returned in :class:`SessionResult`: 0 completed, 3 device fault, 130 
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, TextIO, Unpack
+from typing import Any, Unpack
 
 from masking_lab.core.clock import Clock
 from masking_lab.core.errors import (
@@ -37,7 +37,7 @@ from masking_lab.session import frame
 
 # EXIT_* and the signal classes were public here first; the noqa lines re-export them.
 from masking_lab.session.header import session_header
-from masking_lab.session.opening import DeviceOpener, observer_record
+from masking_lab.session.opening import observer_record
 from masking_lab.session.progress import ProgressLine
 from masking_lab.session.shell import (
     EXIT_COMPLETED,  # noqa: F401
@@ -57,8 +57,6 @@ from masking_lab.session.threshold_plan import (
 from masking_lab.simulation.observer import ground_truth_from_dict, make_participant
 
 RESPONDERS = ("sim", "keys", "psychopy")
-
-ResponderMaker = Callable[[str, "SessionContext"], Responder]
 
 
 # --------------------------------------------------------------------------------------------
@@ -146,26 +144,16 @@ class SessionContext:
 # Entry points
 
 
-def run_session(
-    options: RunOptions,
-    *,
-    open_device: DeviceOpener | None = None,
-    make_responder: ResponderMaker | None = None,
-    stream: TextIO | None = None,
-) -> SessionResult:
+def run_session(options: RunOptions, **hooks: Unpack[frame.SessionHooks]) -> SessionResult:
     """Run a protocol for one participant and write a new session log.
 
     Parameters
     ----------
     options : RunOptions
         What to run.
-    open_device : callable, optional
-        ``(spec, clock) -> Device``; default: :func:`masking_lab.device.registry.open_device`
-        with ``options.device_config``.
-    make_responder : callable, optional
-        ``(name, SessionContext) -> Responder``; default builds sim, keys or psychopy.
-    stream : text stream, optional
-        Where progress and messages go (stderr by default).
+    **hooks
+        ``open_device``, ``make_responder``, ``stream``: see
+        :class:`masking_lab.session.frame.SessionHooks`.
 
     Raises
     ------
@@ -173,19 +161,10 @@ def run_session(
         Bad input found before anything is played: protocol, participant id, unknown set ids,
         missing calibration, unknown responder, unreadable ground truth.
     """
-    return frame.start(
-        THRESHOLD, options, open_device=open_device, make_responder=make_responder, stream=stream
-    )
+    return frame.start(THRESHOLD, options, **hooks)
 
 
-def resume_session(
-    log_path: str | Path,
-    *,
-    open_device: DeviceOpener | None = None,
-    make_responder: ResponderMaker | None = None,
-    stream: TextIO | None = None,
-    **changes: Unpack[frame.ResumeChanges],
-) -> SessionResult:
+def resume_session(log_path: str | Path, **keywords: Unpack[frame.ResumeKeywords]) -> SessionResult:
     """Continue an interrupted session exactly where it stopped, in the same log.
 
     The protocol, calibration, seed, set order, clock kind and responder come from the log's
@@ -196,11 +175,10 @@ def resume_session(
     ----------
     log_path : path
         The session log (``DATA/<participant>/<experiment>-<participant>-<UTC>.jsonl``).
-    **changes
+    **keywords
+        ``open_device``, ``make_responder``, ``stream`` as for :func:`run_session`;
         ``device``, ``responder``, ``allow_changed_protocol``, ``device_config``,
         ``participant_tty``, ``progress``: as in :class:`masking_lab.session.frame.ResumeOptions`.
-    open_device, make_responder, stream
-        As for :func:`run_session`.
 
     Raises
     ------
@@ -208,14 +186,7 @@ def resume_session(
         Finished session, protocol file changed (without ``allow_changed_protocol``), a header
         that breaks the schema, or logged trials that do not replay to their logged levels.
     """
-    return frame.resume(
-        THRESHOLD,
-        log_path,
-        frame.ResumeOptions(**changes),
-        open_device=open_device,
-        make_responder=make_responder,
-        stream=stream,
-    )
+    return frame.resume_with(THRESHOLD, log_path, keywords)
 
 
 class ThresholdKind:

@@ -30,10 +30,10 @@ continuation equals an uninterrupted run. Exit codes as for threshold sessions: 
 from __future__ import annotations
 
 import json
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, TextIO, Unpack
+from typing import Any, Unpack
 
 from masking_lab.core.clock import Clock
 from masking_lab.core.errors import (
@@ -47,7 +47,7 @@ from masking_lab.formats.session_log import SessionLog
 from masking_lab.rendering.render import Rendering
 from masking_lab.rendering.solver import MutualMasking
 from masking_lab.session import frame
-from masking_lab.session.opening import DeviceOpener, observer_record
+from masking_lab.session.opening import observer_record
 from masking_lab.session.progress import ProgressLine
 from masking_lab.usertest.design import (
     UserTestDesign,
@@ -84,9 +84,6 @@ from masking_lab.usertest.stream import (
     exceedances,
     stimulus_limits,
 )
-
-UserTestResponderMaker = Callable[[str, "UserTestContext"], UserTestResponder]
-
 
 # --------------------------------------------------------------------------------------------
 # Public values
@@ -198,25 +195,16 @@ def is_usertest_log(path: str | Path) -> bool:
     return isinstance(first, dict) and first.get("kind") == KIND
 
 
-def run_usertest(
-    options: UserTestOptions,
-    *,
-    open_device: DeviceOpener | None = None,
-    make_responder: UserTestResponderMaker | None = None,
-    stream: TextIO | None = None,
-) -> UserTestResult:
+def run_usertest(options: UserTestOptions, **hooks: Unpack[frame.SessionHooks]) -> UserTestResult:
     """Run a user test for one participant and write a new session log.
 
     Parameters
     ----------
     options : UserTestOptions
         What to run.
-    open_device : callable, optional
-        ``(spec, clock) -> Device``; default: :func:`masking_lab.device.registry.open_device`.
-    make_responder : callable, optional
-        ``(name, UserTestContext) -> UserTestResponder``; default builds sim, keys or psychopy.
-    stream : text stream, optional
-        Progress and messages (stderr by default).
+    **hooks
+        ``open_device``, ``make_responder``, ``stream``: see
+        :class:`masking_lab.session.frame.SessionHooks`.
 
     Raises
     ------
@@ -227,18 +215,11 @@ def run_usertest(
         measures them is written there), objects above the rig's rating without
         ``allow_clipping`` (:class:`LevelError`), a responder that cannot do the tracking.
     """
-    return frame.start(
-        USERTEST, options, open_device=open_device, make_responder=make_responder, stream=stream
-    )
+    return frame.start(USERTEST, options, **hooks)
 
 
 def resume_usertest(
-    log_path: str | Path,
-    *,
-    open_device: DeviceOpener | None = None,
-    make_responder: UserTestResponderMaker | None = None,
-    stream: TextIO | None = None,
-    **changes: Unpack[frame.ResumeChanges],
+    log_path: str | Path, **keywords: Unpack[frame.ResumeKeywords]
 ) -> UserTestResult:
     """Continue an interrupted user test with its next trial, in the same log.
 
@@ -249,9 +230,8 @@ def resume_usertest(
     ----------
     log_path : path
         The user test's session log.
-    open_device, make_responder, stream
-        As for :func:`run_usertest`.
-    **changes
+    **keywords
+        ``open_device``, ``make_responder``, ``stream`` as for :func:`run_usertest`;
         ``device``, ``responder``, ``allow_changed_protocol``, ``device_config``,
         ``participant_tty``, ``progress``: as in :class:`masking_lab.session.frame.ResumeOptions`.
 
@@ -263,14 +243,7 @@ def resume_usertest(
     LevelError
         The device now has lower limits, so objects exceed them, and clipping was not allowed.
     """
-    return frame.resume(
-        USERTEST,
-        log_path,
-        frame.ResumeOptions(**changes),
-        open_device=open_device,
-        make_responder=make_responder,
-        stream=stream,
-    )
+    return frame.resume_with(USERTEST, log_path, keywords)
 
 
 class UserTestKind:
