@@ -271,7 +271,9 @@ class _View(msgspec.Struct, tag_field="record", kw_only=True):
     """
 
     seq: Int = UNSET
-    set_id: Any = UNSET
+    # Typed, so a log whose set ids are not text falls back to the general reader, which
+    # reports the line instead of grouping records by an unhashable id.
+    set_id: str | UnsetType | None = UNSET
     _index: ClassVar[str | None] = None  # the field continuity counts (see log_integrity)
 
     def get(self, key: str, default: Any = None) -> Any:

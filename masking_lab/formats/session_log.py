@@ -276,6 +276,9 @@ def parse_log(raw: bytes, path: str | Path) -> SessionLog:
         if not isinstance(rec, dict) or "record" not in rec:
             problems.append(f"line {lineno}: not a log record (no 'record' key); line skipped")
             continue
+        if not isinstance(rec.get("set_id"), str | None):
+            problems.append(f"line {lineno}: set_id is not text; line skipped")
+            continue
         if header is None:
             if rec["record"] != "header":
                 raise LogError(

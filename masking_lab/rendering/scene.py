@@ -57,6 +57,10 @@ __all__ = [
     "parse_scene_text",
 ]
 
+# The most interaction points a scene may ask for: beyond this the arrays and figure of one
+# rendering would take minutes and gigabytes (a typo of 919 as 919999999 must not hang).
+MAX_POINTS = 100_000
+
 Shape = Literal["bump", "hole", "ascending", "descending"]
 SHAPES: tuple[Shape, ...] = ("bump", "hole", "ascending", "descending")
 
@@ -301,8 +305,12 @@ def parse_scene(
         more = f" (and {len(errors) - 1} more problem(s))" if len(errors) > 1 else ""
         raise ProtocolError(source, where(key_path(err), lines or {}), f"{_describe(err)}{more}")
     path = PathSpec(**data.get("path", {}))
-    if path.n_points < 2:
-        raise ProtocolError(source, "path.n_points", "needs at least 2 points")
+    if not 2 <= path.n_points <= MAX_POINTS:
+        raise ProtocolError(
+            source,
+            "path.n_points",
+            f"needs 2 to {MAX_POINTS:,} points (100 s of a 1 kHz haptic loop), got {path.n_points}",
+        )
     geometry = None
     if data.get("geometry") is not None:
         g = dict(data["geometry"])

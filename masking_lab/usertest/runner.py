@@ -190,8 +190,8 @@ def is_usertest_log(path: str | Path) -> bool:
     try:
         with open(path, encoding="utf-8") as fh:
             first = json.loads(fh.readline())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
-        return False
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError):
+        return False  # not a user-test log; the threshold kind's reader says what is wrong
     return isinstance(first, dict) and first.get("kind") == KIND
 
 
