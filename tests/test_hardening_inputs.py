@@ -6,7 +6,6 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
@@ -68,9 +67,7 @@ def cli_subprocess(*argv: str, timeout: float = 60) -> subprocess.CompletedProce
 def test_an_alias_bomb_is_refused_at_once(tmp_path, name, base):
     # Was: ~2 GB of memory and no end. A real subprocess, so a hang fails by timeout.
     path = write(tmp_path, name, base + "\n" + BOMB + "\n")
-    started = time.monotonic()
-    res = cli_subprocess("validate", path, timeout=60)
-    assert time.monotonic() - started < 30
+    res = cli_subprocess("validate", path, timeout=60)  # a hang ends in TimeoutExpired
     assert res.returncode == 1, res.stderr
     assert "expands to more than 50000 values" in res.stderr and "Traceback" not in res.stderr
 

@@ -7,7 +7,7 @@ from __future__ import annotations
 import subprocess
 import sys
 import textwrap
-import time
+import threading
 
 import pytest
 from hardening_support import HELLO, RIG, ScriptedPeer, raw_frame, standard
@@ -179,16 +179,15 @@ def test_a_board_that_spews_and_never_reads_cannot_hang_the_handshake():
     # Before the fix the host filled the pty with HELLOs and blocked in write() forever.
     boot_s = 1.5
     rig = RIG.replace("boot_timeout_s: 0", f"boot_timeout_s: {boot_s}")
-    started = time.monotonic()
     proc = subprocess.run(
         [sys.executable, "-c", SPEWER, rig], capture_output=True, text=True, timeout=boot_s + 20
     )
     assert proc.returncode == 0, proc.stderr
     kind, elapsed = proc.stdout.split()
     assert kind in ("DeviceProtocolError", "DeviceTimeoutError")
-    # Bounded by the boot budget (plus one poll interval), not by the peer's behaviour.
-    assert boot_s <= float(elapsed) < boot_s + 0.5, proc.stdout
-    assert time.monotonic() - started < boot_s + 20
+    # It ends because the boot budget ran out (the peer spews forever), and soon after it:
+    # the subprocess's own timeout is the hang guard.
+    assert boot_s <= float(elapsed) < boot_s + 5, proc.stdout
 
 
 def test_a_write_that_blocks_times_out_as_a_device_fault(peers):
@@ -198,11 +197,22 @@ def test_a_write_that_blocks_times_out_as_a_device_fault(peers):
     peer = peers[-1]
     peer._stop.set()  # the peer stops reading entirely
     peer._thread.join(timeout=2)
-    started = time.monotonic()
-    with pytest.raises(DeviceTimeoutError, match="does not read what the host sends"):
-        for _ in range(100_000):  # far more PINGs than any pty buffer holds
-            device._write(proto.encode_command(1, "PING"))
-    assert time.monotonic() - started < 5
+    faults: list[Exception] = []
+
+    def write_until_fault() -> None:
+        try:
+            for _ in range(100_000):  # far more PINGs than any pty buffer holds
+                device._write(proto.encode_command(1, "PING"))
+        except Exception as exc:
+            faults.append(exc)
+
+    writer = threading.Thread(target=write_until_fault, daemon=True)
+    writer.start()
+    writer.join(60)  # a hang guard: a blocking write would never return
+    assert not writer.is_alive(), "the host's write blocked instead of timing out"
+    (fault,) = faults
+    assert isinstance(fault, DeviceTimeoutError), fault
+    assert "does not read what the host sends" in str(fault)
     device._dead = "stalled"  # no STOP round trip on close: the peer is gone
     device.close()
 

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import os
-import time
 
 import pytest
 
@@ -34,11 +33,11 @@ def test_plain_data_with_lines():
     assert data == {"a": 1, "b": [{"c": "x"}, 2.5]} and lines["b[1]"] == 3
 
 
-def test_an_alias_bomb_is_refused_fast_and_small_aliases_pass():
-    started = time.monotonic()
+def test_an_alias_bomb_is_refused_before_it_expands_and_small_aliases_pass():
+    # Refused by counting what the aliases would expand to, never by expanding them (the
+    # CLI test in test_hardening_inputs.py runs the same bomb in a subprocess with a timeout).
     with pytest.raises(ProtocolError, match="expands to more than 50000 values"):
         parse_yaml(bomb(9), "bomb.yaml")  # 9**9 ≈ 3.9e8 values
-    assert time.monotonic() - started < 2
     data, _ = parse_yaml(bomb(3), "ok.yaml")  # 9**3 = 729 values
     assert len(data["a2"]) == 9
 
