@@ -202,6 +202,7 @@ class Link:
         self.seq = 0
         self.buf = b""
         self.events: list[proto.Frame] = []
+        self.garbage: list[bytes] = []  # unframed lines (boot chatter), in order
 
     def send(self, name: str, **fields) -> int:
         self.seq += 1
@@ -219,7 +220,25 @@ class Link:
             try:
                 return proto.decode(line + b"\n")
             except proto.FrameError:
-                continue  # boot chatter
+                self.garbage.append(line)
+
+    def frames_until(self, predicate, timeout: float = 2.0) -> list[proto.Frame]:
+        """Frames up to and including the first for which ``predicate`` is true."""
+        seen: list[proto.Frame] = []
+        deadline = time.monotonic() + timeout
+        while True:
+            f = self.frame(max(0.01, deadline - time.monotonic()))
+            seen.append(f)
+            if predicate(f):
+                return seen
+
+    def quiet_for(self, seconds: float) -> bytes:
+        """Everything the device sends in the next ``seconds`` (b"" if it stays quiet)."""
+        end = time.monotonic() + seconds
+        got = b""
+        while time.monotonic() < end:
+            got += self.ser.read(max(1, self.ser.in_waiting))
+        return got
 
     def reply(self, seq: int, timeout: float = 2.0) -> proto.Frame:
         """The reply to ``seq``; events seen on the way are kept in ``self.events``."""

@@ -1,5 +1,6 @@
 """A scriptable device on the master side of a real pseudo-terminal, for the hardening and fuzz
-tests: it answers HELLO, TIME and PLAY like the firmware unless told to misbehave."""
+tests: it answers HELLO, TIME and PLAY like the firmware unless told to misbehave. Also the
+host-side rig config and the short trial plan every device test plays."""
 
 from __future__ import annotations
 
@@ -10,6 +11,8 @@ import threading
 import tty
 from collections.abc import Callable
 
+from masking_lab.core.stimulus import parse_stimulus
+from masking_lab.core.trial import TrialPlan
 from masking_lab.device import protocol as proto
 
 RIG = """\
@@ -26,6 +29,23 @@ serial:
   watchdog_s: 0.3
 waveform: {sample_rate_hz: 10000, ramp_s: 0.002}
 """
+
+
+def short_plan(**kw) -> TrialPlan:
+    """EV270 at 0.5 V in interval 2 under MV120 at 0.3 V, 20 ms stimuli; ``kw`` overrides."""
+    base = {
+        "target": parse_stimulus("EV270"),
+        "target_amplitude_v": 0.5,
+        "target_interval": 2,
+        "masker": parse_stimulus("MV120"),
+        "masker_amplitude_v": 0.3,
+        "stimulus_s": 0.02,
+        "gap_s": 0.01,
+        "lead_in_s": 0.01,
+    }
+    base.update(kw)
+    return TrialPlan(**base)
+
 
 HELLO = {
     "proto": 1,

@@ -14,6 +14,8 @@ import time
 import tty
 
 import pytest
+from hardening_support import RIG as HOST_RIG
+from hardening_support import short_plan
 
 from masking_lab.core.clock import RealClock, VirtualClock
 from masking_lab.core.errors import (
@@ -25,43 +27,12 @@ from masking_lab.core.errors import (
     SafetyLimitError,
 )
 from masking_lab.core.stimulus import parse_stimulus
-from masking_lab.core.trial import TrialPlan
 from masking_lab.device import protocol as proto
 from masking_lab.device.config import load_device_config
 from masking_lab.device.emulator import FirmwareEmulator
 from masking_lab.device.serial_device import SerialDevice
 
-HOST_RIG = """\
-schema_version: 1
-channels:
-  EV: {max_drive_v: 2.5}
-  MV: {max_drive_v: 8}
-serial:
-  reply_timeout_s: 0.2
-  done_margin_s: 0.3
-  boot_timeout_s: 0
-  hello_retry_s: 0.1
-  max_garbage_lines: 4
-  watchdog_s: 0.3
-waveform: {sample_rate_hz: 10000, ramp_s: 0.002}
-"""
-
 EV270, MV120, MV180 = (parse_stimulus(n) for n in ("EV270", "MV120", "MV180"))
-
-
-def short_plan(**kw) -> TrialPlan:
-    base = {
-        "target": EV270,
-        "target_amplitude_v": 0.5,
-        "target_interval": 2,
-        "masker": MV120,
-        "masker_amplitude_v": 0.3,
-        "stimulus_s": 0.02,
-        "gap_s": 0.01,
-        "lead_in_s": 0.01,
-    }
-    base.update(kw)
-    return TrialPlan(**base)
 
 
 def write_rig(tmp_path, text=HOST_RIG, name="rig.yaml"):

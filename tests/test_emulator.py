@@ -13,6 +13,7 @@ import time
 
 import pytest
 import serial
+from firmware_support import Link
 
 from masking_lab.device import protocol as proto
 from masking_lab.device.config import load_device_config
@@ -44,54 +45,6 @@ PLAY = {
     "lead": 0.02,
     "n": 3,
 }
-
-
-class Link:
-    """The host end of the pty, raw: pyserial plus hand-built frames."""
-
-    def __init__(self, port: str) -> None:
-        self.ser = serial.Serial(port, timeout=0.02)
-        self.seq = 0
-        self.buf = b""
-        self.garbage: list[bytes] = []
-
-    def send(self, name: str, **fields) -> int:
-        self.seq += 1
-        self.ser.write(proto.encode_command(self.seq, name, fields))
-        return self.seq
-
-    def frame(self, timeout: float = 1.0) -> proto.Frame:
-        """Next valid frame; unframed lines (boot chatter) are kept in ``self.garbage``."""
-        deadline = time.monotonic() + timeout
-        while True:
-            while b"\n" not in self.buf:
-                if time.monotonic() > deadline:
-                    raise TimeoutError(f"no frame within {timeout} s (buffer {self.buf!r})")
-                self.buf += self.ser.read(max(1, self.ser.in_waiting))
-            line, _, self.buf = self.buf.partition(b"\n")
-            try:
-                return proto.decode(line + b"\n")
-            except proto.FrameError:
-                self.garbage.append(line)
-
-    def frames_until(self, predicate, timeout: float = 2.0) -> list[proto.Frame]:
-        seen: list[proto.Frame] = []
-        deadline = time.monotonic() + timeout
-        while True:
-            f = self.frame(max(0.01, deadline - time.monotonic()))
-            seen.append(f)
-            if predicate(f):
-                return seen
-
-    def reply(self, seq: int, timeout: float = 1.0) -> proto.Frame:
-        return self.frames_until(lambda f: f.kind == "reply" and f.seq == seq, timeout)[-1]
-
-    def quiet_for(self, seconds: float) -> bytes:
-        end = time.monotonic() + seconds
-        got = b""
-        while time.monotonic() < end:
-            got += self.ser.read(max(1, self.ser.in_waiting))
-        return got
 
 
 @pytest.fixture

@@ -23,11 +23,11 @@ from pathlib import Path
 import nidaqmx_standin
 import numpy as np
 import pytest
+from hardening_support import short_plan
 
 from masking_lab.core.clock import RealClock
 from masking_lab.core.errors import DeviceError, SafetyLimitError
 from masking_lab.core.stimulus import parse_stimulus
-from masking_lab.device.base import TrialPlan
 from masking_lab.device.config import default_device_config, parse_device_config
 from masking_lab.device.nidaq import NidaqDevice
 from masking_lab.device.registry import open_device
@@ -38,19 +38,7 @@ EV_LINE, MV_LINE = "cDAQ1Mod1/ao0", "cDAQ1Mod2/ao0"
 EV270, MV120 = parse_stimulus("EV270"), parse_stimulus("MV120")
 
 
-def plan(**kw) -> TrialPlan:
-    base = {
-        "target": EV270,
-        "target_amplitude_v": 0.5,
-        "target_interval": 2,
-        "masker": MV120,
-        "masker_amplitude_v": 0.3,
-        "stimulus_s": 0.02,
-        "gap_s": 0.01,
-        "lead_in_s": 0.01,
-    }
-    base.update(kw)
-    return TrialPlan(**base)
+plan = short_plan  # EV270 under MV120, 20 ms stimuli
 
 
 @pytest.fixture
