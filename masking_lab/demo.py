@@ -191,6 +191,8 @@ def run_demo(settings: DemoSettings, stream: TextIO | None = None) -> int:
     out_stream = stream or sys.stdout
     err = sys.stderr if stream is None else stream
     out = Path(settings.out)
+    if out.exists() and not out.is_dir():
+        raise MaskingLabError(f"--out {out}: a file, not a folder; name a folder for the demo")
     if _holds_logs(out):
         if not settings.force:
             raise MaskingLabError(

@@ -61,3 +61,21 @@ def test_a_scene_asking_for_a_billion_points_is_refused_at_once(tmp_path):
     res = _cli("render", str(scene), "--out", str(tmp_path / "out"))
     assert res.returncode == 2 and "Traceback" not in res.stderr
     assert "path.n_points" in res.stderr and "maximum of 100000" in res.stderr
+
+
+def test_a_data_folder_that_is_a_file_is_a_clean_error_and_nothing_is_played(tmp_path):
+    """Found by hand after the campaign: `--data FILE` and `demo --out FILE` gave tracebacks."""
+    not_a_folder = tmp_path / "afile"
+    not_a_folder.write_text("", encoding="utf-8")
+    baseline = str(shipped("protocols", "baseline.yaml"))
+    res = _cli(
+        "run", baseline, "--participant", "S01", "--device", "sim", "--responder", "sim",
+        "--data", str(not_a_folder),
+    )  # fmt: skip
+    assert res.returncode == 2 and "Traceback" not in res.stderr
+    assert "cannot make the folder for the session log (Not a directory)" in res.stderr
+    assert "choose a --data folder" in res.stderr
+    demo = _cli("demo", "--out", str(not_a_folder), "--participants", "2")
+    assert demo.returncode == 2 and "Traceback" not in demo.stderr
+    assert "a file, not a folder" in demo.stderr
+    assert not_a_folder.read_text(encoding="utf-8") == ""

@@ -363,13 +363,24 @@ class SessionLogWriter:
             If the file exists already (a log is never overwritten) or cannot be written.
         """
         p = Path(path)
-        p.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            p.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:  # a file where a folder belongs, no permission, a full disk
+            raise LogError(
+                f"{p.parent}: cannot make the folder for the session log "
+                f"({exc.strerror or exc}); choose a --data folder you can write to"
+            ) from exc
         try:
             lock = LogLock.create(p)
         except FileExistsError as exc:
             raise LogError(
                 f"{p}: a session log with this name exists already; use `masking-lab resume {p}`"
                 " to continue it, or choose another --data folder"
+            ) from exc
+        except OSError as exc:
+            raise LogError(
+                f"{p}: cannot create the session log ({exc.strerror or exc}); choose a --data "
+                "folder you can write to"
             ) from exc
         _fsync_dir(p.parent)
         writer = cls(lock, 1, sync)
