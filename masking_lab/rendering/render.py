@@ -17,7 +17,8 @@ table, the summary and the figure, and the protocol that measures missing maskin
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -40,6 +41,21 @@ __all__ = ["NO_MASKING", "Rendering", "needed_pairs", "render_scene", "runs_mm",
 
 # Nothing masks a channel that plays alone: the ramps are identically 0.
 NO_MASKING = MutualMasking(0.0, 0.0, 0.0, 0.0, mv="none", ev="none")
+
+
+def _solution_array(name: str) -> property:
+    """A read-only attribute that is the solution's array ``name``."""
+    return property(lambda self: getattr(self.solution, name), doc=f"``solution.{name}``.")
+
+
+def _felt(input_name: str, masked_al_name: str) -> cached_property[NDArray[np.float64]]:
+    """An attribute computed once: perceived intensity = input − masked AL, dB SL."""
+
+    def felt(self: Rendering) -> NDArray[np.float64]:
+        return getattr(self, input_name) - getattr(self, masked_al_name)
+
+    felt.__doc__ = f"``{input_name} − {masked_al_name}``, dB SL (< 0: not felt)."
+    return cached_property(felt)
 
 
 @dataclass(frozen=True)
@@ -74,19 +90,43 @@ class Rendering:
     pair: MutualMasking | None
     x_mm: NDArray[np.float64]
     t_s: NDArray[np.float64]
-    mv_target_db_sl: NDArray[np.float64]
-    ev_target_db_sl: NDArray[np.float64]
     solution: Solution
-    mv_input_db_sl: NDArray[np.float64]
-    ev_input_db_sl: NDArray[np.float64]
     mv_masked_al_db_sl: NDArray[np.float64]
     ev_masked_al_db_sl: NDArray[np.float64]
-    mv_perceived_db_sl: NDArray[np.float64]
-    ev_perceived_db_sl: NDArray[np.float64]
     mv_masked_al_uncomp_db_sl: NDArray[np.float64]
     ev_masked_al_uncomp_db_sl: NDArray[np.float64]
-    mv_perceived_uncomp_db_sl: NDArray[np.float64]
-    ev_perceived_uncomp_db_sl: NDArray[np.float64]
+
+    # Targets and inputs live in the solution only, and what is felt is derived from them, so
+    # a rendering cannot disagree with itself (see :meth:`with_inputs`).
+    mv_target_db_sl = _solution_array("mv_target_db_sl")
+    ev_target_db_sl = _solution_array("ev_target_db_sl")
+    mv_input_db_sl = _solution_array("mv_input_db_sl")
+    ev_input_db_sl = _solution_array("ev_input_db_sl")
+    mv_perceived_db_sl = _felt("mv_input_db_sl", "mv_masked_al_db_sl")
+    ev_perceived_db_sl = _felt("ev_input_db_sl", "ev_masked_al_db_sl")
+    mv_perceived_uncomp_db_sl = _felt("mv_target_db_sl", "mv_masked_al_uncomp_db_sl")
+    ev_perceived_uncomp_db_sl = _felt("ev_target_db_sl", "ev_masked_al_uncomp_db_sl")
+
+    def with_inputs(
+        self, mv_input_db_sl: NDArray[np.float64], ev_input_db_sl: NDArray[np.float64]
+    ) -> Rendering:
+        """The same rendering with other inputs (dB SL), e.g. what a device actually played.
+
+        The masked ALs stay those of the solver's inputs; perceived intensities follow the new
+        inputs.
+
+        Examples
+        --------
+        >>> from masking_lab.rendering.scene import GeometrySpec, PathSpec, Scene
+        >>> r = render_scene(Scene("bump", PathSpec(), GeometrySpec("bump"), None), None)
+        >>> quiet = r.with_inputs(r.mv_input_db_sl, r.ev_input_db_sl - 3.0)
+        >>> float(np.nanmax(r.ev_perceived_db_sl - quiet.ev_perceived_db_sl))
+        3.0
+        """
+        played = replace(
+            self.solution, mv_input_db_sl=mv_input_db_sl, ev_input_db_sl=ev_input_db_sl
+        )
+        return replace(self, solution=played)
 
     def inputs(self, compensated: bool) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """``(mv_input_db_sl, ev_input_db_sl)`` to play: compensated, or the targets as they are.
@@ -203,27 +243,16 @@ def render_scene(
         model = NO_MASKING
     x, mv_t, ev_t = scene.targets()
     sol = solve(model, mv_t, ev_t, max_mv_db_sl=max_mv_db_sl, max_ev_db_sl=max_ev_db_sl)
-    m_i, e_i = sol.mv_input_db_sl, sol.ev_input_db_sl
-    f_c, g_c = mv_masked_al_db_sl(model, e_i), ev_masked_al_db_sl(model, m_i)
-    f_u, g_u = mv_masked_al_db_sl(model, ev_t), ev_masked_al_db_sl(model, mv_t)
     return Rendering(
         scene=scene,
         pair=pair,
         x_mm=x,
         t_s=x / scene.path.speed_mm_s,
-        mv_target_db_sl=mv_t,
-        ev_target_db_sl=ev_t,
         solution=sol,
-        mv_input_db_sl=m_i,
-        ev_input_db_sl=e_i,
-        mv_masked_al_db_sl=f_c,
-        ev_masked_al_db_sl=g_c,
-        mv_perceived_db_sl=m_i - f_c,
-        ev_perceived_db_sl=e_i - g_c,
-        mv_masked_al_uncomp_db_sl=f_u,
-        ev_masked_al_uncomp_db_sl=g_u,
-        mv_perceived_uncomp_db_sl=mv_t - f_u,
-        ev_perceived_uncomp_db_sl=ev_t - g_u,
+        mv_masked_al_db_sl=mv_masked_al_db_sl(model, sol.ev_input_db_sl),
+        ev_masked_al_db_sl=ev_masked_al_db_sl(model, sol.mv_input_db_sl),
+        mv_masked_al_uncomp_db_sl=mv_masked_al_db_sl(model, ev_t),
+        ev_masked_al_uncomp_db_sl=ev_masked_al_db_sl(model, mv_t),
     )
 
 

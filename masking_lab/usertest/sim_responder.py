@@ -146,7 +146,7 @@ class UserTestSimResponder:
         trial = presentation.trial
         r = self.objects[trial.object]
         ev_db_sl, mv_db_sl = self.felt_inputs_db_sl(r, result)
-        played = dataclasses.replace(r, mv_input_db_sl=mv_db_sl, ev_input_db_sl=ev_db_sl)
+        played = r.with_inputs(mv_db_sl, ev_db_sl)
         # The observer feels a rendering's compensated inputs: put what was played there.
         as_played = dataclasses.replace(trial, condition="compensated")
         objects = {**self.objects, trial.object: played}
