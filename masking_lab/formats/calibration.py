@@ -19,8 +19,12 @@ from typing import Any
 from masking_lab.core.errors import CalibrationError
 from masking_lab.core.stimulus import is_stimulus_name
 from masking_lab.formats.fileio import write_text_atomic
-from masking_lab.formats.reader import excerpt, load_document, where
-from masking_lab.formats.schemas import describe, key_path, most_relevant, schema_errors
+from masking_lab.formats.reader import excerpt, load_document
+from masking_lab.formats.schemas import (
+    first_problem,
+    key_path,
+    schema_errors,
+)
 
 FILENAME = "calibration.json"
 
@@ -114,12 +118,12 @@ def parse_calibration(
     CalibrationError
         Naming ``source`` and the offending key, if ``data`` breaks the schema.
     """
-    errors = schema_errors(data, "calibration")
-    if errors:
-        first = most_relevant(errors)
+    problem = first_problem(data, "calibration", lines)
+    if problem:
+        at, what = problem
         raise CalibrationError(
-            f"{source}: {where(key_path(first), lines or {})}: {describe(first)}; fix the file or "
-            "delete it and re-run the baseline protocol for this participant"
+            f"{source}: {at}: {what}; fix the file or delete it and re-run the baseline "
+            "protocol for this participant"
         )
     return Calibration(
         participant=data["participant"],

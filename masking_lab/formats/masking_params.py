@@ -19,8 +19,10 @@ from typing import Any
 from masking_lab.core.errors import AnalysisError, ProtocolError
 from masking_lab.core.masking import MaskingFunction
 from masking_lab.formats.fileio import write_text_atomic
-from masking_lab.formats.reader import load_document, where
-from masking_lab.formats.schemas import describe, key_path, most_relevant, schema_errors
+from masking_lab.formats.reader import load_document
+from masking_lab.formats.schemas import (
+    first_problem,
+)
 
 SCHEMA = "masking_params"
 
@@ -114,15 +116,13 @@ def validate_masking_params(
     MaskingParamsError
         Naming the key path of the first problem.
     """
-    errors = schema_errors(doc, SCHEMA)
-    if errors:
-        err = most_relevant(errors)
-        more = f" (and {len(errors) - 1} more problems)" if len(errors) > 1 else ""
+    problem = first_problem(doc, SCHEMA, lines)
+    if problem:
+        at, what = problem
         raise MaskingParamsError(
             source,
-            where(key_path(err), lines or {}),
-            f"{describe(err)}{more}; regenerate the file with `masking-lab analyze` or "
-            "`masking-lab fit`",
+            at,
+            f"{what}; regenerate the file with `masking-lab analyze` or `masking-lab fit`",
         )
     seen: dict[tuple[str, str], int] = {}
     for i, f in enumerate(doc["functions"]):

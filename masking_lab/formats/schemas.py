@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Callable, Mapping
 from functools import cache
 from typing import Any
 
@@ -142,3 +143,46 @@ def describe(error: jsonschema.ValidationError) -> str:
     if v == "required":
         return f"{error.message}: add it"
     return excerpt(error.message, 160)
+
+
+def first_problem(
+    instance: Any,
+    name: str,
+    lines: Mapping[str, int] | None = None,
+    describe_error: Callable[[jsonschema.ValidationError], str] = describe,
+) -> tuple[str, str] | None:
+    """Where and what the most relevant problem of ``instance`` under schema ``name`` is.
+
+    Parameters
+    ----------
+    instance : Any
+        The parsed document.
+    name : str
+        Schema stem, e.g. ``"scene"``.
+    lines : mapping of key path → line, optional
+        Where each key stands in the source file (see :func:`~masking_lab.formats.reader.where`).
+    describe_error : callable, optional
+        Words for one error (default :func:`describe`); a file kind may say more.
+
+    Returns
+    -------
+    (str, str) or None
+        The key path (with its line when known) and the message, which counts the other
+        problems; None if ``instance`` is valid.
+
+    Examples
+    --------
+    >>> cal = {"participant": "P1", "sources": [], "unmasked_al_db_v": {"EV270": "x"}}
+    >>> first_problem(cal, "calibration", {"unmasked_al_db_v": 3})
+    ('unmasked_al_db_v.EV270 (line 3)', "must be of type number, got str 'x'")
+    >>> first_problem({}, "calibration")
+    ('(top level)', "'participant' is a required property: add it (and 2 more problem(s))")
+    """
+    from masking_lab.formats.reader import where
+
+    errors = schema_errors(instance, name)
+    if not errors:
+        return None
+    err = most_relevant(errors)
+    more = f" (and {len(errors) - 1} more problem(s))" if len(errors) > 1 else ""
+    return where(key_path(err), lines or {}), f"{describe_error(err)}{more}"

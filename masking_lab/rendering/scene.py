@@ -42,8 +42,11 @@ from numpy.typing import ArrayLike, NDArray
 
 from masking_lab.core.errors import ProtocolError
 from masking_lab.core.stimulus import parse_stimulus
-from masking_lab.formats.reader import decode_utf8, excerpt, parse_yaml, read_limited, where
-from masking_lab.formats.schemas import describe_type_error, key_path, most_relevant, schema_errors
+from masking_lab.formats.reader import decode_utf8, excerpt, parse_yaml, read_limited
+from masking_lab.formats.schemas import (
+    describe_type_error,
+    first_problem,
+)
 
 __all__ = [
     "SHAPES",
@@ -299,11 +302,9 @@ def parse_scene(
     """
     if not isinstance(data, Mapping):
         raise ProtocolError(source, "(top level)", "a scene is a YAML mapping of keys to values")
-    errors = schema_errors(data, "scene")
-    if errors:
-        err = most_relevant(errors)
-        more = f" (and {len(errors) - 1} more problem(s))" if len(errors) > 1 else ""
-        raise ProtocolError(source, where(key_path(err), lines or {}), f"{_describe(err)}{more}")
+    problem = first_problem(data, "scene", lines, _describe)
+    if problem:
+        raise ProtocolError(source, *problem)
     path = PathSpec(**data.get("path", {}))
     if not 2 <= path.n_points <= MAX_POINTS:
         raise ProtocolError(

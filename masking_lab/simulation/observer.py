@@ -19,9 +19,11 @@ import numpy as np
 from masking_lab.core.errors import ProtocolError
 from masking_lab.core.masking import MaskingFunction
 from masking_lab.core.psychometric import GUESS_3IFC, Psychometric
-from masking_lab.formats.reader import load_document, where
+from masking_lab.formats.reader import load_document
 from masking_lab.formats.resources import shipped
-from masking_lab.formats.schemas import describe, key_path, most_relevant, schema_errors
+from masking_lab.formats.schemas import (
+    first_problem,
+)
 
 
 @dataclass(frozen=True)
@@ -138,15 +140,10 @@ def ground_truth_from_dict(
     """
     if not isinstance(data, Mapping):
         raise ProtocolError(source, "(top level)", "a ground truth is a mapping of keys to values")
-    errors = schema_errors(data, "ground_truth")
-    if errors:
-        err = most_relevant(errors)
-        more = f" (and {len(errors) - 1} more problem(s))" if len(errors) > 1 else ""
-        raise ProtocolError(
-            source,
-            where(key_path(err), lines or {}),
-            f"not a valid ground-truth file: {describe(err)}{more}",
-        )
+    problem = first_problem(data, "ground_truth", lines)
+    if problem:
+        at, what = problem
+        raise ProtocolError(source, at, f"not a valid ground-truth file: {what}")
     masking = tuple(
         MaskingFunction(m["target"], m["masker"], float(m["intercept_db"]), float(m["slope"]))
         for m in data["masking"]

@@ -31,8 +31,10 @@ from typing import Any, Literal
 import numpy as np
 
 from masking_lab.core.errors import ProtocolError
-from masking_lab.formats.reader import decode_utf8, parse_yaml, read_limited, where
-from masking_lab.formats.schemas import describe, key_path, most_relevant, schema_errors
+from masking_lab.formats.reader import decode_utf8, parse_yaml, read_limited
+from masking_lab.formats.schemas import (
+    first_problem,
+)
 from masking_lab.rendering.scene import Scene, load_scene
 
 __all__ = [
@@ -281,11 +283,9 @@ def parse_usertest(
     """
     if not isinstance(data, Mapping):
         raise ProtocolError(source, "(top level)", "a user-test protocol is a YAML mapping")
-    errors = schema_errors(data, "usertest")
-    if errors:
-        err = most_relevant(errors)
-        more = f" (and {len(errors) - 1} more problem(s))" if len(errors) > 1 else ""
-        raise ProtocolError(source, where(key_path(err), lines or {}), f"{describe(err)}{more}")
+    problem = first_problem(data, "usertest", lines)
+    if problem:
+        raise ProtocolError(source, *problem)
     timing = UserTestTiming(**data.get("timing", {}))
     found: dict[tuple[str, str], Scene] = {}
     for g in data["geometries"]:
