@@ -17,6 +17,7 @@ import sys
 import termios
 import time
 from collections.abc import Callable, Iterator
+from typing import Self
 
 from masking_lab.core.errors import ResponderError
 from masking_lab.core.trial import PlayResult
@@ -148,7 +149,7 @@ class KeysResponder:
         self._tty_name = os.ttyname(self._in)
 
     @classmethod
-    def open_tty(cls, path: str, *, wait_for_start: bool = True) -> KeysResponder:
+    def open_tty(cls, path: str, *, wait_for_start: bool = True) -> Self:
         """Use the terminal at ``path`` (e.g. ``/dev/pts/3``) for both keys and prompts.
 
         Raises
@@ -175,6 +176,19 @@ class KeysResponder:
         except ResponderError:
             os.close(fd)
             raise
+
+    @classmethod
+    def on_terminal(cls, path: str | None) -> Self:
+        """The participant's terminal at ``path`` (see :meth:`open_tty`), or this one if None.
+
+        Examples
+        --------
+        >>> KeysResponder.on_terminal("/dev/null")
+        Traceback (most recent call last):
+        ...
+        masking_lab.core.errors.ResponderError: the keys responder reads ... is not one; ...
+        """
+        return cls.open_tty(path) if path else cls()
 
     # -- Responder protocol ---------------------------------------------------------------
 

@@ -57,6 +57,7 @@ from masking_lab.session.shell import Closable, SessionShell, resume_command
 __all__ = [
     "Opened",
     "Opening",
+    "PlanDefaults",
     "ResumeChanges",
     "ResumeKeywords",
     "ResumeOptions",
@@ -267,6 +268,23 @@ class SessionPlan(Protocol[ResultT]):
     def session(self, opening: Opening, opened: Opened) -> SessionShell[ResultT]:
         """The session loop for the trials still to run."""
         ...
+
+
+class PlanDefaults:
+    """What a plan does when its kind has nothing to add: no extra checks, a plain message.
+
+    A kind's plan inherits these and overrides only what it needs (see :class:`SessionPlan`).
+    """
+
+    def check_responder(self, name: str) -> None:
+        """Every responder of the kind will do."""
+
+    def check_device(self, device: Device, out: ProgressLine) -> None:
+        """The frame's checks of the opened device are enough."""
+
+    def resume_message(self, path: Path) -> str:
+        """``resuming <path>``."""
+        return f"resuming {path}"
 
 
 class SessionKind(Protocol[ResultT]):

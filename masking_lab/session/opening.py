@@ -10,6 +10,7 @@ import datetime as dt
 import re
 from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
+from dataclasses import KW_ONLY, dataclass
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -18,7 +19,7 @@ from masking_lab.core.errors import MaskingLabError
 from masking_lab.device.base import Device
 from masking_lab.formats.session_log import SessionLogWriter, SyncPolicy
 from masking_lab.session.shell import Closable, close_quietly
-from masking_lab.simulation.observer import read_ground_truth
+from masking_lab.simulation.observer import GroundTruth, ground_truth_from_dict, read_ground_truth
 
 # Matched whole (fullmatch: "$" alone would let a trailing newline through); the length limit
 # keeps every file name built from the id far below NAME_MAX.
@@ -103,6 +104,56 @@ def observer_record(ground_truth: Path | None) -> dict[str, Any]:
     # Read through the shared reader and validated now, before the session starts.
     truth, source = read_ground_truth(ground_truth)
     return {"ground_truth_path": source, "population_seed": 0, "truth": truth}
+
+
+@dataclass
+class ResponderContext:
+    """What every responder factory may need, whatever the session kind.
+
+    Each kind's context adds what its responders play (the protocol, the rendered objects).
+
+    Attributes
+    ----------
+    participant : str
+        Participant id.
+    seed : int
+        Session seed.
+    clock : Clock
+        The session clock (s).
+    simulated_observer : dict or None
+        ``{"ground_truth_path", "population_seed", "truth"}`` for the sim responder.
+    device_config : Path or None
+        The rig config (the PsychoPy window reads the monitor size from it).
+    participant_tty : str or None
+        The participant's terminal for the keys responder (None: this one).
+    """
+
+    participant: str
+    seed: int
+    clock: Clock
+    _: KW_ONLY
+    simulated_observer: dict[str, Any] | None = None
+    device_config: Path | None = None
+    participant_tty: str | None = None
+
+    def simulated_truth(self) -> tuple[GroundTruth, int, str]:
+        """The sim responder's ground truth, population seed and where the truth came from.
+
+        Without a simulated observer (a responder built outside a session), the shipped
+        simulation ground truth with population seed 0.
+
+        Examples
+        --------
+        >>> from masking_lab.core.clock import VirtualClock
+        >>> context = ResponderContext("P01", 1, VirtualClock())
+        >>> truth, population_seed, source = context.simulated_truth()
+        >>> population_seed, source.endswith(".yaml")
+        (0, True)
+        """
+        obs = self.simulated_observer or observer_record(None)
+        source = str(obs.get("ground_truth_path") or "")
+        truth = ground_truth_from_dict(obs["truth"], source or "the ground truth")
+        return truth, int(obs["population_seed"]), source
 
 
 # --------------------------------------------------------------------------------------------

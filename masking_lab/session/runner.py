@@ -22,7 +22,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Unpack
 
-from masking_lab.core.clock import Clock
 from masking_lab.core.errors import (
     LogError,
     MaskingLabError,
@@ -37,7 +36,7 @@ from masking_lab.session import frame
 
 # EXIT_* and the signal classes were public here first; the noqa lines re-export them.
 from masking_lab.session.header import session_header
-from masking_lab.session.opening import observer_record
+from masking_lab.session.opening import ResponderContext
 from masking_lab.session.progress import ProgressLine
 from masking_lab.session.shell import (
     EXIT_COMPLETED,  # noqa: F401
@@ -54,7 +53,7 @@ from masking_lab.session.threshold_plan import (
     select_sets,
     stimuli_of,
 )
-from masking_lab.simulation.observer import ground_truth_from_dict, make_participant
+from masking_lab.simulation.observer import make_participant
 
 RESPONDERS = ("sim", "keys", "psychopy")
 
@@ -110,34 +109,16 @@ class RunOptions:
 
 
 @dataclass
-class SessionContext:
-    """What a responder factory may need to build a responder.
+class SessionContext(ResponderContext):
+    """What a threshold responder factory may need (see :class:`ResponderContext`).
 
     Attributes
     ----------
-    participant : str
-        Participant id.
-    seed : int
-        Session seed.
-    clock : Clock
-        The session clock.
     protocol : Protocol
         The protocol being run.
-    simulated_observer : dict or None
-        ``{"ground_truth_path", "population_seed", "truth"}`` for the sim responder.
-    device_config : Path or None
-        The rig config (the PsychoPy window reads the monitor size from it).
-    participant_tty : str or None
-        The participant's terminal for the keys responder (None: this one).
     """
 
-    participant: str
-    seed: int
-    clock: Clock
     protocol: Protocol
-    simulated_observer: dict[str, Any] | None = None
-    device_config: Path | None = None
-    participant_tty: str | None = None
 
 
 # --------------------------------------------------------------------------------------------
@@ -249,7 +230,7 @@ class ThresholdKind:
 
 
 @dataclass
-class _ThresholdPlan:
+class _ThresholdPlan(frame.PlanDefaults):
     """A threshold session's plan for this process (see :class:`frame.SessionPlan`)."""
 
     protocol: Protocol
@@ -266,12 +247,6 @@ class _ThresholdPlan:
     def context(self, opening: frame.Opening) -> SessionContext:
         return SessionContext(protocol=self.protocol, **opening.context_fields())
 
-    def check_responder(self, name: str) -> None:
-        return None
-
-    def check_device(self, device: Device, out: ProgressLine) -> None:
-        return None
-
     def header(self, opening: frame.Opening, device: Device) -> dict[str, Any]:
         return session_header(
             source=self.protocol,
@@ -283,9 +258,6 @@ class _ThresholdPlan:
 
     def position(self) -> tuple[str | None, int | None]:
         return self.stopped_at
-
-    def resume_message(self, path: Path) -> str:
-        return f"resuming {path}"
 
     def session(self, opening: frame.Opening, opened: frame.Opened) -> ThresholdSession:
         return ThresholdSession(
@@ -309,15 +281,13 @@ def _default_responder(name: str, context: SessionContext) -> Responder:
     if name == "sim":
         from masking_lab.responders.sim import SimResponder
 
-        obs = context.simulated_observer or observer_record(None)
-        truth = ground_truth_from_dict(obs["truth"], str(obs.get("ground_truth_path")))
-        participant = make_participant(truth, context.participant, int(obs["population_seed"]))
-        return SimResponder(participant, context.seed, str(obs.get("ground_truth_path") or ""))
+        truth, population_seed, source = context.simulated_truth()
+        participant = make_participant(truth, context.participant, population_seed)
+        return SimResponder(participant, context.seed, source)
     if name == "keys":
         from masking_lab.responders.keys import KeysResponder
 
-        tty = context.participant_tty
-        return KeysResponder.open_tty(tty) if tty else KeysResponder()
+        return KeysResponder.on_terminal(context.participant_tty)
     if name == "psychopy":
         from masking_lab.responders import psychopy_window
 

@@ -35,7 +35,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Unpack
 
-from masking_lab.core.clock import Clock
 from masking_lab.core.errors import (
     LogError,
     MaskingLabError,
@@ -47,7 +46,7 @@ from masking_lab.formats.session_log import SessionLog
 from masking_lab.rendering.render import Rendering
 from masking_lab.rendering.solver import MutualMasking
 from masking_lab.session import frame
-from masking_lab.session.opening import observer_record
+from masking_lab.session.opening import ResponderContext
 from masking_lab.session.progress import ProgressLine
 from masking_lab.usertest.design import (
     UserTestDesign,
@@ -137,37 +136,19 @@ class UserTestOptions:
 
 
 @dataclass
-class UserTestContext:
-    """What a user-test responder factory may need.
+class UserTestContext(ResponderContext):
+    """What a user-test responder factory may need (see :class:`ResponderContext`).
 
     Attributes
     ----------
-    participant : str
-        Participant id.
-    seed : int
-        Session seed.
-    clock : Clock
-        The session clock.
     design : UserTestDesign
         The protocol.
     objects : mapping (geometry, texture) → Rendering
         The rendered objects.
-    simulated_observer : dict or None
-        ``{"ground_truth_path", "population_seed", "truth"}`` for the sim responder.
-    device_config : Path or None
-        The rig config.
-    participant_tty : str or None
-        The participant's terminal for the keys responder (None: this one).
     """
 
-    participant: str
-    seed: int
-    clock: Clock
     design: UserTestDesign
     objects: Mapping[tuple[str, str], Rendering]
-    simulated_observer: dict[str, Any] | None = None
-    device_config: Path | None = None
-    participant_tty: str | None = None
 
 
 # --------------------------------------------------------------------------------------------
@@ -321,7 +302,7 @@ class UserTestKind:
 
 
 @dataclass
-class _UserTestPlan:
+class _UserTestPlan(frame.PlanDefaults):
     """A user test's plan for this process (see :class:`frame.SessionPlan`)."""
 
     participant: str
@@ -410,26 +391,22 @@ USERTEST = UserTestKind()
 def default_responder(name: str, context: UserTestContext) -> UserTestResponder:
     """Build the ``sim``, ``keys`` or ``psychopy`` user-test responder."""
     if name == "sim":
-        from masking_lab.simulation.observer import ground_truth_from_dict
         from masking_lab.usertest.sim_responder import UserTestSimResponder
 
-        obs = context.simulated_observer or observer_record(None)
-        source = str(obs.get("ground_truth_path") or "the ground truth")
-        truth = ground_truth_from_dict(obs["truth"], source)
+        truth, population_seed, source = context.simulated_truth()
         return UserTestSimResponder.from_ground_truth(
             context.design,
             context.objects,
             truth,
             context.participant,
             context.seed,
-            population_seed=int(obs["population_seed"]),
-            source=source,
+            population_seed=population_seed,
+            source=source or "the ground truth",
         )
     if name == "keys":
         from masking_lab.usertest.keys_responder import UserTestKeysResponder
 
-        tty = context.participant_tty
-        return UserTestKeysResponder.open_tty(tty) if tty else UserTestKeysResponder()
+        return UserTestKeysResponder.on_terminal(context.participant_tty)
     if name == "psychopy":
         from masking_lab.usertest import window_responder as usertest_psychopy
 
