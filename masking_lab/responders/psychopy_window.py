@@ -20,12 +20,11 @@ audio back-end the window logs a warning and runs without it.
 from __future__ import annotations
 
 import logging
-import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, cast
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -43,6 +42,9 @@ from masking_lab.responders.cue import (
     finger_sample,
     should_record,
 )
+from masking_lab.responders.play_thread import PlayThread
+
+ResultT = TypeVar("ResultT")
 
 log = logging.getLogger(__name__)
 
@@ -179,33 +181,6 @@ def make_responder(context: Any) -> PsychoPyWindowResponder:
     return PsychoPyWindowResponder(
         display, context.clock, screen=screen, noise=NoiseSettings(seed=context.seed)
     )
-
-
-class _PlayThread(threading.Thread):
-    """Runs the runner's ``play`` callable once, keeping its result or exception."""
-
-    def __init__(self, play: Callable[[], PlayResult]) -> None:
-        super().__init__(name="masking-lab-play", daemon=True)
-        self._play = play
-        self._result: PlayResult | None = None
-        self._error: BaseException | None = None
-
-    def run(self) -> None:
-        try:
-            self._result = self._play()
-        except BaseException as exc:  # handed back to the main thread in result()
-            self._error = exc
-
-    @property
-    def failed(self) -> bool:
-        """True once ``play()`` has raised."""
-        return self._error is not None
-
-    def result(self) -> PlayResult:
-        self.join()
-        if self._error is not None:
-            raise self._error
-        return cast(PlayResult, self._result)
 
 
 class PsychoPyWindowResponder:
@@ -367,7 +342,37 @@ class PsychoPyWindowResponder:
         self._start_noise()
         layout = self._layout_for(presentation.plan)
         duration_s = layout.timing.duration_s
-        player = _PlayThread(play)
+        result, finger_path = self._play_with_cue(
+            play,
+            lambda t_s: self.draw_trial_screen(presentation, t_s),
+            presentation.start_s,
+            duration_s,
+        )
+        interval, answered_s = self._wait_for_answer(presentation)
+        end_s = presentation.start_s + duration_s
+        response = Response(
+            interval=interval,
+            response_time_s=max(0.0, answered_s - end_s),
+            finger_path=finger_path,
+        )
+        return result, response
+
+    def _play_with_cue(
+        self,
+        play: Callable[[], ResultT],
+        draw: Callable[[float], CueState],
+        start_s: float,
+        duration_s: float,
+        on_finger: Callable[[float, float], None] | None = None,
+    ) -> tuple[ResultT, list[FingerSample]]:
+        """Draw frame after frame (``draw(s since start_s)``) while ``play()`` runs behind.
+
+        While the cue moves, the pointer is sampled every frame; the samples kept form the
+        finger path, and ``on_finger(session s, x mm)`` hears each. Returns what ``play``
+        returned (re-raising its error) and the path. Escape raises KeyboardInterrupt, but
+        only once the device has finished the trial.
+        """
+        player = PlayThread(play)
         finger_path: list[FingerSample] = []
         previous_mm: tuple[float, float] | None = None
         abort = False
@@ -376,7 +381,7 @@ class PsychoPyWindowResponder:
         try:
             while True:
                 now = self._clock.now()
-                state = self.draw_trial_screen(presentation, now - presentation.start_s)
+                state = draw(now - start_s)
                 self._flip()
                 if state.moving:
                     x_px, y_px = self.mouse.getPos()
@@ -384,12 +389,14 @@ class PsychoPyWindowResponder:
                     pressed = bool(self.mouse.getPressed()[0])
                     if should_record(previous_mm, x_mm, y_mm, pressed):
                         finger_path.append(finger_sample(now, x_px, y_px, self.display))
+                        if on_finger is not None:
+                            on_finger(now, x_mm)
                     previous_mm = (x_mm, y_mm)
                 if self._event.getKeys(keyList=list(ABORT_KEYS)):
                     abort = True
                 # Done when the device has finished and the cue has too (a virtual clock does
                 # not move while we draw); a device fault ends the trial at once.
-                ended = now - presentation.start_s >= duration_s or self._clock.virtual
+                ended = now - start_s >= duration_s or self._clock.virtual
                 if not player.is_alive() and (ended or player.failed):
                     break
         except BaseException:
@@ -400,14 +407,7 @@ class PsychoPyWindowResponder:
         result = player.result()  # re-raises a DeviceError from play()
         if abort:
             raise KeyboardInterrupt
-        interval, answered_s = self._wait_for_answer(presentation)
-        end_s = presentation.start_s + duration_s
-        response = Response(
-            interval=interval,
-            response_time_s=max(0.0, answered_s - end_s),
-            finger_path=finger_path,
-        )
-        return result, response
+        return result, finger_path
 
     def close(self) -> None:
         """Stop the noise and close the window. Idempotent."""

@@ -30,6 +30,7 @@ from masking_lab.formats.log_lock import LogLock
 from masking_lab.formats.session_log import SessionLog, SessionLogWriter, read_log
 from masking_lab.session.opening import (
     DeviceOpener,
+    ResponderContext,
     check_device_spec,
     check_participant,
     close_on_failure,
@@ -71,6 +72,7 @@ __all__ = [
 ]
 
 ResultT = TypeVar("ResultT")
+ContextT = TypeVar("ContextT", bound=ResponderContext)
 ResponderFactory = Callable[[str, Any], Any]
 
 
@@ -194,27 +196,23 @@ class Opening:
     participant_tty: str | None
     responder: str
 
-    def context_fields(self) -> dict[str, Any]:
-        """The fields every kind's responder context takes from the opening."""
-        return {
-            "participant": self.participant,
-            "seed": self.seed,
-            "clock": self.clock,
-            "simulated_observer": self.observer,
-            "device_config": self.device_config,
-            "participant_tty": self.participant_tty,
-        }
+    def context(self, kind_context: type[ContextT], **kind_fields: Any) -> ContextT:
+        """The kind's responder context: the opening's part (:class:`ResponderContext`), and
+        ``kind_fields``, what the kind's responders play."""
+        return kind_context(
+            self.participant,
+            self.seed,
+            self.clock,
+            simulated_observer=self.observer,
+            device_config=self.device_config,
+            participant_tty=self.participant_tty,
+            **kind_fields,
+        )
 
     def header_fields(self) -> dict[str, Any]:
         """The fields every kind's log header takes from the opening."""
-        return {
-            "participant": self.participant,
-            "responder": self.responder,
-            "seed": self.seed,
-            "virtual": self.virtual,
-            "observer": self.observer,
-            "device_config": self.device_config,
-        }
+        names = ("participant", "responder", "seed", "virtual", "observer", "device_config")
+        return {name: getattr(self, name) for name in names}
 
     def loop_fields(self, opened: Opened) -> dict[str, Any]:
         """The session loop's common fields: the opening's plus what was opened for it."""

@@ -245,7 +245,7 @@ class _ThresholdPlan(frame.PlanDefaults):
         return self.protocol.experiment
 
     def context(self, opening: frame.Opening) -> SessionContext:
-        return SessionContext(protocol=self.protocol, **opening.context_fields())
+        return opening.context(SessionContext, protocol=self.protocol)
 
     def header(self, opening: frame.Opening, device: Device) -> dict[str, Any]:
         return session_header(

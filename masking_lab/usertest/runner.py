@@ -325,7 +325,7 @@ class _UserTestPlan(frame.PlanDefaults):
         return self.design.experiment
 
     def context(self, opening: frame.Opening) -> UserTestContext:
-        return UserTestContext(design=self.design, objects=self.objects, **opening.context_fields())
+        return opening.context(UserTestContext, design=self.design, objects=self.objects)
 
     def check_responder(self, name: str) -> None:
         if self.design.tracking == "finger" and name == "keys":

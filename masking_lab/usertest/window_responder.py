@@ -21,12 +21,10 @@ from typing import Any
 from masking_lab.core.stimulus import Stimulus
 from masking_lab.core.trial import TrialPlan
 from masking_lab.responders.base import TrialPresentation
-from masking_lab.responders.cue import FingerSample, finger_sample, should_record
 from masking_lab.responders.psychopy_window import (
     ABORT_KEYS,
     NoiseSettings,
     PsychoPyWindowResponder,
-    _PlayThread,
     display_geometry,
 )
 from masking_lab.usertest.responder_base import (
@@ -96,38 +94,18 @@ class UserTestWindowResponder(PsychoPyWindowResponder):
         finger = self.finger_reader(presentation) if presentation.tracking == "finger" else None
         with self._finger_lock:
             self._finger = None
-        player = _PlayThread(lambda: play(finger))  # type: ignore[arg-type, return-value]
-        finger_path: list[FingerSample] = []
-        previous_mm: tuple[float, float] | None = None
-        abort = False
-        duration_s = presentation.timing.trial_s
-        self._event.clearEvents()
-        player.start()
-        try:
-            while True:
-                now = self._clock.now()
-                state = self.draw_trial_screen(screen, now - presentation.start_s)
-                self._flip()
-                if state.moving:
-                    x_px, y_px = self.mouse.getPos()
-                    x_mm, y_mm = self.display.px_to_mm(float(x_px), float(y_px))
-                    pressed = bool(self.mouse.getPressed()[0])
-                    if should_record(previous_mm, x_mm, y_mm, pressed):
-                        finger_path.append(finger_sample(now, x_px, y_px, self.display))
-                        with self._finger_lock:
-                            self._finger = (now, x_mm + presentation.sweep_mm / 2)
-                    previous_mm = (x_mm, y_mm)
-                if self._event.getKeys(keyList=list(ABORT_KEYS)):
-                    abort = True
-                ended = now - presentation.start_s >= duration_s or self._clock.virtual
-                if not player.is_alive() and (ended or player.failed):
-                    break
-        except BaseException:
-            player.join()  # never two threads on the device at once
-            raise
-        result: StreamResult = player.result()  # type: ignore[assignment]  # re-raises
-        if abort:
-            raise KeyboardInterrupt
+
+        def track(now_s: float, x_mm: float) -> None:
+            with self._finger_lock:
+                self._finger = (now_s, x_mm + presentation.sweep_mm / 2)
+
+        result, finger_path = self._play_with_cue(
+            lambda: play(finger),
+            lambda t_s: self.draw_trial_screen(screen, t_s),
+            presentation.start_s,
+            presentation.timing.trial_s,
+            on_finger=track,
+        )
         timeout = presentation.timing.response_timeout_s
         end_s = presentation.end_s
         deadline = None if timeout is None else self._clock.now() + timeout
