@@ -25,11 +25,9 @@ from masking_lab.analysis.tables import (
     ONE_SAMPLE_COLUMNS,
     POSTHOC_COLUMNS,
     SPHERICITY_COLUMNS,
-    anova_rows,
+    effect_rows,
     fit_rows,
     one_sample_rows,
-    posthoc_rows,
-    sphericity_rows,
 )
 from masking_lab.formats.csv_table import csv_text
 from masking_lab.formats.fileio import write_bytes_atomic, write_text_atomic
@@ -194,9 +192,9 @@ def write_outputs(
         created_utc=created_utc,
     )
     tables = [
-        ("anova.csv", ANOVA_COLUMNS, anova_rows(results)),
-        ("sphericity.csv", SPHERICITY_COLUMNS, sphericity_rows(results)),
-        ("posthoc.csv", POSTHOC_COLUMNS, posthoc_rows(results)),
+        ("anova.csv", ANOVA_COLUMNS, effect_rows(results, "anova")),
+        ("sphericity.csv", SPHERICITY_COLUMNS, effect_rows(results, "sphericity")),
+        ("posthoc.csv", POSTHOC_COLUMNS, effect_rows(results, "posthoc")),
         ("one_sample.csv", ONE_SAMPLE_COLUMNS, one_sample_rows(results, settings.test_alpha)),
         ("ramp_fits.csv", FIT_COLUMNS, fit_rows(results)),
     ]

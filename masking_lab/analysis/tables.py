@@ -1,16 +1,17 @@
 """The output tables of an analysis as rows (one mapping per CSV line), with their columns.
 
-``anova.csv``, ``sphericity.csv``, ``posthoc.csv``, ``one_sample.csv`` and ``ramp_fits.csv``:
-each ``*_rows`` function turns :class:`~masking_lab.analysis.experiment.ExperimentResult`
-objects into tidy rows (one observation a row, one variable a column) whose keys are the names
-in the matching ``*_COLUMNS`` list; :func:`masking_lab.formats.csv_table.csv_text` writes them
-and ``pandas.DataFrame(rows, columns=...)`` reads them into a frame.
+``anova.csv``, ``sphericity.csv``, ``posthoc.csv`` (:func:`effect_rows`), ``one_sample.csv`` and
+``ramp_fits.csv``: each ``*_rows`` function turns
+:class:`~masking_lab.analysis.experiment.ExperimentResult` objects into tidy rows (one
+observation a row, one variable a column) whose keys are the names in the matching
+``*_COLUMNS`` list; :func:`masking_lab.formats.csv_table.csv_text` writes them and
+``pandas.DataFrame(rows, columns=...)`` reads them into a frame.
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterable, Mapping
-from typing import Any
+from typing import Any, Literal
 
 from masking_lab.analysis.experiment import ExperimentResult
 
@@ -20,11 +21,10 @@ __all__ = [
     "ONE_SAMPLE_COLUMNS",
     "POSTHOC_COLUMNS",
     "SPHERICITY_COLUMNS",
-    "anova_rows",
+    "EffectTable",
+    "effect_rows",
     "fit_rows",
     "one_sample_rows",
-    "posthoc_rows",
-    "sphericity_rows",
 ]
 
 # Column → attribute of the per-experiment item the row is made from.
@@ -107,86 +107,66 @@ FIT_COLUMNS = [
 ]
 
 
-def _attribute_rows(
-    results: Iterable[ExperimentResult],
-    items: str,
-    fields: Mapping[str, str],
-    extra: Mapping[str, Any] | None = None,
-) -> list[dict[str, Any]]:
-    """One row per element of ``getattr(result, items)``, columns read through ``fields``."""
+# Table → (attribute of ExperimentResult holding its items, column → item attribute, constants).
+_EFFECT_TABLES: dict[str, tuple[str, Mapping[str, str], Mapping[str, Any]]] = {
+    "anova": ("anova", _ANOVA_FIELDS, {}),
+    "sphericity": ("anova", _SPHERICITY_FIELDS, {}),
+    "posthoc": ("posthoc", _POSTHOC_FIELDS, {"factor": "frequency"}),
+}
+EffectTable = Literal["anova", "sphericity", "posthoc"]
+
+
+def effect_rows(results: Iterable[ExperimentResult], table: EffectTable) -> list[dict[str, Any]]:
+    """Rows of anova.csv, sphericity.csv or posthoc.csv: one per effect or comparison.
+
+    Parameters
+    ----------
+    results : iterable of ExperimentResult
+        Per-experiment results (an experiment without ANOVA or comparisons adds no row).
+    table : {"anova", "sphericity", "posthoc"}
+        ``anova``: the two-way repeated-measures ANOVA (keys :data:`ANOVA_COLUMNS`; ``F`` and
+        ``np2`` have no unit, ``df1``/``df2`` are degrees of freedom, ``eps_gg`` the
+        Greenhouse–Geisser epsilon and ``p_gg`` its corrected p). ``sphericity``: Mauchly's
+        test per effect (:data:`SPHERICITY_COLUMNS`; ``mauchly_w`` and ``chi2`` have no unit).
+        ``posthoc``: Bonferroni paired comparisons between frequency levels
+        (:data:`POSTHOC_COLUMNS`; ``mean_diff_db`` in dB, ``dz`` is Cohen's d_z).
+
+    Returns
+    -------
+    list of dict
+        One mapping per CSV line, keys in column order.
+
+    Examples
+    --------
+    Four participants, two MV frequencies, two masker levels (dB SL):
+
+    >>> import itertools
+    >>> import pandas as pd
+    >>> from masking_lab.analysis.experiment import analyze_shifts
+    >>> from masking_lab.analysis.settings import AnalysisSettings
+    >>> shifts = pd.DataFrame(
+    ...     dict(experiment="e1", participant=f"P{p}", target="EV270", masker=f"MV{hz}",
+    ...          mv_stimulus=f"MV{hz}", mv_frequency_hz=float(hz), masker_level_db_sl=lv,
+    ...          shift_db=0.4 * lv + (hz == 120) + (p * hz + lv) % 7 / 4)
+    ...     for p, hz, lv in itertools.product(range(4), (120, 180), (10.0, 20.0))
+    ... )
+    >>> results = analyze_shifts(shifts, AnalysisSettings())
+    >>> [(row["effect"], row["df1"], row["df2"]) for row in effect_rows(results, "anova")]
+    [('frequency', 1, 3), ('level', 1, 3), ('frequency:level', 1, 3)]
+    >>> (row,) = effect_rows(results, "posthoc")
+    >>> row["a"], row["b"], row["mean_diff_db"], round(row["p_bonf"], 4)
+    ('MV120', 'MV180', 1.03125, 0.0082)
+    """
+    items, fields, constants = _EFFECT_TABLES[table]
     return [
         {
             "experiment": r.experiment,
-            **(extra or {}),
+            **constants,
             **{col: getattr(item, attr) for col, attr in fields.items()},
         }
         for r in results
         for item in (getattr(r, items) or ())
     ]
-
-
-def anova_rows(results: Iterable[ExperimentResult]) -> list[dict[str, Any]]:
-    """Rows of anova.csv: the two-way repeated-measures ANOVA, one row per effect.
-
-    Parameters
-    ----------
-    results : iterable of ExperimentResult
-        Per-experiment results.
-
-    Returns
-    -------
-    list of dict
-        Keys :data:`ANOVA_COLUMNS`; ``F`` and ``np2`` have no unit, ``df1``/``df2`` are degrees of
-        freedom, ``eps_gg`` the Greenhouse–Geisser epsilon and ``p_gg`` its corrected p.
-
-    Examples
-    --------
-    >>> anova_rows([])
-    []
-    """
-    return _attribute_rows(results, "anova", _ANOVA_FIELDS)
-
-
-def sphericity_rows(results: Iterable[ExperimentResult]) -> list[dict[str, Any]]:
-    """Rows of sphericity.csv: Mauchly's test per effect.
-
-    Parameters
-    ----------
-    results : iterable of ExperimentResult
-        Per-experiment results.
-
-    Returns
-    -------
-    list of dict
-        Keys :data:`SPHERICITY_COLUMNS` (``mauchly_w`` and ``chi2`` have no unit).
-
-    Examples
-    --------
-    >>> sphericity_rows([])
-    []
-    """
-    return _attribute_rows(results, "anova", _SPHERICITY_FIELDS)
-
-
-def posthoc_rows(results: Iterable[ExperimentResult]) -> list[dict[str, Any]]:
-    """Rows of posthoc.csv: Bonferroni paired comparisons between frequency levels.
-
-    Parameters
-    ----------
-    results : iterable of ExperimentResult
-        Per-experiment results (an experiment without comparisons adds no row).
-
-    Returns
-    -------
-    list of dict
-        Keys :data:`POSTHOC_COLUMNS`; ``mean_diff_db`` in dB, ``dz`` is Cohen's d_z.
-
-    Examples
-    --------
-    >>> posthoc_rows([])
-    []
-    """
-    return _attribute_rows(results, "posthoc", _POSTHOC_FIELDS, {"factor": "frequency"})
 
 
 def one_sample_rows(
