@@ -26,6 +26,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from masking_lab.core.errors import ProcedureError
 from masking_lab.core.psychometric import Psychometric
+from masking_lab.procedures.batch import TrackBatch
 from masking_lab.procedures.quest_plus import (
     QuestPlusSettings,
     expected_entropy,
@@ -41,40 +42,25 @@ DEFAULT_TRIAL_LIMIT = 400
 Respond = Callable[[int, NDArray[np.intp], NDArray[np.float64]], ArrayLike]
 
 
-@dataclass(frozen=True)
-class SimulatedQuestPlus:
+@dataclass(frozen=True, kw_only=True)
+class SimulatedQuestPlus(TrackBatch[QuestPlusSettings]):
     """The outcome of R tracks run under one :class:`QuestPlusSettings`.
 
-    Arrays are indexed by replicate (row) and trial (column); past a track's end, levels, means
-    and SDs are NaN and answers False.
+    The arrays of :class:`~masking_lab.procedures.batch.TrackBatch`, and the posterior after
+    each trial (NaN past a track's end).
 
     Attributes
     ----------
-    settings : QuestPlusSettings
-        The rules every track followed.
-    levels_db : ndarray, shape (R, T)
-        Level of every trial, dB.
-    correct : ndarray of bool, shape (R, T)
-        Answers.
     mean_db, sd_db : ndarray, shape (R, T)
         Posterior mean and SD of the threshold after each trial, dB.
-    n_trials : ndarray of int, shape (R,)
-        Trials each track ran.
     status : ndarray of str, shape (R,)
         ``running`` (stopped by the simulation's trial limit), ``completed``, ``ceiling``,
         ``floor`` or ``trial_cap``.
-    true_threshold_db : ndarray or None, shape (R,)
-        The simulated observers' thresholds, dB (None for replays).
     """
 
-    settings: QuestPlusSettings
-    levels_db: NDArray[np.float64]
-    correct: NDArray[np.bool_]
     mean_db: NDArray[np.float64]
     sd_db: NDArray[np.float64]
-    n_trials: NDArray[np.int64]
     status: NDArray[np.str_]
-    true_threshold_db: NDArray[np.float64] | None = None
 
     @property
     def estimate_db(self) -> NDArray[np.float64]:

@@ -30,6 +30,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from masking_lab.core.errors import StaircaseError
 from masking_lab.core.psychometric import GUESS_3IFC, Psychometric
+from masking_lab.procedures.batch import TrackBatch
 from masking_lab.procedures.staircase import StaircaseSettings
 
 #: Status names indexed by the integer codes in :attr:`SimulatedTracks.status_code`.
@@ -69,25 +70,18 @@ class Observer:
         return Psychometric(0.0, self.scale_db, self.guess, self.lapse)
 
 
-@dataclass(frozen=True)
-class SimulatedTracks:
+@dataclass(frozen=True, kw_only=True)
+class SimulatedTracks(TrackBatch[StaircaseSettings]):
     """The outcome of ``R`` staircase tracks run under one :class:`StaircaseSettings`.
 
-    Arrays are indexed by replicate (row) and trial (column); past a track's end, levels are NaN
-    and responses False.
+    The arrays of :class:`~masking_lab.procedures.batch.TrackBatch` (``levels_db`` and
+    ``correct`` have shape (R, 0) when run with ``store_levels=False``; each row may start at
+    its own level; the true thresholds are the levels where p = 0.794), and the reversals.
 
     Attributes
     ----------
-    settings : StaircaseSettings
-        The rules every track followed (``start_level_db`` may be overridden per row).
     start_level_db : ndarray, shape (R,)
         First level of each track, dB.
-    levels_db : ndarray, shape (R, T)
-        Level of every trial, dB (shape (R, 0) when run with ``store_levels=False``).
-    correct : ndarray of bool, shape (R, T)
-        Whether each trial was answered correctly (likewise).
-    n_trials : ndarray of int, shape (R,)
-        Trials run by each track.
     reversal_levels_db : ndarray, shape (R, settings.n_reversals)
         Level of each reversal, dB (NaN beyond the reversals a track made).
     reversal_trials : ndarray of int, shape (R, settings.n_reversals)
@@ -99,26 +93,14 @@ class SimulatedTracks:
     al_db : ndarray, shape (R,)
         Mean of the last ``n_reversals_averaged`` reversal levels, dB, for completed tracks
         (``math.fsum`` per row, exactly as :attr:`Staircase.al_db`); NaN otherwise.
-    true_threshold_db : ndarray or None, shape (R,)
-        Each simulated observer's true threshold (level where p = 0.794), dB; None for replays.
     """
 
-    settings: StaircaseSettings
     start_level_db: NDArray[np.float64]
-    levels_db: NDArray[np.float64]
-    correct: NDArray[np.bool_]
-    n_trials: NDArray[np.int64]
     reversal_levels_db: NDArray[np.float64]
     reversal_trials: NDArray[np.int64]
     reversal_count: NDArray[np.int64]
     status_code: NDArray[np.int8]
     al_db: NDArray[np.float64]
-    true_threshold_db: NDArray[np.float64] | None = None
-
-    @property
-    def n_replicates(self) -> int:
-        """Number of tracks R."""
-        return int(self.n_trials.shape[0])
 
     @property
     def status(self) -> NDArray[np.str_]:
