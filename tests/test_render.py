@@ -240,6 +240,28 @@ def test_render_scene_arrays_and_ideal_passthrough():
     assert r.inputs(False)[0] is r.mv_target_db_sl and r.perceived(True)[1] is r.ev_perceived_db_sl
 
 
+def test_a_rendering_cannot_disagree_with_itself():
+    # Targets and inputs are the solution's arrays; what is felt is input − masked AL, also
+    # after the inputs are replaced by what a device played.
+    pair = MutualMasking(a_db=-2.0, b=0.5, c_db=-1.0, d=0.4, mv="MV180", ev="EV270")
+    r = render_scene(_tiny_scene(), pair)
+    assert r.mv_input_db_sl is r.solution.mv_input_db_sl
+    assert r.ev_target_db_sl is r.solution.ev_target_db_sl
+    finite = np.isfinite(r.ev_input_db_sl)
+    assert finite.any()
+    played_ev = np.where(finite, r.ev_input_db_sl - 2.5, r.ev_input_db_sl)
+    played = r.with_inputs(r.mv_input_db_sl, played_ev)
+    np.testing.assert_array_equal(played.ev_input_db_sl, played_ev)
+    np.testing.assert_allclose(
+        played.ev_perceived_db_sl[finite], r.ev_perceived_db_sl[finite] - 2.5, atol=1e-12
+    )
+    np.testing.assert_array_equal(played.mv_perceived_db_sl, r.mv_perceived_db_sl)
+    # The solver's verdicts and the uncompensated side stay those of the rendering.
+    np.testing.assert_array_equal(played.solution.status, r.solution.status)
+    np.testing.assert_array_equal(played.ev_perceived_uncomp_db_sl, r.ev_perceived_uncomp_db_sl)
+    np.testing.assert_array_equal(r.ev_perceived_db_sl, r.ev_input_db_sl - r.ev_masked_al_db_sl)
+
+
 def test_write_rendering_is_complete_and_json_is_strict(tmp_path):
     scene = Scene(
         "g", PathSpec(length_mm=10.0, n_points=5), GeometrySpec("hole", position_mm=5.0), None
