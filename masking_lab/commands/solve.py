@@ -15,6 +15,7 @@ import math
 from typing import Any
 
 from masking_lab.commands.options import command_texts, rating_options
+from masking_lab.formats.records import json_number
 
 EPILOG = """\
 examples:
@@ -122,7 +123,8 @@ def as_json(mm: Any, sol: Any) -> dict[str, Any]:
     solutions = []
     for i in range(n):
         entries = [
-            {"mv_input_db": _j(m), "ev_input_db": _j(e), "case": c} for m, e, c in sol.solutions(i)
+            {"mv_input_db": json_number(m), "ev_input_db": json_number(e), "case": c}
+            for m, e, c in sol.solutions(i)
         ]
         if sol.continuum[i]:
             for entry in entries:
@@ -141,10 +143,10 @@ def as_json(mm: Any, sol: Any) -> dict[str, Any]:
         "notes": list(mm.notes),
         "max_mv_db_sl": sol.max_mv_db_sl,
         "max_ev_db_sl": sol.max_ev_db_sl,
-        "mv_target_db": [_j(v) for v in sol.mv_target_db_sl],
-        "ev_target_db": [_j(v) for v in sol.ev_target_db_sl],
-        "mv_input_db": [_j(v) for v in sol.mv_input_db_sl],
-        "ev_input_db": [_j(v) for v in sol.ev_input_db_sl],
+        "mv_target_db": [json_number(v) for v in sol.mv_target_db_sl],
+        "ev_target_db": [json_number(v) for v in sol.ev_target_db_sl],
+        "mv_input_db": [json_number(v) for v in sol.mv_input_db_sl],
+        "ev_input_db": [json_number(v) for v in sol.ev_input_db_sl],
         "case": [int(c) or None for c in sol.case],
         "status": sol.status_names(),
         "reason": [REASON_TEXT[Reason(int(r))] or None for r in sol.reason],
@@ -233,15 +235,6 @@ def _only_mv(params: dict[str, Any], ev: str, source: str) -> str:
     raise SolverError(
         f"{source}: say which MV stimulus with --mv NAME (masked by {ev} in the file: {listed})"
     )
-
-
-def _j(x: float) -> float | str | None:
-    x = float(x)
-    if math.isnan(x):
-        return None
-    if math.isinf(x):
-        return "-inf" if x < 0 else "inf"
-    return x
 
 
 def _f(x: float) -> str:

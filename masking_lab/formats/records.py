@@ -14,7 +14,10 @@ The policy for non-finite numbers, in one place:
   in an analysis;
 - a *copy* of what a user wrote (a protocol's or a user test's content kept in the header for
   resume) goes through :func:`jsonable` first, which keeps non-finite floats as the strings
-  ``"inf"``, ``"-inf"``, ``"nan"``, so the copy stays faithful and valid JSON.
+  ``"inf"``, ``"-inf"``, ``"nan"``, so the copy stays faithful and valid JSON;
+- a computed number in an output document (a rendering's summary, ``solve --json``) goes
+  through :func:`json_number`: NaN ("no answer") becomes ``null``, ±inf (a channel that is
+  absent, −inf dB) the strings ``"-inf"``/``"inf"``.
 """
 
 from __future__ import annotations
@@ -25,7 +28,7 @@ import math
 from collections.abc import Mapping
 from typing import Any
 
-__all__ = ["encode_record", "jsonable"]
+__all__ = ["encode_record", "json_number", "jsonable"]
 
 
 def encode_record(record: Mapping[str, Any]) -> str:
@@ -76,3 +79,19 @@ def jsonable(value: Any) -> Any:
     if isinstance(value, dt.date):
         return value.isoformat()
     return str(value)
+
+
+def json_number(x: float) -> float | str | None:
+    """A computed number for an output JSON document: NaN → None, ±inf → ``"inf"``/``"-inf"``.
+
+    Examples
+    --------
+    >>> [json_number(v) for v in (2.5, float("nan"), float("-inf"))]
+    [2.5, None, '-inf']
+    """
+    x = float(x)
+    if math.isnan(x):
+        return None
+    if math.isinf(x):
+        return "-inf" if x < 0 else "inf"
+    return x

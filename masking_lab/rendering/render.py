@@ -16,7 +16,6 @@ table, the summary and the figure, and the protocol that measures missing maskin
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, replace
 from functools import cached_property
 from typing import Any
@@ -26,6 +25,7 @@ from numpy.typing import NDArray
 
 from masking_lab import __version__
 from masking_lab.core.errors import SolverError
+from masking_lab.formats.records import json_number
 from masking_lab.rendering.scene import Scene
 from masking_lab.rendering.solver import (
     REASON_TEXT,
@@ -373,7 +373,9 @@ def summarize(r: Rendering) -> dict[str, Any]:
             err = np.abs(perceived - target)
             lost = (target >= 0) & (perceived < 0)
             entry[label] = {
-                "max_abs_error_db": _num(np.nanmax(err)) if np.any(np.isfinite(err)) else None,
+                "max_abs_error_db": json_number(np.nanmax(err))
+                if np.any(np.isfinite(err))
+                else None,
                 "points_not_felt": int(np.count_nonzero(lost)),
             }
         channels[name] = entry
@@ -389,13 +391,4 @@ def _stimulus(scene: Scene, ch: str) -> str:
 
 def _range(a: NDArray[np.float64]) -> list[Any] | None:
     ok = a[np.isfinite(a)]
-    return [_num(ok.min()), _num(ok.max())] if ok.size else None
-
-
-def _num(x: float) -> float | str | None:
-    x = float(x)
-    if math.isnan(x):
-        return None
-    if math.isinf(x):
-        return "-inf" if x < 0 else "inf"
-    return x
+    return [json_number(ok.min()), json_number(ok.max())] if ok.size else None
