@@ -10,26 +10,15 @@ import textwrap
 import threading
 
 import pytest
-from hardening_support import HELLO, RIG, ScriptedPeer, raw_frame, standard
+from hardening_support import HELLO, RIG, ScriptedPeer, raw_frame, short_plan, standard
 
 from masking_lab.core.clock import VirtualClock
 from masking_lab.core.errors import DeviceProtocolError, DeviceTimeoutError
-from masking_lab.core.stimulus import parse_stimulus
-from masking_lab.core.trial import TrialPlan
 from masking_lab.device import protocol as proto
 from masking_lab.device.config import parse_device_config
 from masking_lab.device.serial_device import SerialDevice
 
-PLAN = TrialPlan(
-    target=parse_stimulus("EV270"),
-    target_amplitude_v=0.5,
-    target_interval=2,
-    masker=parse_stimulus("MV120"),
-    masker_amplitude_v=0.3,
-    stimulus_s=0.02,
-    gap_s=0.01,
-    lead_in_s=0.01,
-)
+PLAN = short_plan()
 
 
 @pytest.fixture

@@ -35,7 +35,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--serial-share", type=float, default=0.1, help="fraction of serial exchanges (0.1)"
     )
-    parser.add_argument("--kinds", nargs="+", default=list(KINDS), help="file kinds to mutate")
+    parser.add_argument(
+        "--kinds",
+        nargs="+",
+        default=list(KINDS),
+        choices=KINDS,
+        help="file kinds to mutate (serial frames: --serial-share)",
+    )
     parser.add_argument("--save", type=Path, help="folder to keep the inputs of findings in")
     args = parser.parse_args(argv)
     logging.getLogger("masking_lab").setLevel(logging.CRITICAL)  # device faults are expected
