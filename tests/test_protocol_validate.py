@@ -149,6 +149,13 @@ def test_one_bad_file_among_good_ones_fails_the_run(tmp_path, capsys):
     assert "bad.yaml" in captured.err
 
 
+def test_a_folder_is_refused_with_what_to_give_instead(capsys):
+    assert main(["validate", str(shipped("protocols", "experiment1.yaml").parent)]) == 1
+    out = capsys.readouterr()
+    text = out.out + out.err
+    assert "INVALID" in text and "give the files one by one" in text
+
+
 def test_unreadable_file(tmp_path):
     with pytest.raises(ProtocolError, match="cannot read"):
         load_protocol(tmp_path / "missing.yaml")

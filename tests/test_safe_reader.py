@@ -125,8 +125,9 @@ def test_size_limit_and_files_that_are_not_files(tmp_path):
     big.write_bytes(b"#" * (MAX_BYTES + 1))
     with pytest.raises(ProtocolError, match="larger than 4096 kB"):
         read_limited(big, what="protocol")
-    with pytest.raises(ProtocolError, match="not a regular file"):
+    with pytest.raises(ProtocolError, match="not a regular file") as err:
         read_limited("/dev/zero", what="protocol")  # would never end
+    assert "give the path of the protocol itself" in str(err.value)
     fifo = tmp_path / "fifo.yaml"
     os.mkfifo(fifo)
     with pytest.raises(ProtocolError, match="not a regular file"):

@@ -164,7 +164,12 @@ def _first_line(path: str, limit: int = 8 * 1024 * 1024) -> bytes:
 
     try:
         if not stat.S_ISREG(os.stat(path).st_mode):  # a FIFO or device would block or never end
-            raise ProtocolError(path, "", "not a regular file (a device, FIFO or folder)")
+            raise ProtocolError(
+                path,
+                "",
+                "not a regular file (a device, FIFO or folder); give the files one by one, "
+                "e.g. protocols/*.yaml",
+            )
         with open(path, "rb") as fh:
             for _ in range(64):
                 line = fh.readline(limit)

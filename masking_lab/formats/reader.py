@@ -135,7 +135,8 @@ def read_limited(
                 raise error(
                     str(p),
                     "",
-                    f"not a regular file (a device, FIFO or folder); give the {what} file itself",
+                    "not a regular file (a device, FIFO or folder); "
+                    f"give the path of the {what} itself",
                 )
             raw = fh.read(max_bytes + 1)
     except OSError as exc:
