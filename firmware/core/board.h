@@ -19,4 +19,11 @@ void board_outputs_zero(void);
 /* Last value written to each DAC channel, V (for DIAG). */
 void board_dac_last(float out[2]);
 
+/* Protocol v2 board functions (PROTOCOL-V2.md). */
+uint32_t board_micros32(void);
+const char *board_reset_cause(void);
+const char *board_clock_source(void);
+void board_set_attenuator(int ch, uint8_t step_index);
+void board_iwdg_feed(void);
+
 #endif

@@ -4,20 +4,18 @@
 #include "regs.h"
 #include "stm32.h"
 
-/* The rig's reference limits (protocols/devices/default.yaml): EV 5 V, MV 10 V peak at the
- * amplifier inputs. A rig with other amplifiers rebuilds with -DLIMIT_EV_UV=... */
-#ifndef LIMIT_EV_UV
-#define LIMIT_EV_UV 5000000LL
-#endif
-#ifndef LIMIT_MV_UV
-#define LIMIT_MV_UV 10000000LL
-#endif
-#ifndef WATCHDOG_MS
-#define WATCHDOG_MS 500u
-#endif
-#ifndef SERIAL_NUMBER
-#define SERIAL_NUMBER "ML-0001"
-#endif
+/* The rig's limits, watchdog, serial number, converter full scale and attenuator steps come
+ * from the Makefile (make LIMIT_EV_UV=... LIMIT_MV_UV=...; defaults in stm32.h: the reference
+ * rig of protocols/devices/default.yaml). A limit outside the DAC buffer's linear range could
+ * only be met by clipping: such a build fails here instead. */
+_Static_assert(LIMIT_EV_UV > 0 && LIMIT_EV_UV * 2048LL <= FSV_EV_UV * 1798LL,
+               "LIMIT_EV_UV exceeds the EV output's linear range (FSV_EV_UV * 1798/2048)");
+_Static_assert(LIMIT_MV_UV > 0 && LIMIT_MV_UV * 2048LL <= FSV_MV_UV * 1798LL,
+               "LIMIT_MV_UV exceeds the MV output's linear range (FSV_MV_UV * 1798/2048)");
+
+/* The build identity and rig options, kept in the image for `strings`/gdb and the build test. */
+__attribute__((used)) const char board_build_info[] =
+    "masking-fw build=" FW_BUILD " sn=" SERIAL_NUMBER " att=" ATT_STEPS_DB;
 
 static fw_t fw;
 
@@ -36,8 +34,11 @@ static const fw_config_t config = {
 
 int main(void)
 {
+    reset_cause_capture(); /* before anything could reset again */
+    __asm__ volatile("" ::"r"(board_build_info)); /* keep it through --gc-sections */
     clock_init();
     hw_watchdog_init();
+    attenuator_init();
     interlock_init();
     output_init(&fw);
     usart_init();
@@ -45,7 +46,7 @@ int main(void)
     output_init(&fw); /* restart the sample stream against the initialised core */
     fw_boot(&fw);
     for (;;) {
-        hw_watchdog_feed();
+        board_iwdg_feed();
         uint8_t buf[64];
         size_t n = usart_read(buf, sizeof buf);
         if (n) {

@@ -1,8 +1,10 @@
 /* QEMU outputs: QEMU's STM32F405 has no DAC, DMA, GPIO or IWDG model, so samples rendered at
  * the sample rate are recorded in a RAM ring (inspect with gdb: `x/64f ram_out_ev`) and DIAG
  * reports the last ones. The interlock input is a second UART (QEMU serial1 = USART2): a byte
- * 'o' opens it, 'c' closes it, like a test rig toggling a relay. */
+ * 'o' opens it, 'c' closes it, like a test rig toggling a relay; it goes through the same
+ * debounce as the board's PC8. The attenuator steps and IWDG feeds are recorded in RAM. */
 #include "../core/board.h"
+#include "board_logic.h"
 #include "regs.h"
 #include "stm32.h"
 
@@ -14,7 +16,11 @@ volatile uint32_t ram_out_count;   /* samples recorded since boot */
 volatile uint32_t ram_out_skipped; /* samples not recorded: emulation slower than fs */
 static uint64_t next_sample;
 static bool il_open;
-static uint32_t watchdog_feeds;
+static debounce_t interlock;
+volatile uint32_t iwdg_feeds;      /* the modelled IWDG: feeds since boot */
+volatile uint8_t ram_att_step[2];  /* last attenuator step per channel */
+static uint8_t att_steps[ATT_MAX_STEPS];
+static unsigned att_count;
 
 void output_init(fw_t *fw)
 {
@@ -75,22 +81,48 @@ void board_dac_last(float out[2])
 
 void hw_watchdog_init(void)
 {
-    watchdog_feeds = 0;
+    iwdg_feeds = 0;
 }
 
-void hw_watchdog_feed(void)
+void board_iwdg_feed(void)
 {
-    watchdog_feeds++;
+    iwdg_feeds++;
 }
+
+void attenuator_init(void)
+{
+    att_count = att_parse(ATT_STEPS_DB, att_steps);
+    ram_att_step[0] = ram_att_step[1] = (uint8_t)(att_count ? att_count - 1u : 0u);
+}
+
+void board_set_attenuator(int ch, uint8_t step_index)
+{
+    if (ch >= 0 && ch <= 1 && step_index < att_count) {
+        ram_att_step[ch] = step_index;
+    }
+}
+
+static bool interlock_raw_open(void);
 
 void interlock_init(void)
 {
-    RCC_APB1ENR |= (1u << 17);
+    rcc_enable(&RCC_APB1ENR, 1u << 17); /* USART2 */
     USART_CR1(USART2_BASE) = USART_CR1_UE | USART_CR1_RE;
     il_open = false;
+    uint32_t t0 = board_micros32();
+    debounce_init(&interlock, true, t0);
+    while ((uint32_t)(board_micros32() - t0) < 4u * INTERLOCK_DEBOUNCE_US) {
+        (void)interlock_read_open();
+    }
 }
 
 bool interlock_read_open(void)
+{
+    return debounce_step(&interlock, interlock_raw_open(), board_micros32(),
+                         INTERLOCK_DEBOUNCE_US, INTERLOCK_DEBOUNCE_SAMPLES);
+}
+
+static bool interlock_raw_open(void)
 {
     while (USART_SR(USART2_BASE) & USART_SR_RXNE) {
         uint8_t b = (uint8_t)USART_DR(USART2_BASE);

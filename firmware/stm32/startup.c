@@ -3,6 +3,7 @@
 #include <stdint.h>
 
 #include "regs.h"
+#include "stm32.h"
 
 extern uint32_t _sidata, _sdata, _edata, _sbss, _ebss, _estack;
 int main(void);
@@ -40,9 +41,15 @@ void Default_Handler(void)
     HardFault_Handler(); /* an unexpected interrupt is a bug: treat it as a fault */
 }
 
-#define VECTORS 16 + 96
+/* Every position the reference manual lists (F446: 16 system + 97 IRQs), each with a handler:
+ * an interrupt nobody expects lands in Default_Handler (a fault: outputs zeroed), never at a
+ * null vector. */
+#define VECTORS (16 + BOARD_IRQS)
 
+#pragma GCC diagnostic push
+#pragma GCC diagnostic ignored "-Woverride-init" /* the range default, then named entries */
 __attribute__((section(".isr_vector"), used)) void (*const vector_table[VECTORS])(void) = {
+    [1 ... VECTORS - 1] = Default_Handler,
     [0] = (void (*)(void))(&_estack),
     [1] = Reset_Handler,
     [2] = NMI_Handler,
@@ -50,9 +57,8 @@ __attribute__((section(".isr_vector"), used)) void (*const vector_table[VECTORS]
     [4] = MemManage_Handler,
     [5] = BusFault_Handler,
     [6] = UsageFault_Handler,
-    [11] = Default_Handler, /* SVCall */
-    [14] = Default_Handler, /* PendSV */
     [15] = SysTick_Handler,
     [16 + IRQ_USART1] = USART1_IRQHandler,
     [16 + IRQ_USART2] = USART2_IRQHandler,
 };
+#pragma GCC diagnostic pop

@@ -14,11 +14,15 @@
 #define HOST_USART_BASE USART2_BASE /* ST-Link virtual COM port, PA2/PA3 */
 #define HOST_USART_IRQ IRQ_USART2
 #define HOST_USART_PCLK 42000000u
+#define TIM2_CLOCK_HZ 84000000u /* APB1 42 MHz, prescaler != 1: timers run at 2 x PCLK1 */
+#define BOARD_IRQS 97           /* RM0390 table 38: positions 0..96 (FMPI2C1 error last) */
 #define BOARD_FW_SUFFIX "+stm32"
 #elif defined(BOARD_QEMU_NETDUINOPLUS2)
 #define HOST_USART_BASE USART1_BASE /* QEMU maps serial0 to USART1 */
 #define HOST_USART_IRQ IRQ_USART1
 #define HOST_USART_PCLK 84000000u
+#define TIM2_CLOCK_HZ 1000000000u /* QEMU's stm32f405 clocks TIM2-5 at 1 GHz */
+#define BOARD_IRQS 82             /* RM0090: positions 0..81 (FPU last) */
 #define BOARD_FW_SUFFIX "+qemu"
 #else
 #error "define BOARD_NUCLEO_F446RE or BOARD_QEMU_NETDUINOPLUS2"
@@ -29,7 +33,8 @@
 
 void HardFault_Handler(void);
 
-void clock_init(void);            /* PLL to 168 MHz (real board), SysTick at 1 kHz */
+void reset_cause_capture(void);   /* read and clear RCC_CSR: first thing in main() */
+void clock_init(void);            /* HSE/HSI -> PLL 168 MHz (real board), TIM2 1 MHz, SysTick */
 
 void usart_init(void);            /* host link, RX interrupt into a ring buffer */
 size_t usart_read(uint8_t *buf, size_t cap);
@@ -42,9 +47,40 @@ void output_init(fw_t *fw);
 void output_service(fw_t *fw);    /* keep the sample stream fed from fw_render() */
 void output_emergency_zero(void); /* from fault handlers: no core state, registers only */
 bool output_active(const fw_t *fw);
-void interlock_init(void);
+void interlock_init(void);        /* needs clock_init(): debounced on board_micros32() */
 bool interlock_read_open(void);   /* true = open: HV enable off, E-stop hit, wristband off */
-void hw_watchdog_init(void);
-void hw_watchdog_feed(void);
+void attenuator_init(void);       /* control lines out, at the largest attenuation */
+void hw_watchdog_init(void);      /* IWDG (QEMU: a feed counter) */
+
+/* Interlock debounce: a change is taken after >= 5 equal samples spanning >= 5 ms. */
+#define INTERLOCK_DEBOUNCE_US 5000u
+#define INTERLOCK_DEBOUNCE_SAMPLES 5u
+
+/* Rig options (Makefile variables; defaults for a bare build). */
+#ifndef LIMIT_EV_UV
+#define LIMIT_EV_UV 5000000LL
+#endif
+#ifndef LIMIT_MV_UV
+#define LIMIT_MV_UV 10000000LL
+#endif
+#ifndef WATCHDOG_MS
+#define WATCHDOG_MS 500u
+#endif
+#ifndef SERIAL_NUMBER
+#define SERIAL_NUMBER "ML-0001"
+#endif
+#ifndef FSV_EV_UV
+#define FSV_EV_UV 6000000LL
+#endif
+#ifndef FSV_MV_UV
+#define FSV_MV_UV 12000000LL
+#endif
+#ifndef ATT_STEPS_DB
+#define ATT_STEPS_DB "0"
+#endif
+#ifndef FW_BUILD
+#define FW_BUILD "000000000000"
+#endif
+#define DAC_BITS 12
 
 #endif
