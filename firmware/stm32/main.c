@@ -9,9 +9,9 @@
  * rig of protocols/devices/default.yaml). A limit outside the DAC buffer's linear range could
  * only be met by clipping: such a build fails here instead. */
 _Static_assert(LIMIT_EV_UV > 0 && LIMIT_EV_UV * 2048LL <= FSV_EV_UV * 1798LL,
-               "LIMIT_EV_UV exceeds the EV output's linear range (FSV_EV_UV * 1798/2048)");
+               "LIMIT_EV_UV exceeds the linear range of the EV output (FSV_EV_UV * 1798/2048)");
 _Static_assert(LIMIT_MV_UV > 0 && LIMIT_MV_UV * 2048LL <= FSV_MV_UV * 1798LL,
-               "LIMIT_MV_UV exceeds the MV output's linear range (FSV_MV_UV * 1798/2048)");
+               "LIMIT_MV_UV exceeds the linear range of the MV output (FSV_MV_UV * 1798/2048)");
 
 /* The build identity and rig options, kept in the image for `strings`/gdb and the build test. */
 __attribute__((used)) const char board_build_info[] =
