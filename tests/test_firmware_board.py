@@ -147,10 +147,10 @@ def test_dac_codes_stay_inside_the_buffer_linear_range(logic):
     assert code(logic, math.inf, fsv) == (hi, True)
 
 
-def test_the_default_full_scales_fit_the_reference_limits(logic):
-    assert logic.dac_linear_max_uv(12_000_000) == 10_535_156  # MV: 10 V limit fits
-    assert logic.dac_linear_max_uv(6_000_000) == 5_267_578  # EV: 5 V limit fits
-    assert logic.dac_linear_max_uv(10_000_000) < 10_000_000  # the old ±10 V stage did not
+def test_the_linear_range_of_a_full_scale(logic):
+    # a 10 V stage (the default): 8.779 V linear, so the MV limit is 8.7 V, not 10 V
+    assert logic.dac_linear_max_uv(10_000_000) == 8_779_296
+    assert logic.dac_linear_max_uv(12_000_000) == 10_535_156  # 10 V needs a 12 V stage
 
 
 @pytest.mark.parametrize(("in_hz", "hse", "m"), [(8_000_000, True, 4), (16_000_000, False, 8)])

@@ -23,6 +23,8 @@ CUSTOM = {
     "LIMIT_MV_UV": "7654321",
     "WATCHDOG_MS": "321",
     "SERIAL_NUMBER": "RIG-42",
+    "FSV_EV_UV": "8000000",
+    "ATT_STEPS_DB": "0,20,40",
 }
 
 
@@ -98,13 +100,23 @@ def test_a_bad_rig_variable_is_refused_by_name(setting, named, tmp_path):
     assert named in proc.stderr
 
 
-def test_a_limit_beyond_the_dac_linear_range_does_not_build(tmp_path):
+@pytest.mark.parametrize(
+    ("settings", "too_high"),
+    [
+        # the old default: 10 V on a 10 V stage, whose linear range ends at 8.779 V
+        (["LIMIT_MV_UV=10000000"], True),
+        (["LIMIT_MV_UV=8779296"], False),
+        # a 12 V stage: 1798 of 2048 codes are linear, 10.535 V
+        (["FSV_MV_UV=12000000", "LIMIT_MV_UV=10600000"], True),
+        (["FSV_MV_UV=12000000", "LIMIT_MV_UV=10535000"], False),
+    ],
+)
+def test_a_limit_beyond_the_dac_linear_range_does_not_build(settings, too_high, tmp_path):
     require_tools("make", "arm-none-eabi-gcc")
-    # 12 V full scale: 1798 of 2048 codes are linear, 10.535 V; 10.6 V could only be clipped.
-    proc = make(f"BUILD={tmp_path}", "stm32", "LIMIT_MV_UV=10600000", check=False)
-    assert proc.returncode != 0
-    assert "LIMIT_MV_UV exceeds the linear range of the MV output" in proc.stderr
-    make(f"BUILD={tmp_path}", "stm32", "LIMIT_MV_UV=10535000")
+    proc = make(f"BUILD={tmp_path}", "stm32", *settings, check=False)
+    assert (proc.returncode != 0) == too_high, proc.stderr
+    if too_high:
+        assert "LIMIT_MV_UV exceeds the linear range of the MV output" in proc.stderr
 
 
 def test_the_build_hash_follows_the_documented_recipe_and_the_sources(tmp_path):
@@ -125,7 +137,7 @@ def test_the_build_hash_follows_the_documented_recipe_and_the_sources(tmp_path):
 def test_every_image_carries_its_build_hash(custom_qemu):
     ids = dict(line.split() for line in make("build-id").stdout.splitlines())
     image = custom_qemu.read_bytes()
-    assert f"masking-fw build={ids['qemu']} sn=RIG-42 att=0".encode() in image
+    assert f"masking-fw build={ids['qemu']} sn=RIG-42 att=0,20,40".encode() in image
 
 
 def _vectors(elf: Path, tmp: Path) -> list[int]:
@@ -169,6 +181,8 @@ def test_an_image_built_with_rig_limits_reports_them_in_hello(custom_qemu):
         hello = board.call("HELLO")
     assert hello["max_ev"] == "1.234567" and hello["max_mv"] == "7.654321"
     assert hello["wd_ms"] == "321" and hello["sn"] == "RIG-42"
-    if int(hello["proto"]) >= 2:  # the v2 core (fw-core) reports the build hash too
+    if int(hello["proto"]) >= 2:  # the v2 core (fw-core) reports the converter and build too
         ids = dict(line.split() for line in make("build-id").stdout.splitlines())
         assert hello["build"] == ids["qemu"]
+        assert (hello["fsv_ev"], hello["fsv_mv"]) == ("8", "10")
+        assert (hello["bits_ev"], hello["bits_mv"], hello["att"]) == ("12", "12", "0,20,40")

@@ -1,6 +1,7 @@
 /* STM32 board main loop: one context runs the core; interrupts only move bytes and ticks. */
 #include "../core/board.h"
 #include "../core/fw.h"
+#include "board_logic.h"
 #include "regs.h"
 #include "stm32.h"
 
@@ -19,7 +20,7 @@ __attribute__((used)) const char board_build_info[] =
 
 static fw_t fw;
 
-static const fw_config_t config = {
+static fw_config_t config = {
     .limit_uv = {LIMIT_EV_UV, LIMIT_MV_UV},
     .wd_ms = WATCHDOG_MS,
     .fs_hz = 20000u,
@@ -30,7 +31,24 @@ static const fw_config_t config = {
     .fw_version = FW_VERSION BOARD_FW_SUFFIX,
     .model = "ML-FW-2CH",
     .serial_number = SERIAL_NUMBER,
+#if FW_PROTOCOL_VERSION >= 2
+    .bits = {DAC_BITS, DAC_BITS},
+    .fsv_uv = {FSV_EV_UV, FSV_MV_UV},
+    .build = FW_BUILD,
+#endif
 };
+
+static void config_attenuators(void)
+{
+#if FW_PROTOCOL_VERSION >= 2
+    uint8_t steps[ATT_MAX_STEPS];
+    unsigned n = att_parse(ATT_STEPS_DB, steps); /* the Makefile checked the list */
+    for (unsigned i = 0; i < n && i < LEVEL_MAX_STEPS; i++) {
+        config.att_db[i] = steps[i];
+    }
+    config.n_att = (uint8_t)(n < LEVEL_MAX_STEPS ? n : LEVEL_MAX_STEPS);
+#endif
+}
 
 int main(void)
 {
@@ -39,6 +57,7 @@ int main(void)
     clock_init();
     hw_watchdog_init();
     attenuator_init();
+    config_attenuators();
     interlock_init();
     output_init(&fw);
     usart_init();

@@ -21,8 +21,20 @@ static uint32_t last_pos;
 static uint64_t wraps;
 static float last_v[2];
 volatile uint32_t dac_clamped; /* samples outside the linear range (0 when limits fit) */
+#if FW_PROTOCOL_VERSION < 2
 static const float fsv_v[2] = {(float)FSV_EV_UV / 1e6f, (float)FSV_MV_UV / 1e6f};
+#endif
 
+#if FW_PROTOCOL_VERSION >= 2
+static uint32_t code_of(int32_t signed_code)
+{
+    if (signed_code > (int32_t)DAC_SPAN || signed_code < -(int32_t)DAC_SPAN) {
+        dac_clamped++; /* outside the buffer's linear range: see docs/hardware.md */
+        return signed_code > 0 ? DAC_CODE_MAX : DAC_CODE_MIN;
+    }
+    return (uint32_t)((int32_t)DAC_MID + signed_code);
+}
+#else
 static uint32_t to_code(int ch, float v)
 {
     bool clamped;
@@ -30,6 +42,7 @@ static uint32_t to_code(int ch, float v)
     dac_clamped += clamped ? 1u : 0u;
     return code;
 }
+#endif
 
 static void dma_clear_flags(void)
 {
@@ -97,7 +110,13 @@ void output_service(fw_t *fw)
         int64_t t_us = (int64_t)(dma_start_us + next_sample * 1000000u / fs);
         float v[2];
         fw_render(fw, t_us, v);
-        dma_buf[next_sample % BUF_SAMPLES] = (to_code(1, v[1]) << 16) | to_code(0, v[0]);
+#if FW_PROTOCOL_VERSION >= 2
+        /* the core's own quantised codes: exactly the amplitude DONE reports */
+        uint32_t ev = code_of(fw->out_code[0]), mv = code_of(fw->out_code[1]);
+#else
+        uint32_t ev = to_code(0, v[0]), mv = to_code(1, v[1]);
+#endif
+        dma_buf[next_sample % BUF_SAMPLES] = (mv << 16) | ev;
         last_v[0] = v[0];
         last_v[1] = v[1];
         next_sample++;

@@ -61,7 +61,7 @@ void hw_watchdog_init(void);      /* IWDG (QEMU: a feed counter) */
 #define LIMIT_EV_UV 5000000LL
 #endif
 #ifndef LIMIT_MV_UV
-#define LIMIT_MV_UV 10000000LL
+#define LIMIT_MV_UV 8700000LL /* inside the linear range of a 10 V stage (8.779 V) */
 #endif
 #ifndef WATCHDOG_MS
 #define WATCHDOG_MS 500u
@@ -70,10 +70,10 @@ void hw_watchdog_init(void);      /* IWDG (QEMU: a feed counter) */
 #define SERIAL_NUMBER "ML-0001"
 #endif
 #ifndef FSV_EV_UV
-#define FSV_EV_UV 6000000LL
+#define FSV_EV_UV 10000000LL
 #endif
 #ifndef FSV_MV_UV
-#define FSV_MV_UV 12000000LL
+#define FSV_MV_UV 10000000LL
 #endif
 #ifndef ATT_STEPS_DB
 #define ATT_STEPS_DB "0"

@@ -16,12 +16,12 @@ static volatile uint32_t tx_head, tx_tail;
 void usart_init(void)
 {
 #if defined(BOARD_NUCLEO_F446RE)
-    RCC_AHB1ENR |= 1u;         /* GPIOA */
-    RCC_APB1ENR |= (1u << 17); /* USART2 */
+    rcc_enable(&RCC_AHB1ENR, 1u);         /* GPIOA (errata-safe: before its first access) */
+    rcc_enable(&RCC_APB1ENR, 1u << 17);   /* USART2 */
     GPIO_MODER(GPIOA_BASE) = (GPIO_MODER(GPIOA_BASE) & ~(0xFu << 4)) | (0xAu << 4); /* AF */
     GPIO_AFRL(GPIOA_BASE) = (GPIO_AFRL(GPIOA_BASE) & ~(0xFFu << 8)) | (0x77u << 8);  /* AF7 */
 #else
-    RCC_APB2ENR |= (1u << 4); /* USART1 (ignored by QEMU, needed on silicon) */
+    rcc_enable(&RCC_APB2ENR, 1u << 4); /* USART1 (ignored by QEMU, needed on silicon) */
 #endif
     USART_BRR(HOST_USART_BASE) = (HOST_USART_PCLK + HOST_BAUD / 2u) / HOST_BAUD;
     USART_CR1(HOST_USART_BASE) = USART_CR1_UE | USART_CR1_TE | USART_CR1_RE | USART_CR1_RXNEIE;
