@@ -125,6 +125,11 @@ def test_the_build_hash_follows_the_documented_recipe_and_the_sources(tmp_path):
     assert ids["host"] == build_hash(FIRMWARE, "host")
     assert ids["stm32"] == ids["qemu"] == build_hash(FIRMWARE, "stm32")
     assert ids["host"] != ids["stm32"]
+    # ... and is what every image is compiled with
+    out = make("-n", "-B", f"BUILD={tmp_path}", "host", "stm32", "qemu").stdout
+    out = out.replace("\\\n", " ")
+    builds = re.findall(r"-DFW_BUILD='\"([0-9a-f]+)\"'", out)
+    assert builds == [ids["host"], ids["stm32"], ids["qemu"]]
     # One byte more in a core file is another build.
     copy = tmp_path / "firmware"
     shutil.copytree(FIRMWARE, copy, ignore=shutil.ignore_patterns("build"))

@@ -100,8 +100,10 @@ static bool pll_168mhz(bool hse)
         ((PWR_CR >> 14) & 3u) != 3u) {
         return false;
     }
+    RCC_CFGR = CFGR_168MHZ & ~3u; /* bus prescalers first, so no bus ever runs too fast */
     RCC_CFGR = CFGR_168MHZ;
-    return wait_set(&RCC_CFGR, 3u << 2, 2u << 2, PLL_TIMEOUT_LOOPS); /* SWS = PLL */
+    return wait_set(&RCC_CFGR, 3u << 2, 2u << 2, PLL_TIMEOUT_LOOPS) && /* SWS = PLL */
+           (RCC_CFGR & ~(3u << 2)) == CFGR_168MHZ; /* SWS is read-only status */
 }
 #endif
 
