@@ -54,15 +54,16 @@ def symbols(elf: Path) -> dict[str, int]:
 class QemuBoard:
     """One QEMU netduinoplus2 running ``elf``; use as a context manager."""
 
-    def __init__(self, elf: Path) -> None:
+    def __init__(self, elf: Path, icount: str = "shift=auto") -> None:
         require_tools("qemu-system-arm", "arm-none-eabi-nm")
         self.elf = elf
+        self.icount = icount
         self.symbols = symbols(elf)
         self._dir = Path(os.environ.get("TMPDIR", "/tmp"))
         self._mon_path = self._dir / f"ml-qemu-mon-{os.getpid()}-{id(self)}.sock"
         self.proc = subprocess.Popen(
             [
-                *("qemu-system-arm", "-M", "netduinoplus2", "-icount", "shift=auto"),
+                *("qemu-system-arm", "-M", "netduinoplus2", "-icount", self.icount),
                 *("-display", "none", "-monitor", f"unix:{self._mon_path},server,nowait"),
                 *("-serial", "pty", "-serial", "pty", "-kernel", str(elf)),
             ],
