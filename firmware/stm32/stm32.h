@@ -16,14 +16,14 @@
 #define HOST_USART_PCLK 42000000u
 #define TIM2_CLOCK_HZ 84000000u /* APB1 42 MHz, prescaler != 1: timers run at 2 x PCLK1 */
 #define BOARD_IRQS 97           /* RM0390 table 38: positions 0..96 (FMPI2C1 error last) */
-#define BOARD_FW_SUFFIX "+stm32"
+#define BOARD_MODEL "ML-FW-2CH" /* HELLO model; fw is the plain FW_VERSION */
 #elif defined(BOARD_QEMU_NETDUINOPLUS2)
 #define HOST_USART_BASE USART1_BASE /* QEMU maps serial0 to USART1 */
 #define HOST_USART_IRQ IRQ_USART1
 #define HOST_USART_PCLK 84000000u
 #define TIM2_CLOCK_HZ 1000000000u /* QEMU's stm32f405 clocks TIM2-5 at 1 GHz */
 #define BOARD_IRQS 82             /* RM0090: positions 0..81 (FPU last) */
-#define BOARD_FW_SUFFIX "+qemu"
+#define BOARD_MODEL "ML-FW-2CH-QEMU"
 #else
 #error "define BOARD_NUCLEO_F446RE or BOARD_QEMU_NETDUINOPLUS2"
 #endif
