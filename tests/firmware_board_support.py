@@ -54,7 +54,7 @@ def symbols(elf: Path) -> dict[str, int]:
 class QemuBoard:
     """One QEMU netduinoplus2 running ``elf``; use as a context manager."""
 
-    def __init__(self, elf: Path, icount: str = "shift=auto") -> None:
+    def __init__(self, elf: Path, icount: str | None = "shift=auto") -> None:
         require_tools("qemu-system-arm", "arm-none-eabi-nm")
         self.elf = elf
         self.icount = icount
@@ -63,7 +63,8 @@ class QemuBoard:
         self._mon_path = self._dir / f"ml-qemu-mon-{os.getpid()}-{id(self)}.sock"
         self.proc = subprocess.Popen(
             [
-                *("qemu-system-arm", "-M", "netduinoplus2", "-icount", self.icount),
+                *("qemu-system-arm", "-M", "netduinoplus2"),
+                *(("-icount", self.icount) if self.icount else ()),
                 *("-display", "none", "-monitor", f"unix:{self._mon_path},server,nowait"),
                 *("-serial", "pty", "-serial", "pty", "-kernel", str(elf)),
             ],

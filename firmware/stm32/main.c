@@ -75,8 +75,11 @@ int main(void)
         fw_poll(&fw);
         output_service(&fw);
         usart_pump();
-        if (!n && !output_active(&fw) && !usart_rx_pending()) {
-            wait_for_interrupt(); /* SysTick wakes us every ms: the watchdog keeps its pace */
+        if (!n && !usart_rx_pending()) {
+            /* Sleep until the next interrupt, also while playing: SysTick wakes us every ms,
+             * which keeps the watchdog's pace and the DMA buffer's 10 ms lead (and under QEMU
+             * keeps a busy loop from racing the -icount virtual clock ahead of real time). */
+            wait_for_interrupt();
         }
     }
 }
