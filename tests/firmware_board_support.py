@@ -90,6 +90,7 @@ class QemuBoard:
         self.interlock = serial.Serial(ports[1], timeout=0.05)
         self.seq = 0
         self._buf = b""
+        self.events: list[proto.Frame] = []
         self._connect_monitor()
         self._wait_answering()
 
@@ -103,24 +104,48 @@ class QemuBoard:
                 return
         raise TimeoutError(f"QEMU image {self.elf} never answered")
 
+    def _frame(self, deadline: float, what: str) -> proto.Frame | None:
+        """The next decodable frame (None for an unframed line)."""
+        while b"\n" not in self._buf:
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"no {what} in time")
+            self._buf += self.ser.read(max(1, self.ser.in_waiting))
+        line, _, self._buf = self._buf.partition(b"\n")
+        try:
+            return proto.decode(line + b"\n")
+        except proto.FrameError:
+            return None
+
     def call(self, name: str, timeout: float = 3.0, **fields) -> dict[str, str]:
-        """Send a command; the fields of its OK reply (ERR fails the test)."""
+        """Send a command; the fields of its OK reply (ERR fails the test).
+
+        Events that arrive meanwhile are kept in ``self.events``.
+        """
         self.seq += 1
         self.ser.write(proto.encode_command(self.seq, name, fields))
         deadline = time.monotonic() + timeout
         while True:
-            while b"\n" not in self._buf:
-                if time.monotonic() > deadline:
-                    raise TimeoutError(f"no reply to {name} within {timeout} s")
-                self._buf += self.ser.read(max(1, self.ser.in_waiting))
-            line, _, self._buf = self._buf.partition(b"\n")
-            try:
-                frame = proto.decode(line + b"\n")
-            except proto.FrameError:
-                continue
-            if frame.kind == "reply" and frame.seq == self.seq:
+            frame = self._frame(deadline, f"reply to {name}")
+            if frame is not None and frame.kind == "event":
+                self.events.append(frame)
+            elif frame is not None and frame.kind == "reply" and frame.seq == self.seq:
                 assert frame.name == "OK", f"{name} answered {frame}"
                 return dict(frame.fields)
+
+    def event(self, name: str, timeout: float = 10.0) -> proto.Frame:
+        """The next ``name`` event (one seen already first), PINGing so the watchdog stays fed."""
+        for i, frame in enumerate(self.events):
+            if frame.name == name:
+                return self.events.pop(i)
+        deadline = time.monotonic() + timeout
+        while True:
+            self.call("PING", timeout=max(0.5, deadline - time.monotonic()))
+            for i, frame in enumerate(self.events):
+                if frame.name == name:
+                    return self.events.pop(i)
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"no {name} event within {timeout} s: {self.events}")
+            time.sleep(0.05)
 
     # --- monitor ----------------------------------------------------------------------------
     def _connect_monitor(self) -> None:

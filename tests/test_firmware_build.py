@@ -191,3 +191,38 @@ def test_an_image_built_with_rig_limits_reports_them_in_hello(custom_qemu):
         assert hello["build"] == ids["qemu"]
         assert (hello["fsv_ev"], hello["fsv_mv"]) == ("8", "10")
         assert (hello["bits_ev"], hello["bits_mv"], hello["att"]) == ("12", "12", "0,20,40")
+
+
+PLAY = {
+    "tch": "EV",
+    "tcar": 270.0,
+    "tenv": 0.0,
+    "ti": 1,
+    "mch": "-",
+    "mcar": 0.0,
+    "menv": 0.0,
+    "mamp": 0.0,
+    "stim": 0.05,
+    "gap": 0.03,
+    "lead": 0.02,
+    "n": 1,
+}
+
+
+def test_a_code_beyond_the_dac_linear_range_is_a_limit_fault_not_a_clip(custom_qemu):
+    """EV: full scale 8 V, limit 1.234567 V, steps 0/20/40 dB. At 20 dB the core's code limit
+    is the converter's 2047 codes, the DAC buffer's linear range only 1798 (0.7023 V here):
+    0.70 V plays, 0.75 V is refused at the output stage as FAULT code=LIMIT."""
+    with QemuBoard(custom_qemu) as board:
+        if int(board.call("HELLO")["proto"]) < 2:
+            pytest.skip("needs the protocol-2 core (attenuator steps, per-sample limit fault)")
+        t = float(board.call("TIME")["t"])
+        board.call("PLAY", at=round(t + 0.2, 6), tamp=0.70, tatt=20, **PLAY)
+        done = board.event("DONE")
+        assert float(done.fields["tamp"]) == pytest.approx(0.7, abs=2 * 8 / 4096 / 10)
+        t = float(board.call("TIME")["t"])
+        board.call("PLAY", at=round(t + 0.2, 6), tamp=0.75, tatt=20, **PLAY)
+        assert board.event("FAULT").fields["code"] == "LIMIT"
+        diag = board.call("DIAG")
+        assert (float(diag["dac_ev"]), float(diag["dac_mv"])) == (0.0, 0.0)
+        assert board.symbol_word("dac_clamped") >= 1

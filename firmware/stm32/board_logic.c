@@ -66,6 +66,11 @@ uint32_t dac_code(float v, float fsv, bool *clamped)
     return (uint32_t)((long)DAC_MID + lrintf(lsb_codes));
 }
 
+bool dac_code_linear(int32_t signed_code)
+{
+    return signed_code >= -(int32_t)DAC_SPAN && signed_code <= (int32_t)DAC_SPAN;
+}
+
 int64_t dac_linear_max_uv(int64_t fsv_uv)
 {
     return fsv_uv * (int64_t)DAC_SPAN / (int64_t)DAC_MID;

@@ -49,6 +49,8 @@ bool debounce_step(debounce_t *d, bool raw_open, uint32_t now_us, uint32_t need_
 /* The code for drive v (V at the amplifier input) with full scale fsv (V); *clamped is set
  * when v lay outside the linear range (never, when the limits fit: see main.c). */
 uint32_t dac_code(float v, float fsv, bool *clamped);
+/* True if a signed code (around mid-scale) lies inside the linear range. */
+bool dac_code_linear(int32_t signed_code);
 /* Largest drive (µV) that stays inside the linear range for full scale fsv_uv. */
 int64_t dac_linear_max_uv(int64_t fsv_uv);
 

@@ -20,6 +20,25 @@ __attribute__((used)) const char board_build_info[] =
 
 static fw_t fw;
 
+volatile uint32_t dac_clamped; /* samples outside the DAC's linear range (gdb; 0 when fine) */
+
+#if FW_PROTOCOL_VERSION >= 2
+bool board_codes_playable(fw_t *f)
+{
+    if (dac_code_linear(f->out_code[0]) && dac_code_linear(f->out_code[1])) {
+        return true;
+    }
+    /* Beyond the buffer's linear range (possible at an attenuator step, where the core's code
+     * limit is the converter's 2047): play 0 V instead and let the core report it as it does a
+     * sample over the limit, FAULT code=LIMIT, rather than clip it silently. QEMU stands in
+     * for the DAC board and applies the same rule. */
+    dac_clamped++;
+    f->limit_tripped = true;
+    board_outputs_zero();
+    return false;
+}
+#endif
+
 static fw_config_t config = {
     .limit_uv = {LIMIT_EV_UV, LIMIT_MV_UV},
     .wd_ms = WATCHDOG_MS,

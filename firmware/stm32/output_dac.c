@@ -20,21 +20,14 @@ static uint64_t dma_start_us;    /* device time of sample 0 */
 static uint32_t last_pos;
 static uint64_t wraps;
 static float last_v[2];
-volatile uint32_t dac_clamped; /* samples outside the linear range (0 when limits fit) */
+
 #if FW_PROTOCOL_VERSION < 2
 static const float fsv_v[2] = {(float)FSV_EV_UV / 1e6f, (float)FSV_MV_UV / 1e6f};
 #endif
 
-#if FW_PROTOCOL_VERSION >= 2
-static uint32_t code_of(int32_t signed_code)
-{
-    if (signed_code > (int32_t)DAC_SPAN || signed_code < -(int32_t)DAC_SPAN) {
-        dac_clamped++; /* outside the buffer's linear range: see docs/hardware.md */
-        return signed_code > 0 ? DAC_CODE_MAX : DAC_CODE_MIN;
-    }
-    return (uint32_t)((int32_t)DAC_MID + signed_code);
-}
-#else
+#if FW_PROTOCOL_VERSION < 2
+extern volatile uint32_t dac_clamped;
+
 static uint32_t to_code(int ch, float v)
 {
     bool clamped;
@@ -112,7 +105,11 @@ void output_service(fw_t *fw)
         fw_render(fw, t_us, v);
 #if FW_PROTOCOL_VERSION >= 2
         /* the core's own quantised codes: exactly the amplitude DONE reports */
-        uint32_t ev = code_of(fw->out_code[0]), mv = code_of(fw->out_code[1]);
+        uint32_t ev = DAC_MID, mv = DAC_MID;
+        if (board_codes_playable(fw)) {
+            ev = (uint32_t)((int32_t)DAC_MID + fw->out_code[0]);
+            mv = (uint32_t)((int32_t)DAC_MID + fw->out_code[1]);
+        }
 #else
         uint32_t ev = to_code(0, v[0]), mv = to_code(1, v[1]);
 #endif

@@ -49,6 +49,11 @@ void output_service(fw_t *fw)
     for (; next_sample <= now; next_sample++) {
         float v[2];
         fw_render(fw, (int64_t)(next_sample * 1000000u / fs), v);
+#if FW_PROTOCOL_VERSION >= 2
+        if (!board_codes_playable(fw)) {
+            return; /* the same linear-range rule as the DAC board */
+        }
+#endif
         ram_out_ev[ram_out_count % RING] = v[0];
         ram_out_mv[ram_out_count % RING] = v[1];
         ram_out_count++;
@@ -103,6 +108,7 @@ void board_set_attenuator(int ch, uint8_t step_index)
 }
 
 static bool interlock_raw_open(void);
+
 
 void interlock_init(void)
 {

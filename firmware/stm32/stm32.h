@@ -47,6 +47,9 @@ void output_init(fw_t *fw);
 void output_service(fw_t *fw);    /* keep the sample stream fed from fw_render() */
 void output_emergency_zero(void); /* from fault handlers: no core state, registers only */
 bool output_active(const fw_t *fw);
+/* v2 core: false (and the core's LIMIT fault raised, outputs zeroed) when a rendered code lies
+ * outside the DAC buffer's linear range. */
+bool board_codes_playable(fw_t *fw);
 void interlock_init(void);        /* needs clock_init(): debounced on board_micros32() */
 bool interlock_read_open(void);   /* true = open: HV enable off, E-stop hit, wristband off */
 void attenuator_init(void);       /* control lines out, at the largest attenuation */
