@@ -91,6 +91,9 @@ def test_rig_variables_keep_the_cpu_and_fpu_flags(tmp_path):
         ("SERIAL_NUMBER=two words", "SERIAL_NUMBER must be 1-24 characters"),
         ("ATT_STEPS_DB=0,40,20", "ATT_STEPS_DB must be 1-4 ascending"),
         ("ATT_STEPS_DB=20,40", "ATT_STEPS_DB must be 1-4 ascending"),
+        # the old recipe for limits now says what to do instead of redefining them
+        ("ARM_FLAGS+=-DLIMIT_EV_UV=1000000", "make LIMIT_EV_UV=..."),
+        ("EXTRA_CFLAGS=-DSERIAL_NUMBER=x", "make SERIAL_NUMBER=..."),
     ],
 )
 def test_a_bad_rig_variable_is_refused_by_name(setting, named, tmp_path):
