@@ -8,7 +8,7 @@
 #include <stdbool.h>
 #include <stdint.h>
 
-/* RCC_CSR reset flags (RM0390 6.3.21): set by hardware, cleared by writing RMVF. */
+/* RCC_CSR reset flags (RM0390, RCC_CSR): set by hardware, cleared by writing RMVF. */
 #define RCC_CSR_RMVF (1u << 24)
 #define RCC_CSR_BORRSTF (1u << 25)
 #define RCC_CSR_PINRSTF (1u << 26)
@@ -54,13 +54,13 @@ bool dac_code_linear(int32_t signed_code);
 /* Largest drive (µV) that stays inside the linear range for full scale fsv_uv. */
 int64_t dac_linear_max_uv(int64_t fsv_uv);
 
-/* PLL for 168 MHz from an in_hz clock: PLLM so the VCO input is 2 MHz (RM0390 6.3.2: 1-2 MHz,
+/* PLL for 168 MHz from an in_hz clock: PLLM so the VCO input is 2 MHz (RM0390, RCC_PLLCFGR: 1-2 MHz,
  * 2 MHz recommended to limit jitter), PLLN = 168 (VCO 336 MHz), PLLP = /2, PLLQ = 7, PLLR = 2.
  * 0 if in_hz is not a whole multiple of 2 MHz in 4..26 MHz. */
 uint32_t pll_cfgr_168mhz(uint32_t in_hz, bool hse);
 
 /* DMA1/2 stream n (0..7): which flag-clear register (0 = LIFCR, 1 = HIFCR) and the mask of
- * all five of its flags (FEIF, DMEIF, TEIF, HTIF, TCIF; RM0390 9.5.3/9.5.4). */
+ * all five of its flags (FEIF, DMEIF, TEIF, HTIF, TCIF; RM0390, DMA_LIFCR/HIFCR). */
 uint32_t dma_stream_flag_mask(unsigned stream, unsigned *high_register);
 
 /* Attenuator steps: parse "0,20,40" (ascending, first 0, at most ATT_MAX_STEPS); the count,

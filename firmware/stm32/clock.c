@@ -84,7 +84,7 @@ static bool pll_168mhz(bool hse)
     PWR_CR = (PWR_CR & ~(3u << 14)) | (3u << 14); /* VOS = scale 1 (writable with PLL off) */
     FLASH_ACR = FLASH_ACR_5WS; /* 150 < HCLK <= 180 MHz at 2.7-3.6 V: 5 wait states */
     if ((FLASH_ACR & 0xFu) != 5u) {
-        return false; /* RM0390 3.4.1: check the latency took before raising the clock */
+        return false; /* RM0390, flash read latency: check it took before raising the clock */
     }
     uint32_t cfgr = pll_cfgr_168mhz(hse ? 8000000u : 16000000u, hse);
     RCC_PLLCFGR = cfgr;

@@ -12,7 +12,7 @@
 #define BUF_SAMPLES 512u         /* 25.6 ms at 20 kHz */
 #define LEAD_SAMPLES 200u        /* keep ~10 ms rendered ahead of the DMA */
 #define MID_WORD ((DAC_MID << 16) | DAC_MID)
-#define DMA_STREAM 5u            /* DMA1 stream 5 channel 7 = DAC1 request (RM0390 table 28) */
+#define DMA_STREAM 5u            /* DMA1 stream 5 channel 7 = DAC1 request (RM0390, DMA1 request mapping) */
 
 static volatile uint32_t dma_buf[BUF_SAMPLES];
 static uint64_t next_sample;     /* absolute index of the next sample to render */
@@ -23,9 +23,6 @@ static float last_v[2];
 
 #if FW_PROTOCOL_VERSION < 2
 static const float fsv_v[2] = {(float)FSV_EV_UV / 1e6f, (float)FSV_MV_UV / 1e6f};
-#endif
-
-#if FW_PROTOCOL_VERSION < 2
 extern volatile uint32_t dac_clamped;
 
 static uint32_t to_code(int ch, float v)
@@ -67,7 +64,7 @@ void output_init(fw_t *fw)
     TIM6_CR1 = 0;
     DMA1_S5CR = 0;
     while (DMA1_S5CR & 1u) {
-        /* a transfer in progress finishes first (RM0390 9.3.18) */
+        /* a transfer in progress finishes first (RM0390, stream configuration procedure) */
     }
     dma_clear_flags(); /* flags left from the last run would block the re-enabled stream */
     for (uint32_t i = 0; i < BUF_SAMPLES; i++) {

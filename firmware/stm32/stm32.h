@@ -15,7 +15,7 @@
 #define HOST_USART_IRQ IRQ_USART2
 #define HOST_USART_PCLK 42000000u
 #define TIM2_CLOCK_HZ 84000000u /* APB1 42 MHz, prescaler != 1: timers run at 2 x PCLK1 */
-#define BOARD_IRQS 97           /* RM0390 table 38: positions 0..96 (FMPI2C1 error last) */
+#define BOARD_IRQS 97           /* RM0390 vector table: positions 0..96 (FMPI2C1 error last) */
 #define BOARD_MODEL "ML-FW-2CH" /* HELLO model; fw is the plain FW_VERSION */
 #elif defined(BOARD_QEMU_NETDUINOPLUS2)
 #define HOST_USART_BASE USART1_BASE /* QEMU maps serial0 to USART1 */
