@@ -54,8 +54,8 @@ bool dac_code_linear(int32_t signed_code);
 /* Largest drive (µV) that stays inside the linear range for full scale fsv_uv. */
 int64_t dac_linear_max_uv(int64_t fsv_uv);
 
-/* PLL for 168 MHz from an in_hz clock: PLLM so the VCO input is 2 MHz (RM0390, RCC_PLLCFGR: 1-2 MHz,
- * 2 MHz recommended to limit jitter), PLLN = 168 (VCO 336 MHz), PLLP = /2, PLLQ = 7, PLLR = 2.
+/* PLL for 168 MHz from an in_hz clock: PLLM so the VCO input is 2 MHz (RM0390, RCC_PLLCFGR:
+ * 1-2 MHz, 2 MHz recommended to limit jitter), PLLN = 168 (VCO 336 MHz), PLLP = /2, PLLQ = 7, PLLR = 2.
  * 0 if in_hz is not a whole multiple of 2 MHz in 4..26 MHz. */
 uint32_t pll_cfgr_168mhz(uint32_t in_hz, bool hse);
 

@@ -12,7 +12,7 @@
 #define BUF_SAMPLES 512u         /* 25.6 ms at 20 kHz */
 #define LEAD_SAMPLES 200u        /* keep ~10 ms rendered ahead of the DMA */
 #define MID_WORD ((DAC_MID << 16) | DAC_MID)
-#define DMA_STREAM 5u            /* DMA1 stream 5 channel 7 = DAC1 request (RM0390, DMA1 request mapping) */
+#define DMA_STREAM 5u /* DMA1 stream 5 channel 7 = DAC1 request (RM0390, DMA1 request mapping) */
 
 static volatile uint32_t dma_buf[BUF_SAMPLES];
 static uint64_t next_sample;     /* absolute index of the next sample to render */
