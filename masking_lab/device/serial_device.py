@@ -8,8 +8,13 @@ clock (TIME), and then plays trials (PLAY → OK → DONE with actual onsets), s
 Every amplitude is checked on the host before it is sent (SafetyLimitError, nothing sent). Every
 fault becomes a DeviceError subclass whose message names the port and says what to do; on a
 fault the host sends a best-effort STOP and records the fault in :attr:`SerialDevice.fault_log`.
-Timeouts are real-time waits on the serial link; the session clock is only read (and, for a
-:class:`~masking_lab.core.clock.VirtualClock`, advanced to the end of each trial), never slept on.
+Every number the board sends is checked against the trial it answers
+(:mod:`masking_lab.device.reply_checks`): a violation is a DeviceProtocolError and nothing is
+logged as played. Timeouts are real-time waits on the serial link for a real clock; with a
+:class:`~masking_lab.core.clock.VirtualClock` (the emulator in virtual time) replies are awaited
+without a deadline that load could trip: a closed link ends the wait at once, and
+``serial.virtual_hang_guard_s`` only guards against a hung peer. The session clock is only read
+(and, for a VirtualClock, advanced to the end of each trial), never slept on.
 """
 
 from __future__ import annotations
@@ -35,14 +40,15 @@ from masking_lab.core.errors import (
 )
 from masking_lab.core.stimulus import Channel, Stimulus
 from masking_lab.device import protocol as proto
-from masking_lab.device import safety, serial_faults
+from masking_lab.device import reply_checks, safety, serial_checks, serial_faults
 from masking_lab.device.base import DeviceIdentity, DeviceLimits, PlayResult, TrialPlan
 from masking_lab.device.config import DeviceConfig, default_device_config
 
 log = logging.getLogger("masking_lab.device")
 
 RESUME_HINT = serial_faults.RESUME_HINT
-_AMP_TOLERANCE_V = 2e-6  # amplitudes travel with 6 decimals
+#: A DONE onset or end may be this late (or serial.done_margin_s if larger), s.
+LATE_TOLERANCE_S = 1.0
 
 
 class SerialDevice:
@@ -101,6 +107,8 @@ class SerialDevice:
         self._dead: str | None = None
         self._closed = False
         self.watchdog_s = 0.0
+        self.converters: dict[str, Any] = {}
+        self.hello_details: dict[str, Any] = {}
         self.emulator: Any = None  # set by the factory when it started an emulator for us
         self._ser = self._open()
         try:
@@ -209,6 +217,8 @@ class SerialDevice:
             self._sync_clock(samples=1)
         self._streams.clear()  # PLAY takes the outputs over from any stream
         masker = plan.masker
+        steps = serial_checks.choose_steps(plan, self.converters, f"device on {self.port}")
+        at = start_s + self._offset_s
         fields: dict[str, Any] = {
             "tch": plan.target.channel,
             "tcar": plan.target.carrier_hz,
@@ -223,39 +233,45 @@ class SerialDevice:
             "gap": plan.gap_s,
             "lead": plan.lead_in_s,
             "n": plan.n_intervals,
-            "at": start_s + self._offset_s,
+            "at": at,
+            "tatt": steps.target_db,
+            "matt": steps.masker_db,
         }
         self._command("PLAY", fields)
         seq = self._seq
         done = self._wait_done(seq, plan, start_s)
+        late = max(LATE_TOLERANCE_S, self._settings.done_margin_s)
+        want = serial_checks.expected_done(plan, at, steps, self.converters, late)
+        try:
+            reply_checks.check_done(done.onsets_s, done.end_s, done.target_v, done.masker_v, want)
+        except reply_checks.ReplyError as exc:
+            raise DeviceProtocolError(
+                f"device on {self.port} reported for PLAY #{seq} what the trial cannot have "
+                f"done ({exc}); the trial is not logged as played: check the firmware "
+                f"(docs/device-protocol.md), {RESUME_HINT}"
+            ) from exc
         onsets = [t - self._offset_s for t in done.onsets_s]
-        if len(onsets) != plan.n_intervals:
-            raise DeviceProtocolError(
-                f"device on {self.port} reported {len(onsets)} onsets for PLAY #{seq}, expected "
-                f"{plan.n_intervals}: firmware bug; stop and check the firmware version"
-            )
-        played_t, played_m = done.target_v, done.masker_v
-        if abs(played_t - plan.target_amplitude_v) > _AMP_TOLERANCE_V or (
-            abs(played_m - (plan.masker_amplitude_v if masker else 0.0)) > _AMP_TOLERANCE_V
-        ):
-            raise DeviceProtocolError(
-                f"device on {self.port} played {played_t:g} V / {played_m:g} V instead of "
-                f"{plan.target_amplitude_v:g} V / {plan.masker_amplitude_v:g} V in PLAY #{seq}"
-            )
         self.clock.sleep_until(start_s + plan.duration_s)  # jumps a VirtualClock; no-op if real
         return PlayResult(
             planned_onsets_s=plan.planned_onsets_s(start_s),
             actual_onsets_s=onsets,
-            played_target_v=played_t,
-            played_masker_v=played_m,
-            extra={"device_seq": seq, "garbage_lines": self.garbage_lines},
+            played_target_v=done.target_v,
+            played_masker_v=done.masker_v,
+            extra={
+                "device_seq": seq,
+                "garbage_lines": self.garbage_lines,
+                "requested_target_v": plan.target_amplitude_v,
+                "requested_masker_v": plan.masker_amplitude_v if masker else 0.0,
+                "target_att_db": steps.target_db,
+                "masker_att_db": steps.masker_db,
+            },
         )
 
     def _wait_done(self, seq: int, plan: TrialPlan, start_s: float) -> proto.Done:
         """Wait for DONE of PLAY ``seq``, PINGing to keep the watchdog fed."""
         margin = self._settings.done_margin_s
         if self.clock.virtual:
-            budget = self._settings.reply_timeout_s + margin
+            budget = self._reply_wait_s + margin
         else:
             budget = max(0.0, start_s + plan.duration_s - self.clock.now()) + margin
         deadline = time.monotonic() + budget
@@ -268,7 +284,7 @@ class SerialDevice:
             if now >= deadline:
                 raise DeviceTimeoutError(
                     f"device on {self.port} did not report the end of trial PLAY #{seq} within "
-                    f"{budget:.2f} s: check the cable and power, {RESUME_HINT}"
+                    f"{budget:.2f} s{self._hang_note}: check the cable and power, {RESUME_HINT}"
                 )
             if now >= next_ping:
                 self._command("PING")
@@ -310,9 +326,9 @@ class SerialDevice:
                 self._ser.reset_input_buffer()  # bytes left by a previous session are stale
             except (serial.SerialException, OSError) as exc:
                 raise self._disconnected("opening", exc) from exc
-            boot = max(s.boot_timeout_s, s.reply_timeout_s)  # the whole handshake's budget
+            boot = max(s.boot_timeout_s, self._reply_wait_s)  # the whole handshake's budget
             give_up = time.monotonic() + boot
-            per_try = s.hello_retry_s if s.boot_timeout_s > 0 else s.reply_timeout_s
+            per_try = s.hello_retry_s if s.boot_timeout_s > 0 else self._reply_wait_s
             sent: set[int] = set()
             hello: proto.Frame | None = None
             last_problem: DeviceError | None = None
@@ -340,7 +356,8 @@ class SerialDevice:
                         f"(serial.baud_rate={s.baud_rate}) or firmware not flashed"
                     ) from last_problem
                 raise DeviceTimeoutError(
-                    f"no answer to HELLO from {self.port} within {boot:.1f} s: check that the "
+                    f"no answer to HELLO from {self.port} within {boot:.1f} s{self._hang_note}: "
+                    "check that the "
                     "board runs masking-lab firmware, its power and cable; a board that resets "
                     "when the port opens may need a longer serial.boot_timeout_s"
                 ) from last_problem
@@ -351,12 +368,12 @@ class SerialDevice:
             hello = proto.parse_hello(frame)
         except proto.FrameError as exc:
             raise serial_faults.malformed_error(self.port, "HELLO", exc) from exc
-        version, fw_limits, virtual = hello.version, dict(hello.max_v), hello.virtual
-        if version != proto.PROTOCOL_VERSION:
-            raise DeviceProtocolError(
-                f"device on {self.port} speaks protocol version {version}; this host speaks "
-                f"{proto.PROTOCOL_VERSION}: update the firmware or masking-lab so they match"
-            )
+        fw_limits, virtual = dict(hello.max_v), hello.virtual
+        serial_checks.check_version(self.port, hello)
+        self.converters = serial_checks.converters_from(
+            self.port, hello, self.config.converters, self.config.path
+        )
+        self.hello_details = serial_checks.hello_details(hello)
         if not all(v > 0 for v in fw_limits.values()):
             raise DeviceProtocolError(
                 f"device on {self.port} reports limits {fw_limits} V: a limit must be > 0 V"
@@ -380,6 +397,7 @@ class SerialDevice:
             firmware_version=hello.firmware,
             port=self.port,
             limits=limits,
+            details=self.hello_details,
         )
 
     def _sync_clock(self, samples: int) -> None:
@@ -415,8 +433,15 @@ class SerialDevice:
         seq = self._seq
         if accept is not None:
             accept.add(seq)
-        self._write(proto.encode_command(seq, name, fields))
-        wait = self._settings.reply_timeout_s if timeout is None else timeout
+        try:
+            data = proto.encode_command(seq, name, fields)
+        except proto.FrameError as exc:  # e.g. a time beyond the frame from a bad clock offset
+            raise DeviceProtocolError(
+                f"cannot send {name} to the device on {self.port} ({exc}): a value the device "
+                f"reported earlier (TIME) is out of range; {RESUME_HINT}"
+            ) from exc
+        self._write(data)
+        wait = self._reply_wait_s if timeout is None else timeout
         deadline = time.monotonic() + wait
         what = f"{name} #{seq}"
         while True:
@@ -480,8 +505,8 @@ class SerialDevice:
                     f", after {self._garbage_run} garbled line(s)" if self._garbage_run else ""
                 )
                 raise DeviceTimeoutError(
-                    f"device on {self.port} stopped answering after {wait_s:.2g} s "
-                    f"(no reply to {what}{garbage}): "
+                    f"device on {self.port} stopped answering after {wait_s:.2g} s"
+                    f"{self._hang_note} (no reply to {what}{garbage}): "
                     f"check the cable and power, {RESUME_HINT}"
                 )
             try:
@@ -533,6 +558,26 @@ class SerialDevice:
             except (serial.SerialException, OSError, TypeError) as exc:
                 raise self._disconnected("reading", exc) from exc
             self._buf += chunk
+
+    @property
+    def _reply_wait_s(self) -> float:
+        """How long to wait for a reply, s: the reply timeout, or in virtual time the hang guard.
+
+        A virtual-time device answers at once whatever the load, so no load-sized deadline is
+        applied; a closed link still ends any wait at once (EIO/EOF on read).
+        """
+        s = self._settings
+        return (
+            max(s.reply_timeout_s, s.virtual_hang_guard_s)
+            if self.clock.virtual
+            else (s.reply_timeout_s)
+        )
+
+    @property
+    def _hang_note(self) -> str:
+        if not self.clock.virtual:
+            return ""
+        return " (virtual time: the hang guard serial.virtual_hang_guard_s ran out)"
 
     @property
     def _write_timeout_s(self) -> float:
