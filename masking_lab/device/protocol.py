@@ -329,8 +329,10 @@ def parse_time(frame: Frame) -> float:
     1.25
     """
     t = frame.number("t")
-    if not 0 <= t <= MAX_DEVICE_TIME_S:
-        raise FrameError(f"TIME: t={t:g} s is not in 0..{MAX_DEVICE_TIME_S:.4g} s")
+    if t < 0:
+        raise FrameError(f"TIME: t={t:g} s is negative")
+    if t > MAX_DEVICE_TIME_S:
+        raise FrameError(f"TIME: t={t:g} s is beyond {MAX_DEVICE_TIME_S:.4g} s (2**53 µs)")
     return t
 
 
@@ -354,7 +356,7 @@ def parse_done(frame: Frame) -> Done:
             raise FrameError(f"DONE: time {t:g} s is not in 0..{MAX_DEVICE_TIME_S:.4g} s")
     target, masker = frame.number("tamp"), frame.number("mamp")
     if not (0 <= target <= MAX_LIMIT_V and 0 <= masker <= MAX_LIMIT_V):
-        raise FrameError("DONE: a played amplitude is not in 0..1000 V")
+        raise FrameError("DONE: a played amplitude is negative or above 1000 V")
     return Done(seq, tuple(onsets), target, masker, end)
 
 
