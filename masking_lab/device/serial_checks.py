@@ -14,11 +14,47 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from masking_lab.core.errors import DeviceProtocolError, SafetyLimitError
+from masking_lab.core.errors import DeviceProtocolError, DeviceTimeModeError, SafetyLimitError
 from masking_lab.core.trial import TrialPlan
 from masking_lab.device import protocol as proto
+from masking_lab.device import serial_faults
+from masking_lab.device.config import DeviceConfig
 from masking_lab.device.levels_range import MAX_ERROR_DB, Converter
 from masking_lab.device.reply_checks import Expected
+
+
+def accept_hello(
+    port: str, hello: proto.Hello, config: DeviceConfig, *, clock_virtual: bool
+) -> dict[str, Converter]:
+    """Check a board's HELLO before a session; return the converters in force.
+
+    Raises
+    ------
+    DeviceProtocolError
+        Another protocol, older firmware, a converter unlike the config's, a limit ≤ 0 V.
+    DeviceTimeModeError
+        The board runs in the other time mode than the session clock.
+    DeviceFaultError
+        The interlock is open.
+    """
+    check_version(port, hello)
+    converters = converters_from(port, hello, config.converters, config.path)
+    if not all(v > 0 for v in hello.max_v.values()):
+        raise DeviceProtocolError(
+            f"device on {port} reports limits {dict(hello.max_v)} V: a limit must be > 0 V"
+        )
+    virtual = hello.virtual
+    if virtual != clock_virtual:
+        mode = "virtual" if virtual else "real"
+        want = "a virtual clock (simulation)" if virtual else "a real clock"
+        raise DeviceTimeModeError(
+            f"device on {port} runs in {mode} time and needs {want}; start the emulator "
+            f"{'without' if virtual else 'with'} --virtual-time, or switch the session clock",
+            device_virtual=virtual,
+        )
+    if hello.interlock_open:
+        raise serial_faults.interlock_error(port, "at HELLO (session not started)")
+    return converters
 
 
 def check_version(port: str, hello: proto.Hello) -> None:
@@ -140,6 +176,29 @@ def choose_steps(plan: TrialPlan, converters: Mapping[str, Converter], where: st
     t_att = step[plan.target.channel]
     m_att = step[plan.masker.channel] if plan.masker is not None else 0.0
     return Steps(t_att, m_att, played["target"], played["masker"])
+
+
+def play_fields(plan: TrialPlan, at_device_s: float, steps: Steps) -> dict[str, Any]:
+    """The fields of the PLAY command for ``plan`` at device time ``at_device_s`` (s)."""
+    masker = plan.masker
+    return {
+        "tch": plan.target.channel,
+        "tcar": plan.target.carrier_hz,
+        "tenv": plan.target.envelope_hz or 0.0,
+        "tamp": plan.target_amplitude_v,
+        "ti": plan.target_interval,
+        "mch": masker.channel if masker else "-",
+        "mcar": masker.carrier_hz if masker else 0.0,
+        "menv": (masker.envelope_hz or 0.0) if masker else 0.0,
+        "mamp": plan.masker_amplitude_v if masker else 0.0,
+        "stim": plan.stimulus_s,
+        "gap": plan.gap_s,
+        "lead": plan.lead_in_s,
+        "n": plan.n_intervals,
+        "at": at_device_s,
+        "tatt": steps.target_db,
+        "matt": steps.masker_db,
+    }
 
 
 def expected_done(

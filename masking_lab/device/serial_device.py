@@ -34,7 +34,6 @@ from masking_lab.core.errors import (
     DeviceDisconnectedError,
     DeviceError,
     DeviceProtocolError,
-    DeviceTimeModeError,
     DeviceTimeoutError,
     SafetyLimitError,
 )
@@ -109,6 +108,7 @@ class SerialDevice:
         self.watchdog_s = 0.0
         self.converters: dict[str, Any] = {}
         self.hello_details: dict[str, Any] = {}
+        self.hello: proto.Hello | None = None
         self.emulator: Any = None  # set by the factory when it started an emulator for us
         self._ser = self._open()
         try:
@@ -219,24 +219,7 @@ class SerialDevice:
         masker = plan.masker
         steps = serial_checks.choose_steps(plan, self.converters, f"device on {self.port}")
         at = start_s + self._offset_s
-        fields: dict[str, Any] = {
-            "tch": plan.target.channel,
-            "tcar": plan.target.carrier_hz,
-            "tenv": plan.target.envelope_hz or 0.0,
-            "tamp": plan.target_amplitude_v,
-            "ti": plan.target_interval,
-            "mch": masker.channel if masker else "-",
-            "mcar": masker.carrier_hz if masker else 0.0,
-            "menv": (masker.envelope_hz or 0.0) if masker else 0.0,
-            "mamp": plan.masker_amplitude_v if masker else 0.0,
-            "stim": plan.stimulus_s,
-            "gap": plan.gap_s,
-            "lead": plan.lead_in_s,
-            "n": plan.n_intervals,
-            "at": at,
-            "tatt": steps.target_db,
-            "matt": steps.masker_db,
-        }
+        fields = serial_checks.play_fields(plan, at, steps)
         self._command("PLAY", fields)
         seq = self._seq
         done = self._wait_done(seq, plan, start_s)
@@ -348,18 +331,8 @@ class SerialDevice:
                         break
             self._set_write_timeout(self._write_timeout_s)
             if hello is None:
-                if self._last_garbage:
-                    raise DeviceProtocolError(
-                        f"device on {self.port} sends lines that are not masking-lab frames "
-                        f"(e.g. {self._last_garbage[:40]!r}) and never answered HELLO in "
-                        f"{boot:.1f} s: wrong device, wrong baud rate "
-                        f"(serial.baud_rate={s.baud_rate}) or firmware not flashed"
-                    ) from last_problem
-                raise DeviceTimeoutError(
-                    f"no answer to HELLO from {self.port} within {boot:.1f} s{self._hang_note}: "
-                    "check that the "
-                    "board runs masking-lab firmware, its power and cable; a board that resets "
-                    "when the port opens may need a longer serial.boot_timeout_s"
+                raise serial_faults.no_hello_error(
+                    self.port, boot, self._last_garbage, s.baud_rate, self._hang_note
                 ) from last_problem
         return self._identity_from(hello, backend)
 
@@ -368,28 +341,13 @@ class SerialDevice:
             hello = proto.parse_hello(frame)
         except proto.FrameError as exc:
             raise serial_faults.malformed_error(self.port, "HELLO", exc) from exc
-        fw_limits, virtual = dict(hello.max_v), hello.virtual
-        serial_checks.check_version(self.port, hello)
-        self.converters = serial_checks.converters_from(
-            self.port, hello, self.config.converters, self.config.path
+        self.hello = hello
+        self.converters = serial_checks.accept_hello(
+            self.port, hello, self.config, clock_virtual=self.clock.virtual
         )
         self.hello_details = serial_checks.hello_details(hello)
-        if not all(v > 0 for v in fw_limits.values()):
-            raise DeviceProtocolError(
-                f"device on {self.port} reports limits {fw_limits} V: a limit must be > 0 V"
-            )
-        if virtual != self.clock.virtual:
-            mode = "virtual" if virtual else "real"
-            want = "a virtual clock (simulation)" if virtual else "a real clock"
-            raise DeviceTimeModeError(
-                f"device on {self.port} runs in {mode} time and needs {want}; start the emulator "
-                f"{'without' if virtual else 'with'} --virtual-time, or switch the session clock",
-                device_virtual=virtual,
-            )
-        if hello.interlock_open:
-            raise serial_faults.interlock_error(self.port, "at HELLO (session not started)")
         self.watchdog_s = hello.watchdog_ms / 1000.0
-        limits = safety.stricter_limits(self.config.limits, DeviceLimits(fw_limits))
+        limits = safety.stricter_limits(self.config.limits, DeviceLimits(dict(hello.max_v)))
         return DeviceIdentity(
             backend=backend,
             model=hello.model,

@@ -138,3 +138,27 @@ def write_timeout_error(port: str, seconds: float | None) -> DeviceTimeoutError:
         f"{seconds or 0:.2g} s): check that the board runs masking-lab firmware and is not "
         f"stuck; {RESUME_HINT}"
     )
+
+
+def no_hello_error(
+    port: str, boot_s: float, last_garbage: bytes, baud_rate: int, note: str = ""
+) -> DeviceError:
+    """No HELLO answer within the handshake's ``boot_s`` s (chatter, or silence).
+
+    Examples
+    --------
+    >>> "wrong baud rate" in str(no_hello_error("/dev/ttyUSB0", 4.0, b"$GPGGA", 115200))
+    True
+    """
+    if last_garbage:
+        return DeviceProtocolError(
+            f"device on {port} sends lines that are not masking-lab frames "
+            f"(e.g. {last_garbage[:40]!r}) and never answered HELLO in "
+            f"{boot_s:.1f} s{note}: wrong device, wrong baud rate "
+            f"(serial.baud_rate={baud_rate}) or firmware not flashed"
+        )
+    return DeviceTimeoutError(
+        f"no answer to HELLO from {port} within {boot_s:.1f} s{note}: check that the "
+        "board runs masking-lab firmware, its power and cable; a board that resets "
+        "when the port opens may need a longer serial.boot_timeout_s"
+    )
