@@ -131,14 +131,14 @@ def unplayable(
 def quietest_playable_v(converter: Converter, max_error_db: float = MAX_ERROR_DB) -> float:
     """The smallest peak amplitude (V) every amplitude above which plays within the bound.
 
-    Rounding to whole LSBs errs by at most half an LSB, so an amplitude of ``k`` LSBs errs by
-    at most ``20·log10(1 + 1/(2k))`` dB; the bound holds from ``k = 1/(2·(10^(e/20) − 1))``
-    LSBs of the largest step.
+    Rounding to whole LSBs errs by at most half an LSB, so an amplitude of ``k`` LSBs may play
+    as ``k − 1/2``: at most ``−20·log10(1 − 1/(2k))`` dB low. The bound holds from
+    ``k = 1/(2·(1 − 10^(−e/20)))`` LSBs of the deepest step.
 
     Examples
     --------
     >>> round(quietest_playable_v(Converter(12, 10.0, (0.0, 20.0, 40.0))) * 1e3, 3)  # mV
-    0.2
+    0.224
     """
-    k = 1.0 / (2.0 * (10.0 ** (max_error_db / 20.0) - 1.0))
+    k = 1.0 / (2.0 * (1.0 - 10.0 ** (-max_error_db / 20.0)))
     return k * converter.lsb_v(converter.steps_db[-1])
