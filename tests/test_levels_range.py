@@ -225,3 +225,14 @@ def test_analyze_notes_trials_played_off_their_request():
     )
     exact = json.loads(line) | {"played_target_v": 0.01}
     assert played_level_problems([exact], [7]) == []
+
+
+def test_plan_flags_a_floor_below_the_rigs_resolution(rig_without_steps, tmp_path, capsys):
+    args = ["plan", str(shipped("protocols", "baseline.yaml")), "--replicates", "20"]
+    args += ["--ml-replicates", "0", "--quest-replicates", "0", "--out", str(tmp_path / "p")]
+    assert main([*args, "--device-config", str(rig_without_steps)]) == 0
+    flagged = capsys.readouterr().out
+    assert "FLAGGED, 4 setting(s) below the rig's resolution" in flagged
+    assert "set EV270: target EV270 at -60.0 dB re 1 V (1 mV) plays as silence" in flagged
+    assert main(args) == 0  # the reference rig, with its 20 and 40 dB steps
+    assert "every level of every set plays within 1 dB" in capsys.readouterr().out
