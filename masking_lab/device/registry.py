@@ -11,7 +11,10 @@ from masking_lab.core.errors import DeviceError
 from masking_lab.device.base import Device
 from masking_lab.device.config import DeviceConfig, load_device_config
 
-SPECS = "sim, emulator, serial:PORT (e.g. serial:/dev/ttyACM0) or nidaq[:DEVICE]"
+SPECS = (
+    "sim, emulator, serial:PORT (e.g. serial:/dev/ttyACM0), serial:auto (find the board by its "
+    "HELLO) or nidaq[:DEVICE]"
+)
 
 
 def open_device(
@@ -29,7 +32,8 @@ def open_device(
     spec : str
         ``sim`` (in-process), ``emulator`` (firmware emulator on a fresh pseudo-terminal in a
         background thread, reached through pyserial like real hardware; closed with the device),
-        ``serial:PORT`` (a board, or an emulator started with ``masking-lab emulate``) or
+        ``serial:PORT`` (a board, or an emulator started with ``masking-lab emulate``),
+        ``serial:auto`` (the first serial port whose device answers a masking-lab HELLO) or
         ``nidaq`` / ``nidaq:DEVICE`` (NI-DAQmx analog outputs).
     config : DeviceConfig or path, optional
         Device config (reference rig if None).
@@ -73,6 +77,10 @@ def open_device(
     if kind == "serial" and arg:
         from masking_lab.device.serial_device import SerialDevice
 
+        if arg == "auto":
+            from masking_lab.device.discovery import find_board
+
+            arg = find_board(cfg)
         return SerialDevice(arg, cfg, clk, backend="serial")
     if kind == "nidaq":
         from masking_lab.device.nidaq import NidaqDevice

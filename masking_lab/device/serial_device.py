@@ -247,6 +247,10 @@ class SerialDevice:
                 "requested_masker_v": plan.masker_amplitude_v if masker else 0.0,
                 "target_att_db": steps.target_db,
                 "masker_att_db": steps.masker_db,
+                # onset lateness in device time, µs: free of the host's clock-offset estimate
+                "device_late_us": [
+                    round((o - p) * 1e6) for o, p in zip(done.onsets_s, want.onsets_s, strict=True)
+                ],
             },
         )
 
