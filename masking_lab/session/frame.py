@@ -406,6 +406,8 @@ def start(
             sync=sync_policy(opening.virtual),
         )
     frame.out.message(f"session log: {writer.path}")
+    for note in device.identity.details.get("notices", ()):  # e.g. no hardware watchdog
+        frame.out.message(f"device: {note}")
     return _run(plan, opening, Opened(device, responder, writer, frame.out), options.device)
 
 
