@@ -463,3 +463,31 @@ def test_standin_expired_watchdog_that_will_not_clear_is_reset_and_rearmed(devic
     assert [c for c in standin.ops("Device.reset_device") if c[1] == "cDAQ1"]
     assert device.watchdog.armed and device.watchdog.expirations == 1
     assert len(standin.watchdogs) == 2  # a fresh watchdog task after the reset
+
+
+def test_standin_a_session_on_a_board_without_watchdog_says_so_at_start(standin, tmp_path):
+    import io
+
+    from runner_support import write_protocol
+
+    from masking_lab.session.runner import RunOptions, run_session
+
+    protocol = write_protocol(
+        tmp_path,
+        kind="baseline",
+        sets=[{"id": "EV", "target": "EV270"}],
+        staircase={"max_trials": 2, "start_level_db": -20},
+        timing={"stimulus_s": 0.01, "gap_s": 0.0, "lead_in_s": 0.0, "inter_trial_s": 0.0},
+    )
+    stream = io.StringIO()
+    result = run_session(
+        RunOptions(
+            protocol, "S01", device="nidaq:Dev1", data_dir=tmp_path / "d", seed=1, real_time=True
+        ),
+        open_device=lambda spec, clock: NidaqDevice(x_series_config(), clock),
+        stream=stream,
+    )
+    printed = stream.getvalue()
+    assert "device: no analog-output watchdog" in printed, printed
+    header = json.loads(result.log_path.read_text(encoding="utf-8").splitlines()[0])
+    assert "no analog-output watchdog" in header["device"]["details"]["notices"][0]
