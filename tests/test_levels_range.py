@@ -179,7 +179,7 @@ def test_the_sim_device_quantises_like_the_rig(tmp_path):
     sim = SimDevice(None, VirtualClock())  # the reference rig: 12 bits, steps 0/20/40 dB
     result = sim.play_trial(short_plan(target_amplitude_v=0.0123), 0.0)
     step = result.extra["target_att_db"]
-    assert step == 20.0
+    assert step == 40.0  # the reference rig asks for 50 LSB: 20 dB gives 25, 40 dB gives 252
     assert result.played_target_v == pytest.approx(DAC12.played_v(0.0123, step), abs=1e-12)
 
 
