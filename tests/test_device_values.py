@@ -8,10 +8,10 @@ from __future__ import annotations
 import io
 
 import pytest
-from hardening_support import RIG, ScriptedPeer, raw_frame, short_plan, standard
+from hardening_support import HELLO, RIG, ScriptedPeer, raw_frame, short_plan, standard
 from runner_support import assert_valid_log, of_kind, trials, write_calibration, write_protocol
 
-from masking_lab.core.clock import VirtualClock
+from masking_lab.core.clock import RealClock, VirtualClock
 from masking_lab.core.errors import DeviceProtocolError
 from masking_lab.device import protocol as proto
 from masking_lab.device.config import parse_device_config
@@ -174,3 +174,23 @@ def test_a_hostile_done_mid_session_exits_3_and_logs_nothing_as_played(tmp_path)
     (fault,) = of_kind(recs, "fault")
     assert fault["kind"] == "garbage" and "outside its window" in fault["message"]
     assert "1000000000" not in str(trials(recs))  # no hostile onset reached the log
+
+
+def test_a_device_clock_that_steps_back_is_a_clean_fault(peers):
+    # Real time: the host reads TIME five times at opening and again before each trial; the
+    # reading before the trial is earlier than those at opening.
+    times = iter(["100.001", "100.002", "100.003", "100.004", "100.005", "50.0"])
+
+    def respond(frame, events):
+        if frame.name == "HELLO":
+            return [proto.encode_ok(frame.seq, {**HELLO, "vt": 0})]
+        if frame.name == "TIME":
+            return [raw_frame(f"{frame.seq} OK t={next(times)}")]
+        return None
+
+    peer = ScriptedPeer(respond)
+    peers.append(peer)
+    device = SerialDevice(peer.port, parse_device_config(RIG, "rig"), RealClock())
+    with pytest.raises(DeviceProtocolError, match="the device clock stepped back"):
+        device.play_trial(PLAN, device.clock.now() + 0.05)
+    device.close()

@@ -102,6 +102,7 @@ class SerialDevice:
         self._aborted: dict[int, proto.Frame] = {}
         self._streams: dict[str, tuple[float, float | None]] = {}
         self._offset_s = 0.0
+        self._last_device_t = 0.0
         self._sync_rtt_s = math.inf
         self._dead: str | None = None
         self._closed = False
@@ -372,8 +373,14 @@ class SerialDevice:
             t1 = self.clock.now()
             try:
                 device_t = proto.parse_time(frame)
+                if device_t < self._last_device_t:  # a device clock never steps back
+                    raise proto.FrameError(
+                        f"TIME: t={device_t:.6f} s is before the {self._last_device_t:.6f} s "
+                        "it reported earlier (the device clock stepped back)"
+                    )
             except proto.FrameError as exc:
                 raise serial_faults.malformed_error(self.port, "TIME reply", exc) from exc
+            self._last_device_t = device_t
             if t1 - t0 < best_rtt:
                 best_rtt, best_offset = t1 - t0, device_t - (t0 + t1) / 2
         # A slow round trip (scheduler hiccup) gives a poor estimate: keep the previous one.
@@ -495,11 +502,7 @@ class SerialDevice:
         self._last_garbage = line
         log.debug("discarded line from %s (%s): %r", self.port, why, line[:60])
         if self._garbage_run > self._settings.max_garbage_lines:
-            raise DeviceProtocolError(
-                f"device on {self.port} sent {self._garbage_run} unframed or corrupted lines in "
-                f"a row while the host waited for {what} (last: {line[:40]!r}, {why}): check the "
-                f"cable, the baud rate (serial.baud_rate) and the firmware; {RESUME_HINT}"
-            )
+            raise serial_faults.garbage_error(self.port, self._garbage_run, what, line, why)
 
     def _read_line(self, deadline: float) -> bytes | None:
         while True:
@@ -523,11 +526,8 @@ class SerialDevice:
 
     @property
     def _reply_wait_s(self) -> float:
-        """How long to wait for a reply, s: the reply timeout, or in virtual time the hang guard.
-
-        A virtual-time device answers at once whatever the load, so no load-sized deadline is
-        applied; a closed link still ends any wait at once (EIO/EOF on read).
-        """
+        """Reply wait, s: the reply timeout; in virtual time the hang guard (a closed link still
+        ends any wait at once: EIO/EOF on read)."""
         s = self._settings
         return (
             max(s.reply_timeout_s, s.virtual_hang_guard_s)
@@ -560,10 +560,7 @@ class SerialDevice:
 
     def _disconnected(self, doing: str, exc: BaseException) -> DeviceDisconnectedError:
         self._dead = f"disconnected while {doing} ({exc})"
-        return DeviceDisconnectedError(
-            f"device on {self.port} disconnected while {doing} ({exc}): the firmware zeroes its "
-            f"outputs when the link drops. Reconnect the cable, {RESUME_HINT}"
-        )
+        return serial_faults.disconnected_error(self.port, doing, exc)
 
     # ------------------------------------------------------------------ faults
 

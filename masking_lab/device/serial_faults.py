@@ -9,6 +9,7 @@ with a message that names the port and says what to check. The ``kind`` attribut
 from __future__ import annotations
 
 from masking_lab.core.errors import (
+    DeviceDisconnectedError,
     DeviceError,
     DeviceFaultError,
     DeviceProtocolError,
@@ -161,4 +162,33 @@ def no_hello_error(
         f"no answer to HELLO from {port} within {boot_s:.1f} s{note}: check that the "
         "board runs masking-lab firmware, its power and cable; a board that resets "
         "when the port opens may need a longer serial.boot_timeout_s"
+    )
+
+
+def garbage_error(port: str, run: int, what: str, line: bytes, why: str) -> DeviceProtocolError:
+    """``run`` unframed or corrupted lines in a row while the host waited for ``what``.
+
+    Examples
+    --------
+    >>> "baud rate" in str(garbage_error("/dev/ttyUSB0", 17, "HELLO", b"x", "no '*'"))
+    True
+    """
+    return DeviceProtocolError(
+        f"device on {port} sent {run} unframed or corrupted lines in a row while the host "
+        f"waited for {what} (last: {line[:40]!r}, {why}): check the cable, the baud rate "
+        f"(serial.baud_rate) and the firmware; {RESUME_HINT}"
+    )
+
+
+def disconnected_error(port: str, doing: str, exc: BaseException) -> DeviceDisconnectedError:
+    """The link dropped while the host was ``doing`` something (the firmware zeroes itself).
+
+    Examples
+    --------
+    >>> str(disconnected_error("/dev/ttyACM0", "reading", OSError("EIO")))[:46]
+    'device on /dev/ttyACM0 disconnected while read'
+    """
+    return DeviceDisconnectedError(
+        f"device on {port} disconnected while {doing} ({exc}): the firmware zeroes its "
+        f"outputs when the link drops. Reconnect the cable, {RESUME_HINT}"
     )
