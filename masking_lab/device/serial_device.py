@@ -8,13 +8,11 @@ clock (TIME), and then plays trials (PLAY → OK → DONE with actual onsets), s
 Every amplitude is checked on the host before it is sent (SafetyLimitError, nothing sent). Every
 fault becomes a DeviceError subclass whose message names the port and says what to do; on a
 fault the host sends a best-effort STOP and records the fault in :attr:`SerialDevice.fault_log`.
-Every number the board sends is checked against the trial it answers
-(:mod:`masking_lab.device.reply_checks`): a violation is a DeviceProtocolError and nothing is
-logged as played. Timeouts are real-time waits on the serial link for a real clock; with a
-:class:`~masking_lab.core.clock.VirtualClock` (the emulator in virtual time) replies are awaited
-without a deadline that load could trip: a closed link ends the wait at once, and
-``serial.virtual_hang_guard_s`` only guards against a hung peer. The session clock is only read
-(and, for a VirtualClock, advanced to the end of each trial), never slept on.
+Every number the board sends is checked against its trial (``device.reply_checks``): a
+violation is a DeviceProtocolError, nothing logged as played. Timeouts are real-time waits for
+a real clock; with a VirtualClock replies are awaited without a deadline load could trip (a
+closed link ends the wait at once; ``serial.virtual_hang_guard_s`` guards against a hung peer).
+The session clock is only read (a VirtualClock advanced to each trial's end), never slept on.
 """
 
 from __future__ import annotations
