@@ -161,3 +161,23 @@ def test_serial_auto_without_a_board_names_the_ports_it_tried(
     assert main(args) == 3
     err = capsys.readouterr().err
     assert f"{silent.port} (no masking-lab HELLO)" in err and "or give serial:PORT" in err
+
+
+def test_check_against_the_host_build_of_the_c_firmware(tmp_path, capsys):
+    # The real C firmware built for the host, on its own pty (needs fw-core's protocol-2
+    # firmware: before that merge the check refuses the fw-1.0.0 board, exit 3).
+    import firmware_support
+
+    firmware_support.require_build("host")
+    board = firmware_support.start("host")
+    rig_file = tmp_path / "rig.yaml"
+    rig_file.write_text(firmware_support.RIG, encoding="utf-8")
+    try:
+        code = main(
+            ["device", "check", board.port, "--device-config", str(rig_file), "--no-watchdog"]
+        )
+    finally:
+        board.close()
+    out = capsys.readouterr().out
+    assert code == 0, out
+    assert "protocol 2, firmware fw-2." in out and "ok    PLAY latency" in out

@@ -445,6 +445,15 @@ class FakePeer:
                 os.close(fd)
 
 
+@pytest.mark.parametrize("fw", ["fw-2.0.0", "fw-2.0.0+stm32", "fw-2.1.0+qemu", "fw-10.0.0"])
+def test_current_firmware_with_a_board_suffix_is_accepted(closing, rig, fw):
+    peer = FakePeer(lambda f: [FakePeer.standard(f, fw=fw)] if f.name == "HELLO" else None)
+    closing.append(peer)
+    dev = SerialDevice(peer.port, rig, VirtualClock())
+    closing.append(dev)
+    assert dev.identity.firmware_version == fw
+
+
 def test_a_silent_port_times_out_at_hello(closing, quick_rig):
     peer = FakePeer(lambda frame: [])
     closing.append(peer)
@@ -465,6 +474,7 @@ def test_a_port_that_only_talks_garbage_is_not_a_device(closing, quick_rig):
         ({"proto": 1}, r"protocol version 1 is not 2.*flash firmware >= fw-2\.0\.0"),
         ({"fw": "fw-1.9.12"}, r"fw-1\.9\.12 is older than fw-2\.0\.0.*flash firmware"),
         ({"fw": "emu-1.0.0"}, r"not of the form fw-X\.Y\.Z.*flash firmware"),
+        ({"fw": "fw-2.0.0-rc1+stm32"}, r"fw-2\.0\.0-rc1\+stm32 is older than fw-2\.0\.0"),
         ({"bits_ev": 0}, "incomplete HELLO"),
         ({"att": "20,0"}, "must ascend from 0 dB"),
         ({"rst": "cosmic"}, "incomplete HELLO"),

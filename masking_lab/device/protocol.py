@@ -59,7 +59,10 @@ MAX_BITS = 32
 RESET_CAUSES = ("pin", "watchdog", "brownout", "software", "power", "unknown")
 CLOCK_SOURCES = ("hse", "hsi", "host")
 _BUILD = re.compile(r"^[0-9a-f]{12}$")
-_FW_VERSION = re.compile(r"^fw-([0-9]{1,6})\.([0-9]{1,6})\.([0-9]{1,6})$")
+# fw-X.Y.Z, an optional pre-release (-rc1: older than X.Y.Z) and build suffix (+stm32, +qemu)
+_FW_VERSION = re.compile(
+    r"^fw-([0-9]{1,6})\.([0-9]{1,6})\.([0-9]{1,6})(-[0-9A-Za-z.-]+)?(\+[0-9A-Za-z.-]+)?$"
+)
 
 
 class FrameError(ValueError):
@@ -299,8 +302,10 @@ def firmware_too_old(version: int, firmware: str) -> str | None:
 
     Examples
     --------
-    >>> firmware_too_old(2, "fw-2.0.1") is None
-    True
+    >>> firmware_too_old(2, "fw-2.0.1") is None, firmware_too_old(2, "fw-2.0.0+stm32") is None
+    (True, True)
+    >>> firmware_too_old(2, "fw-2.0.0-rc1")
+    'firmware fw-2.0.0-rc1 is older than fw-2.0.0'
     >>> firmware_too_old(2, "fw-1.9.10")
     'firmware fw-1.9.10 is older than fw-2.0.0'
     >>> firmware_too_old(1, "fw-2.0.0")
@@ -311,11 +316,10 @@ def firmware_too_old(version: int, firmware: str) -> str | None:
     match = _FW_VERSION.match(firmware)
     if match is None:
         return f"firmware version {firmware[:30]!r} is not of the form fw-X.Y.Z"
-    have = tuple(int(g) for g in match.groups())
     need_match = _FW_VERSION.match(MIN_FIRMWARE)
     assert need_match is not None
-    need = tuple(int(g) for g in need_match.groups())
-    if have < need:
+    have, need = (tuple(int(g) for g in m.groups()[:3]) for m in (match, need_match))
+    if have < need or (have == need and match.group(4)):  # 2.0.0-rc1 precedes 2.0.0
         return f"firmware {firmware} is older than {MIN_FIRMWARE}"
     return None
 
