@@ -64,6 +64,7 @@ def open_device(
         options = dict(emulator_options or {})
         options.setdefault("seed", seed)
         options.setdefault("virtual_time", clk.virtual)
+        options.update(_converter_options(FirmwareEmulator, cfg, options))
         emulator = FirmwareEmulator(cfg, **options).start()
         try:
             device = SerialDevice(
@@ -87,3 +88,23 @@ def open_device(
 
         return NidaqDevice(cfg, clk, device_name=arg or None)
     raise DeviceError(f"unknown device {spec!r}: choose {SPECS}")
+
+
+def _converter_options(
+    emulator: Any, cfg: DeviceConfig, given: Mapping[str, Any]
+) -> dict[str, Any]:
+    """The rig config's converter as emulator options, for an emulator that takes them as
+    arguments (``bits``, ``fsv_v``, ``att_db``) rather than reading the config: so the emulated
+    board's HELLO matches the config the host checks it against."""
+    import inspect
+
+    conv = cfg.converters.get("EV")
+    params = inspect.signature(emulator).parameters
+    if conv is None or "att_db" not in params:
+        return {}
+    wanted = {
+        "bits": conv.bits,
+        "fsv_v": conv.full_scale_v,
+        "att_db": tuple(int(a) if float(a).is_integer() else a for a in conv.steps_db),
+    }
+    return {k: v for k, v in wanted.items() if k in params and k not in given}
