@@ -194,3 +194,17 @@ def test_a_device_clock_that_steps_back_is_a_clean_fault(peers):
     with pytest.raises(DeviceProtocolError, match="the device clock stepped back"):
         device.play_trial(PLAN, device.clock.now() + 0.05)
     device.close()
+
+
+def test_a_done_without_its_end_is_a_protocol_fault(peers):
+    def respond(frame, events):
+        if frame.name != "PLAY":
+            return None
+        on = ",".join(fmt(planned(float(frame.fields["at"]))))
+        body = f"!1 DONE seq={frame.seq} on={on} tamp={frame.fields['tamp']} mamp=0.3"
+        return [proto.encode_ok(frame.seq), raw_frame(body)]
+
+    device = open_device(peers, respond)
+    with pytest.raises(DeviceProtocolError, match="lacks field 'end'"):
+        device.play_trial(PLAN, 1.0)
+    device.close()

@@ -191,16 +191,13 @@ class Hello:
 
 @dataclass(frozen=True)
 class Done:
-    """A ``DONE`` event: PLAY ``seq`` ended; onsets and end (device s), amplitudes played (V).
-
-    ``end_s`` is None when the device did not send ``end`` (protocol 1).
-    """
+    """A ``DONE`` event: PLAY ``seq`` ended; onsets and end (device s), amplitudes played (V)."""
 
     seq: int
     onsets_s: tuple[float, ...]
     target_v: float
     masker_v: float
-    end_s: float | None = None
+    end_s: float = math.nan  # always set by parse_done (``end`` is required)
 
 
 @dataclass(frozen=True)
@@ -345,8 +342,8 @@ def parse_done(frame: Frame) -> Done:
 
     Examples
     --------
-    >>> f = decode(encode_event(4, "DONE", {"seq": 12, "on": [1.0, 2.0, 3.0], "tamp": 0.5,
-    ...                                      "mamp": 0.0}))
+    >>> f = decode(encode_event(4, "DONE", {"seq": 12, "on": [1.0, 2.0, 3.0], "end": 3.2,
+    ...                                      "tamp": 0.5, "mamp": 0.0}))
     >>> parse_done(f).onsets_s
     (1.0, 2.0, 3.0)
     """
@@ -354,13 +351,13 @@ def parse_done(frame: Frame) -> Done:
     onsets = frame.numbers("on")
     if not 1 <= len(onsets) <= MAX_ONSETS:
         raise FrameError(f"DONE: {len(onsets)} onsets (expected 1..{MAX_ONSETS})")
-    end = frame.number("end") if "end" in frame.fields else None
-    for t in (*onsets, *([] if end is None else [end])):
-        if not 0 <= t <= MAX_DEVICE_TIME_S:
-            raise FrameError(f"DONE: time {t:g} s is not in 0..{MAX_DEVICE_TIME_S:.4g} s")
     target, masker = frame.number("tamp"), frame.number("mamp")
     if not (0 <= target <= MAX_LIMIT_V and 0 <= masker <= MAX_LIMIT_V):
         raise FrameError("DONE: a played amplitude is negative or above 1000 V")
+    end = frame.number("end")  # protocol 2: when the output stage finished
+    for t in (*onsets, end):
+        if not 0 <= t <= MAX_DEVICE_TIME_S:
+            raise FrameError(f"DONE: time {t:g} s is not in 0..{MAX_DEVICE_TIME_S:.4g} s")
     return Done(seq, tuple(onsets), target, masker, end)
 
 
