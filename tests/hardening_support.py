@@ -27,6 +27,7 @@ serial:
   hello_retry_s: 0.1
   max_garbage_lines: 4
   watchdog_s: 0.3
+  virtual_hang_guard_s: 60
 waveform: {sample_rate_hz: 10000, ramp_s: 0.002}
 """
 
@@ -47,9 +48,21 @@ def short_plan(**kw) -> TrialPlan:
     return TrialPlan(**base)
 
 
+#: The same rig with a short virtual-time hang guard, for tests whose peer never answers.
+QUICK_RIG = RIG.replace("virtual_hang_guard_s: 60", "virtual_hang_guard_s: 0.3")
+
 HELLO = {
-    "proto": 1,
-    "fw": "fake",
+    "proto": 2,
+    "fw": "fw-2.0.0",
+    "build": "0123456789ab",
+    "clk": "host",
+    "rst": "power",
+    # 24 bits over 10 V: an LSB of 1.2 µV, so a peer that echoes the request plays it.
+    "bits_ev": 24,
+    "bits_mv": 24,
+    "fsv_ev": 10.0,
+    "fsv_mv": 10.0,
+    "att": "0",
     "model": "FAKE",
     "sn": "F1",
     "max_ev": 5.0,

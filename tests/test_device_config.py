@@ -263,6 +263,7 @@ def test_rig_record_is_plain_json_with_every_field(tmp_path):
         "attenuator": None,
         "transducer": "touch panel",
         "measured_gain": [{"frequency_hz": 270.0, "v_out_per_v_in": 98.5}],
+        "converter": None,
     }
     assert mv["max_drive_v"] == 3.6
     assert mv["attenuator"] == {"model": "2:1 divider", "ratio": 0.5}
@@ -286,4 +287,51 @@ def test_rig_record_without_rig_fields_still_has_every_key(tmp_path):
         "attenuator": None,
         "transducer": "",
         "measured_gain": [],
+        "converter": None,
+    }
+
+
+CONVERTER_RIG = """\
+schema_version: 1
+channels:
+  EV: {max_drive_v: 5, converter: {bits: 12, full_scale_v: 10, attenuator_steps_db: [0, 20, 40]}}
+  MV: {max_drive_v: 5, converter: {bits: 16, full_scale_v: 10, min_lsb: 40}}
+"""
+
+
+def test_converter_and_attenuator_steps_are_read_and_recorded(tmp_path):
+    cfg = load_device_config(write(tmp_path, CONVERTER_RIG))
+    ev, mv = cfg.converters["EV"], cfg.converters["MV"]
+    assert (ev.bits, ev.full_scale_v, ev.steps_db, ev.min_lsb) == (12, 10.0, (0.0, 20.0, 40.0), 10)
+    assert (mv.bits, mv.steps_db, mv.min_lsb) == (16, (0.0,), 40.0)
+    record = cfg.rig_record()["channels"]["EV"]["converter"]
+    assert record == {
+        "bits": 12,
+        "full_scale_v": 10.0,
+        "attenuator_steps_db": [0.0, 20.0, 40.0],
+        "min_lsb": 10.0,
+    }
+
+
+@pytest.mark.parametrize(
+    ("steps", "message"),
+    [
+        ("[20, 40]", "must start at 0 dB and ascend"),
+        ("[0, 40, 20]", "must start at 0 dB and ascend"),
+        ("[0, 20, 20]", "must start at 0 dB and ascend"),
+        ("[0, -20]", "must be ≥ 0, got -20"),
+    ],
+)
+def test_attenuator_steps_that_do_not_ascend_from_0_are_refused(tmp_path, steps, message):
+    text = CONVERTER_RIG.replace("[0, 20, 40]", steps)
+    with pytest.raises(DeviceConfigError, match=message) as info:
+        load_device_config(write(tmp_path, text))
+    assert "channels.EV.converter" in str(info.value)
+
+
+def test_the_reference_rig_describes_its_converters():
+    cfg = load_device_config(None)
+    assert {ch: c.steps_db for ch, c in cfg.converters.items()} == {
+        "EV": (0.0, 20.0, 40.0),
+        "MV": (0.0, 20.0, 40.0),
     }

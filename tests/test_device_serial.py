@@ -14,8 +14,9 @@ import time
 import tty
 
 import pytest
+from hardening_support import HELLO as V2_HELLO
+from hardening_support import QUICK_RIG, short_plan
 from hardening_support import RIG as HOST_RIG
-from hardening_support import short_plan
 
 from masking_lab.core.clock import RealClock, VirtualClock
 from masking_lab.core.errors import (
@@ -44,6 +45,12 @@ def write_rig(tmp_path, text=HOST_RIG, name="rig.yaml"):
 @pytest.fixture
 def rig(tmp_path):
     return load_device_config(write_rig(tmp_path))
+
+
+@pytest.fixture
+def quick_rig(tmp_path):
+    """The rig with a 0.3 s virtual-time hang guard: for peers that never answer."""
+    return load_device_config(write_rig(tmp_path, QUICK_RIG, "quick.yaml"))
 
 
 @pytest.fixture
@@ -99,7 +106,7 @@ def test_handshake_identity_and_the_stricter_limits_win(tmp_path, connect):
     )
     dev, emu = connect(emulator_config=firmware)
     ident = dev.identity
-    assert (ident.backend, ident.port, ident.firmware_version) == ("serial", emu.port, "emu-1.0.0")
+    assert (ident.backend, ident.port, ident.firmware_version) == ("serial", emu.port, "fw-2.0.0")
     # EV: firmware 1.0 V is stricter than host 2.5 V; MV: host 8 V is stricter than firmware 9 V
     assert dict(ident.limits.max_drive_v) == {"EV": 1.0, "MV": 8.0}
     assert dev.watchdog_s == pytest.approx(0.3)
@@ -148,12 +155,13 @@ def test_a_board_that_resets_on_open_is_waited_for(tmp_path, closing, rig):
     dev = SerialDevice(emu.port, host, VirtualClock())
     closing.append(dev)
     assert dev.garbage_lines >= 1  # the bootloader's chatter was discarded, not fatal
-    assert dev.play_trial(short_plan(), 1.0).played_target_v == 0.5
+    # 0.5 V on the emulator's 12-bit, 10 V converter at 0 dB: within one LSB (4.9 mV)
+    assert dev.play_trial(short_plan(), 1.0).played_target_v == pytest.approx(0.5, abs=0.0049)
 
 
 def test_a_board_that_boots_too_slowly_is_reported(tmp_path, closing, rig):
     host = load_device_config(
-        write_rig(tmp_path, HOST_RIG.replace("boot_timeout_s: 0", "boot_timeout_s: 0.3"), "h.yaml")
+        write_rig(tmp_path, QUICK_RIG.replace("boot_timeout_s: 0", "boot_timeout_s: 0.3"), "h.yaml")
     )
     emu = FirmwareEmulator(rig, virtual_time=True, boot_delay_s=5.0).start()
     closing.append(emu)
@@ -195,7 +203,10 @@ def test_virtual_time_trials_advance_the_session_clock(connect):
         assert result.planned_onsets_s == pytest.approx([start + 1.2, start + 3.6, start + 6.0])
         late = [a - p for a, p in zip(result.actual_onsets_s, result.planned_onsets_s, strict=True)]
         assert all(-1e-5 <= d < 0.002 for d in late), (k, late)
-        assert (result.played_target_v, result.played_masker_v) == (0.5, 0.3)
+        # quantised to the emulator's 12-bit, 10 V converter (one LSB: 4.9 mV)
+        played = (result.played_target_v, result.played_masker_v)
+        assert played == pytest.approx((0.5, 0.3), abs=0.0049) and played != (0.5, 0.3)
+        assert (result.extra["requested_target_v"], result.extra["target_att_db"]) == (0.5, 0.0)
     assert emu.outputs().zero
 
 
@@ -303,8 +314,8 @@ def test_a_flood_of_garbage_is_a_protocol_fault_and_zeroes(connect):
     assert dev.fault_log[-1]["kind"] == "DeviceProtocolError"
 
 
-def test_a_corrupted_reply_is_discarded_then_times_out(connect):
-    dev, emu = connect()
+def test_a_corrupted_reply_is_discarded_then_times_out(connect, quick_rig):
+    dev, emu = connect(host_config=quick_rig)
     emu.inject("bad_crc", 1)
     with pytest.raises(DeviceTimeoutError, match="after 1 garbled line"):
         dev.keepalive()
@@ -312,7 +323,7 @@ def test_a_corrupted_reply_is_discarded_then_times_out(connect):
     dev.keepalive()  # the link is fine again
 
 
-def test_a_late_reply_is_not_taken_for_the_next_one(closing, rig):
+def test_a_late_reply_is_not_taken_for_the_next_one(closing, quick_rig):
     pings = []
 
     def respond(frame):
@@ -325,7 +336,7 @@ def test_a_late_reply_is_not_taken_for_the_next_one(closing, rig):
 
     peer = FakePeer(respond)
     closing.append(peer)
-    dev = SerialDevice(peer.port, rig, VirtualClock())
+    dev = SerialDevice(peer.port, quick_rig, VirtualClock())
     closing.append(dev)
     with pytest.raises(DeviceTimeoutError):
         dev.keepalive()
@@ -421,17 +432,7 @@ class FakePeer:
     @staticmethod
     def standard(frame, **hello):
         if frame.name == "HELLO":
-            fields = {
-                "proto": 1,
-                "fw": "fake",
-                "model": "FAKE",
-                "sn": "F1",
-                "max_ev": 5.0,
-                "max_mv": 10.0,
-                "wd_ms": 0,
-                "fs": 20000.0,
-                "vt": 1,
-            }
+            fields = dict(V2_HELLO)
             fields.update(hello)
             return proto.encode_ok(frame.seq, fields)
         return proto.encode_ok(frame.seq, {"t": 0.0})
@@ -444,24 +445,39 @@ class FakePeer:
                 os.close(fd)
 
 
-def test_a_silent_port_times_out_at_hello(closing, rig):
+@pytest.mark.parametrize("fw", ["fw-2.0.0", "fw-2.0.0+stm32", "fw-2.1.0+qemu", "fw-10.0.0"])
+def test_current_firmware_with_a_board_suffix_is_accepted(closing, rig, fw):
+    peer = FakePeer(lambda f: [FakePeer.standard(f, fw=fw)] if f.name == "HELLO" else None)
+    closing.append(peer)
+    dev = SerialDevice(peer.port, rig, VirtualClock())
+    closing.append(dev)
+    assert dev.identity.firmware_version == fw
+
+
+def test_a_silent_port_times_out_at_hello(closing, quick_rig):
     peer = FakePeer(lambda frame: [])
     closing.append(peer)
     with pytest.raises(DeviceTimeoutError, match=rf"no answer to HELLO from {peer.port}"):
-        SerialDevice(peer.port, rig, VirtualClock())
+        SerialDevice(peer.port, quick_rig, VirtualClock())
 
 
-def test_a_port_that_only_talks_garbage_is_not_a_device(closing, rig):
+def test_a_port_that_only_talks_garbage_is_not_a_device(closing, quick_rig):
     peer = FakePeer(lambda frame: [], garbage_every_s=0.01)
     closing.append(peer)
     with pytest.raises(DeviceProtocolError, match=r"not masking-lab frames.*baud rate"):
-        SerialDevice(peer.port, rig, VirtualClock())
+        SerialDevice(peer.port, quick_rig, VirtualClock())
 
 
 @pytest.mark.parametrize(
     ("hello", "message"),
     [
-        ({"proto": 2}, "speaks protocol version 2"),
+        ({"proto": 1}, r"protocol version 1 is not 2.*flash firmware >= fw-2\.0\.0"),
+        ({"fw": "fw-1.9.12"}, r"fw-1\.9\.12 is older than fw-2\.0\.0.*flash firmware"),
+        ({"fw": "emu-1.0.0"}, r"not of the form fw-X\.Y\.Z.*flash firmware"),
+        ({"fw": "fw-2.0.0-rc1+stm32"}, r"fw-2\.0\.0-rc1\+stm32 is older than fw-2\.0\.0"),
+        ({"bits_ev": 0}, "incomplete HELLO"),
+        ({"att": "20,0"}, "must ascend from 0 dB"),
+        ({"rst": "cosmic"}, "incomplete HELLO"),
         ({"max_ev": 0.0}, "limit must be > 0 V"),
         ({"max_mv": "x"}, "incomplete HELLO"),
     ],
@@ -476,7 +492,8 @@ def test_an_incompatible_firmware_is_refused(closing, rig, hello, message):
 def test_a_device_that_plays_other_amplitudes_is_caught(closing, rig):
     def respond(frame):
         if frame.name == "PLAY":
-            done = {"seq": frame.seq, "on": [1.0, 2.0, 3.0], "end": 4.0, "tamp": 0.9, "mamp": 0.3}
+            on = [0.01, 0.04, 0.07]
+            done = {"seq": frame.seq, "on": on, "end": 0.09, "tamp": 0.9, "mamp": 0.3}
             return [proto.encode_ok(frame.seq, {"start": 0.0}), proto.encode_event(1, "DONE", done)]
         return None
 
@@ -484,7 +501,7 @@ def test_a_device_that_plays_other_amplitudes_is_caught(closing, rig):
     closing.append(peer)
     dev = SerialDevice(peer.port, rig, VirtualClock())
     closing.append(dev)
-    with pytest.raises(DeviceProtocolError, match=r"played 0\.9 V / 0\.3 V instead of 0\.5 V"):
+    with pytest.raises(DeviceProtocolError, match=r"played target amplitude 0\.9 V differs"):
         dev.play_trial(short_plan(), 0.0)
 
 
@@ -515,7 +532,7 @@ def test_a_leftover_end_of_trial_report_is_not_taken_for_a_new_trial(closing, ri
     assert result.actual_onsets_s == pytest.approx(result.planned_onsets_s, abs=1e-6)
 
 
-def test_a_device_that_never_reports_done_times_out(closing, rig):
+def test_a_device_that_never_reports_done_times_out(closing, quick_rig):
     def respond(frame):
         if frame.name == "PLAY":
             return [proto.encode_ok(frame.seq, {"start": 0.0})]
@@ -523,7 +540,7 @@ def test_a_device_that_never_reports_done_times_out(closing, rig):
 
     peer = FakePeer(respond)
     closing.append(peer)
-    dev = SerialDevice(peer.port, rig, VirtualClock())
+    dev = SerialDevice(peer.port, quick_rig, VirtualClock())
     closing.append(dev)
     with pytest.raises(DeviceTimeoutError, match="did not report the end of trial"):
         dev.play_trial(short_plan(), 0.0)

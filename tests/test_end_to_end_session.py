@@ -82,7 +82,7 @@ def test_baseline_then_experiment_one_through_the_emulator(study):
     # Every trial went through the pseudo-terminal to the emulated firmware.
     for recs in (base_recs, exp_recs):
         assert recs[0]["device"]["backend"] == "emulator"
-        assert recs[0]["device"]["firmware_version"].startswith("emu-")
+        assert recs[0]["device"]["firmware_version"].startswith("fw-")
         assert recs[0]["device"]["port"].startswith("/dev/")
         assert all("device_seq" in t["device_extra"] for t in trials(recs))
 

@@ -10,7 +10,15 @@ import textwrap
 import threading
 
 import pytest
-from hardening_support import HELLO, RIG, ScriptedPeer, raw_frame, short_plan, standard
+from hardening_support import (
+    HELLO,
+    QUICK_RIG,
+    RIG,
+    ScriptedPeer,
+    raw_frame,
+    short_plan,
+    standard,
+)
 
 from masking_lab.core.clock import VirtualClock
 from masking_lab.core.errors import DeviceProtocolError, DeviceTimeoutError
@@ -166,7 +174,8 @@ SPEWER = textwrap.dedent(
 def test_a_board_that_spews_and_never_reads_cannot_hang_the_handshake():
     # Before the fix the host filled the pty with HELLOs and blocked in write() forever.
     boot_s = 1.5
-    rig = RIG.replace("boot_timeout_s: 0", f"boot_timeout_s: {boot_s}")
+    # The short hang guard: in virtual time the handshake's budget is the larger of the two.
+    rig = QUICK_RIG.replace("boot_timeout_s: 0", f"boot_timeout_s: {boot_s}")
     proc = subprocess.run(
         [sys.executable, "-c", SPEWER, rig], capture_output=True, text=True, timeout=boot_s + 20
     )
@@ -209,5 +218,5 @@ def test_a_write_that_blocks_times_out_as_a_device_fault(peers):
 def test_standard_answers_are_typed(peers):
     frame = proto.decode(standard(proto.decode(proto.encode_command(3, "HELLO")), [0])[0])
     hello = proto.parse_hello(frame)
-    assert (hello.version, hello.watchdog_ms, hello.virtual) == (1, 0, True)
+    assert (hello.version, hello.watchdog_ms, hello.virtual) == (2, 0, True)
     assert dict(hello.max_v) == {"EV": 5.0, "MV": 10.0}

@@ -360,3 +360,134 @@ def test_standin_buffers_written_are_the_limited_shared_waveforms(device, standi
     assert data.shape[0] == 2 and np.all(data[:, 0] == 0.0) and np.all(data[:, -1] == 0.0)
     assert np.max(np.abs(data[0])) == pytest.approx(0.5)
     assert np.max(np.abs(data[1])) == pytest.approx(0.3)
+
+
+# ---------------------------------------------------------------- issue 23, item 6
+
+
+def x_series_config():
+    """The reference rig wired to one X Series board (the stand-in's Dev1: no watchdog, idle
+    output and start-trigger timestamps supported)."""
+    text = default_device_config_text().replace(
+        "channels: {EV: cDAQ1Mod1/ao0, MV: cDAQ1Mod2/ao0}", "channels: {EV: Dev1/ao0, MV: Dev1/ao1}"
+    )
+    return parse_device_config(text, "x-series.yaml")
+
+
+def default_device_config_text() -> str:
+    from masking_lab.formats.resources import shipped
+
+    return shipped("protocols", "devices/default.yaml").read_text(encoding="utf-8")
+
+
+def test_standin_x_series_without_watchdog_is_said_with_what_it_means(standin):
+    dev = NidaqDevice(x_series_config(), RealClock())
+    try:
+        (note,) = dev.notices
+        assert "no analog-output watchdog" in note and "X Series" in note
+        assert "keeps its last sample" in note and "ends on 0 V" in note
+        record = device_record(dev.identity)
+        assert record["details"]["notices"] == [note]
+        assert record["details"]["watchdog"].startswith("unsupported on Dev1")
+    finally:
+        dev.close()
+
+
+def test_standin_cdaq_with_watchdog_has_no_notice(device):
+    assert device.notices == [] and device.identity.details["watchdog"].startswith("0 V after")
+
+
+def test_standin_idle_output_is_zero_volts_where_the_device_allows(standin):
+    dev = NidaqDevice(x_series_config(), RealClock())
+    try:
+        dev.play_trial(plan(), dev.clock.now())
+        assert dev.identity.details["idle_output"] == "0 V"
+        asked = {c[1] for c in standin.ops("ao_idle_output_behavior") if c[2] == "ZERO_VOLTS"}
+        assert asked == {"Dev1/ao0", "Dev1/ao1"}
+    finally:
+        dev.close()
+
+
+def test_standin_idle_output_unsupported_is_recorded_and_buffers_still_end_on_0v(device, standin):
+    device.play_trial(plan(), device.clock.now())
+    assert device.identity.details["idle_output"].startswith("unsupported")
+    assert "buffers end on 0 V" in device.identity.details["idle_output"]
+    assert standin.levels == {EV_LINE: 0.0, MV_LINE: 0.0}
+
+
+def test_standin_onsets_come_from_the_hardware_start_trigger_where_supported(standin):
+    # The stand-in stamps the start 0.25 s after start() ran: hardware-timed onsets follow
+    # the stamp, not the host clock reading before start().
+    standin.timestamp_lag_s = 0.25
+    dev = NidaqDevice(x_series_config(), RealClock())
+    try:
+        p = plan()
+        result = dev.play_trial(p, dev.clock.now())
+        assert result.extra["onsets"] == "hardware start trigger"
+        late = [a - q for a, q in zip(result.actual_onsets_s, result.planned_onsets_s, strict=True)]
+        assert all(0.2 < d < 0.25 + 0.2 for d in late), late
+        spacing = np.diff(result.actual_onsets_s)
+        assert spacing == pytest.approx([p.stimulus_s + p.gap_s] * 2, abs=1e-3)
+    finally:
+        dev.close()
+
+
+def test_standin_onsets_fall_back_to_the_host_clock_without_timestamps(device):
+    result = device.play_trial(plan(), device.clock.now())
+    assert result.extra["onsets"] == "host clock at start"
+    assert device.identity.details["onsets"] == "host clock at start"
+
+
+def test_standin_device_locked_by_a_killed_hosts_watchdog_is_reset_at_opening(standin):
+    # A previous host was killed: the chassis watchdog expired and nobody cleared it, so the
+    # lines refuse writes. Opening resets the device (NI's documented recovery), then 0 V.
+    standin.units["cDAQ1"].expired = True
+    dev = NidaqDevice(default_device_config(), RealClock())
+    try:
+        assert [c for c in standin.ops("Device.reset_device") if c[1] == "cDAQ1"]
+        (note,) = dev.notices
+        assert "reset_device" in note and "0 V" in note
+        assert standin.levels == {EV_LINE: 0.0, MV_LINE: 0.0}
+        dev.play_trial(plan(), dev.clock.now())
+    finally:
+        dev.close()
+
+
+def test_standin_expired_watchdog_that_will_not_clear_is_reset_and_rearmed(device, standin):
+    (wd,) = standin.watchdogs
+    wd.expire()
+    from nidaqmx.errors import DaqError
+
+    standin.fail_on["watchdog.clear_expiration"] = DaqError("cannot clear", -1)
+    device.play_trial(plan(), device.clock.now())
+    assert [c for c in standin.ops("Device.reset_device") if c[1] == "cDAQ1"]
+    assert device.watchdog.armed and device.watchdog.expirations == 1
+    assert len(standin.watchdogs) == 2  # a fresh watchdog task after the reset
+
+
+def test_standin_a_session_on_a_board_without_watchdog_says_so_at_start(standin, tmp_path):
+    import io
+
+    from runner_support import write_protocol
+
+    from masking_lab.session.runner import RunOptions, run_session
+
+    protocol = write_protocol(
+        tmp_path,
+        kind="baseline",
+        sets=[{"id": "EV", "target": "EV270"}],
+        staircase={"max_trials": 2, "start_level_db": -20},
+        timing={"stimulus_s": 0.01, "gap_s": 0.0, "lead_in_s": 0.0, "inter_trial_s": 0.0},
+    )
+    stream = io.StringIO()
+    result = run_session(
+        RunOptions(
+            protocol, "S01", device="nidaq:Dev1", data_dir=tmp_path / "d", seed=1, real_time=True
+        ),
+        open_device=lambda spec, clock: NidaqDevice(x_series_config(), clock),
+        stream=stream,
+    )
+    printed = stream.getvalue()
+    assert "device: no analog-output watchdog" in printed, printed
+    header = json.loads(result.log_path.read_text(encoding="utf-8").splitlines()[0])
+    assert "no analog-output watchdog" in header["device"]["details"]["notices"][0]

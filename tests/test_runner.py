@@ -98,8 +98,16 @@ def test_masked_session_places_levels_with_the_calibration(tmp_path):
         assert ts
         for t in ts:
             assert t["level_db_v"] == pytest.approx(t["level_db_sl"] - 14.0)
-            assert t["played_target_v"] == pytest.approx(10 ** (t["level_db_v"] / 20))
-            assert t["played_masker_v"] == pytest.approx(10 ** (start["masker_level_db_v"] / 20))
+            # requested as calibrated; played as the 12-bit, 10 V converter renders it at the
+            # logged attenuator step (within one LSB there)
+            extra = t["device_extra"]
+            assert extra["requested_target_v"] == pytest.approx(10 ** (t["level_db_v"] / 20))
+            lsb = 20 / 4096 / 10 ** (extra["target_att_db"] / 20)
+            assert abs(t["played_target_v"] - extra["requested_target_v"]) <= lsb / 2 + 1e-6
+            masker_v = 10 ** (start["masker_level_db_v"] / 20)
+            assert extra["requested_masker_v"] == pytest.approx(masker_v)
+            m_lsb = 20 / 4096 / 10 ** (extra["masker_att_db"] / 20)
+            assert abs(t["played_masker_v"] - masker_v) <= m_lsb / 2 + 1e-6
     ends = of_kind(recs, "set_end")
     assert all(e["al_db_v"] == pytest.approx(e["al_db_sl"] - 14.0) for e in ends)
 

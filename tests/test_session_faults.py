@@ -41,7 +41,12 @@ def lab(tmp_path_factory):
     """A protocol, a fast-failing rig config and the uninterrupted run through the emulator."""
     folder = tmp_path_factory.mktemp("lab")
     protocol = write_protocol(folder, randomize=False)
-    config = write_device_config(folder, serial__reply_timeout_s=0.2, serial__done_margin_s=0.3)
+    config = write_device_config(
+        folder,
+        serial__reply_timeout_s=0.2,
+        serial__done_margin_s=0.3,
+        serial__virtual_hang_guard_s=0.3,  # its faults include a board that never answers
+    )
     data = folder / "ref"
     write_calibration(data, "S01", CAL)
     ref = run_session(

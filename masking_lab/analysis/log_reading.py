@@ -23,6 +23,7 @@ from typing import Any
 
 import msgspec
 
+from masking_lab.analysis.played_levels import played_level_problems
 from masking_lab.analysis.thresholds import EstimatorSettings, packed, session_rows
 from masking_lab.core.errors import LogError
 from masking_lab.formats.log_records import ANALYSIS_DECODER, AHeader
@@ -131,7 +132,7 @@ def read_one(path: Path, rel: str, settings: EstimatorSettings) -> LogResult:
         header=header,
         rows=packed(rows or []),
         line_problems=list(log.problems),
-        continuity=log.continuity_problems(),
+        continuity=[*log.continuity_problems(), *played_level_problems(log.records, log.lines)],
     )
 
 

@@ -20,6 +20,7 @@ COMMANDS = (
     "run",
     "resume",
     "emulate",
+    "device",
     "analyze",
     "fit",
     "usertest-report",

@@ -21,6 +21,7 @@ import argparse
 import math
 import sys
 from collections.abc import Callable
+from typing import Any
 
 from masking_lab.commands.options import command_texts
 
@@ -52,6 +53,29 @@ _nonnegative_float = _checked(
     float, "a number", lambda v: math.isfinite(v) and v >= 0, "a number ≥ 0"
 )
 _finite_float = _checked(float, "a number", math.isfinite, "a finite number")
+
+
+def _rig_resolution(protocol: Any, truth: Any, device_config: str | None) -> list[str]:
+    """Header lines: does the rig's converter play every set's levels within 1 dB?"""
+    from masking_lab.device.config import load_device_config
+    from masking_lab.device.level_check import level_problems
+
+    config = load_device_config(device_config)
+    if not config.converters:
+        return [f"rig {config.name}: no converter described; resolution not checked"]
+    problems = level_problems(
+        protocol,
+        config.converters,
+        truth.unmasked_al_db_v,
+        config.limits.max_drive_v,
+        al_source="the ground truth",
+    )
+    if not problems:
+        return [f"rig {config.name}: every level of every set plays within 1 dB"]
+    return [
+        f"rig {config.name}: FLAGGED, {len(problems)} setting(s) below the rig's resolution:",
+        *(f"  {p}" for p in problems),
+    ]
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -160,6 +184,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--psi",
         action="store_true",
         help="add the psi-marginal (slope unknown) to the procedures comparison (slow)",
+    )
+    p.add_argument(
+        "--device-config",
+        metavar="FILE",
+        help="rig config whose converters are checked against every set's level range: a "
+        "floor below the rig's resolution is flagged (default: protocols/devices/default.yaml)",
     )
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--out", default="plan_out", help="output folder (default ./plan_out)")
@@ -276,6 +306,7 @@ def run(args: argparse.Namespace) -> int:
         f"one trial = {protocol.timing.trial_s:g} s + {settings.response_s:g} s response + "
         f"{protocol.timing.inter_trial_s:g} s pause = {result.trial_s:g} s; trial cap "
         f"{cap if cap is not None else 'none'}; bias = mean(AL − true threshold)",
+        *_rig_resolution(protocol, truth, args.device_config),
     ]
     text = "\n".join(
         [

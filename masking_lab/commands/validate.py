@@ -39,7 +39,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--device-config",
         metavar="FILE",
-        help="rig config whose per-channel max_level_db_sl limits masker levels "
+        help="rig config whose per-channel max_level_db_sl limits masker levels and whose "
+        "converters must play every level a protocol may ask for within 1 dB "
         "(default: the reference rig, protocols/devices/default.yaml)",
     )
     p.set_defaults(handler=run)
@@ -53,14 +54,14 @@ def run(args: argparse.Namespace) -> int:
     bad = 0
     for f in args.files:
         try:
-            print(f"ok      {f}: {check_file(f, limits)}")
+            print(f"ok      {f}: {check_file(f, limits, device_config=args.device_config)}")
         except MaskingLabError as exc:
             bad += 1
             print(f"INVALID {exc}", file=sys.stderr)
     return 1 if bad else 0
 
 
-def check_file(path: str, limits: dict[str, float]) -> str:
+def check_file(path: str, limits: dict[str, float], device_config: str | None = None) -> str:
     """Load ``path`` with its kind's loader; return a one-line summary of what it holds.
 
     Raises
@@ -81,6 +82,7 @@ def check_file(path: str, limits: dict[str, float]) -> str:
         from masking_lab.formats.protocol import load_protocol
 
         protocol = load_protocol(path, max_level_db_sl=limits)
+        _check_levels_playable(path, protocol, device_config)
         return f"{protocol.experiment} ({protocol.kind}, {len(protocol.sets)} sets)"
     if kind == "usertest":
         from masking_lab.usertest.design import load_usertest
@@ -111,6 +113,36 @@ def check_file(path: str, limits: dict[str, float]) -> str:
 
     doc = read_masking_params(path)
     return f"masking params, {len(doc['functions'])} functions"
+
+
+def _check_levels_playable(path: str, protocol: Any, device_config: str | None) -> None:
+    """Refuse a protocol whose level range the rig's converters cannot play within 1 dB.
+
+    dB SL levels are placed with the reference ALs of the simulation ground truth (a
+    participant's own ALs are checked again by ``run`` before the first trial).
+    """
+    from masking_lab.core.errors import ProtocolError
+    from masking_lab.device.config import load_device_config
+    from masking_lab.device.level_check import level_problems
+    from masking_lab.simulation.observer import load_ground_truth
+
+    config = load_device_config(device_config)
+    if not config.converters:
+        return
+    problems = level_problems(
+        protocol,
+        config.converters,
+        load_ground_truth().unmasked_al_db_v,
+        config.limits.max_drive_v,
+        al_source="protocols/simulation/ground_truth.yaml, the reference participant",
+    )
+    if problems:
+        more = f" (and {len(problems) - 3} more)" if len(problems) > 3 else ""
+        raise ProtocolError(
+            path,
+            "sets",
+            f"levels the rig {config.path} cannot play: " + "; ".join(problems[:3]) + more,
+        )
 
 
 def sniff(path: str) -> tuple[str, Any]:

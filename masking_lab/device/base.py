@@ -7,8 +7,9 @@ before anything is played and zeroes both outputs on any fault, on :meth:`Device
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Protocol
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any, Protocol
 
 from masking_lab.core.stimulus import Channel, Stimulus
 from masking_lab.core.trial import PlayResult, TrialPlan
@@ -50,6 +51,10 @@ class DeviceIdentity:
         Serial port path, if any.
     limits : DeviceLimits
         Limits in force (host config ∩ firmware-reported), V.
+    details : Mapping[str, Any]
+        What else the handshake said, for the log (serial boards: protocol, build hash, clock
+        source, reset cause, converter bits, full scale in V, attenuator steps in dB; NI:
+        watchdog support and idle-output behaviour). Empty when there is nothing to add.
 
     Examples
     --------
@@ -64,6 +69,7 @@ class DeviceIdentity:
     firmware_version: str
     port: str | None
     limits: DeviceLimits
+    details: Mapping[str, Any] = field(default_factory=dict)
 
 
 class Device(Protocol):

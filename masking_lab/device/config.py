@@ -8,6 +8,7 @@ the file, the key path and its line.
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
@@ -16,6 +17,7 @@ from typing import Any
 
 from masking_lab.core.errors import DeviceConfigError, ProtocolError
 from masking_lab.device.base import DeviceLimits
+from masking_lab.device.levels_range import DEFAULT_MIN_LSB, Converter
 from masking_lab.formats.protocol import _describe, _safe_yaml, _where
 from masking_lab.formats.reader import decode_utf8, excerpt, read_limited
 from masking_lab.formats.resources import shipped
@@ -45,6 +47,10 @@ class SerialSettings:
         Unframed or corrupted lines discarded in a row before the link is declared faulty.
     watchdog_s : float
         Firmware watchdog period, s (0 disables; used by the emulator).
+    virtual_hang_guard_s : float
+        Virtual time only: how long the host waits for any reply before it declares the device
+        hung, s. A hang guard, not a timing assumption (load never trips it); a closed link is
+        noticed at once.
     """
 
     baud_rate: int = 115200
@@ -54,6 +60,7 @@ class SerialSettings:
     hello_retry_s: float = 0.25
     max_garbage_lines: int = 16
     watchdog_s: float = 0.5
+    virtual_hang_guard_s: float = 120.0
 
 
 @dataclass(frozen=True)
@@ -189,6 +196,9 @@ class DeviceConfig:
         Participant monitor, if configured.
     rig : Mapping[str, ChannelRig]
         Amplifier, attenuator, transducer and measured gain per channel (``"EV"``, ``"MV"``).
+    converters : Mapping[str, Converter]
+        Converter bits, full scale and attenuator steps per channel (only channels that give
+        ``converter``; a channel without one is not checked for resolution).
     """
 
     path: str
@@ -201,6 +211,7 @@ class DeviceConfig:
     emulator: EmulatorSettings = field(default_factory=EmulatorSettings)
     display: DisplaySettings | None = None
     rig: Mapping[str, ChannelRig] = field(default_factory=dict)
+    converters: Mapping[str, Converter] = field(default_factory=dict)
 
     def rig_record(self) -> dict[str, Any]:
         """The rig as a plain JSON-able mapping, for the session log header.
@@ -212,7 +223,9 @@ class DeviceConfig:
             ``max_drive_v`` (peak V at the board output), ``amplifier`` (``model``, ``gain_db``,
             ``gain_v_per_v``, ``max_input_v``, ``setting``) or None, ``attenuator`` (``model``,
             ``ratio``) or None, ``transducer`` and ``measured_gain`` (a list of
-            ``{"frequency_hz", "v_out_per_v_in"}`` sorted by frequency; empty if not measured).
+            ``{"frequency_hz", "v_out_per_v_in"}`` sorted by frequency; empty if not measured)
+            and ``converter`` (``bits``, ``full_scale_v``, ``attenuator_steps_db``,
+            ``min_lsb``) or None.
 
         Examples
         --------
@@ -222,14 +235,23 @@ class DeviceConfig:
         'Texas Instruments DRV8662'
         >>> import json; _ = json.dumps(record)  # plain data, ready for the log header
         """
-        return {
-            "name": self.name,
-            "config": self.path,
-            "channels": {
-                ch: _channel_record(self.rig.get(ch, ChannelRig()), self.limits.max_drive_v[ch])
-                for ch in ("EV", "MV")
-            },
+        channels = {
+            ch: _channel_record(self.rig.get(ch, ChannelRig()), self.limits.max_drive_v[ch])
+            for ch in ("EV", "MV")
         }
+        for ch, record in channels.items():
+            conv = self.converters.get(ch)
+            record["converter"] = (
+                None
+                if conv is None
+                else {
+                    "bits": conv.bits,
+                    "full_scale_v": conv.full_scale_v,
+                    "attenuator_steps_db": list(conv.steps_db),
+                    "min_lsb": conv.min_lsb,
+                }
+            )
+        return {"name": self.name, "config": self.path, "channels": channels}
 
 
 def _channel_record(rig: ChannelRig, max_drive_v: float) -> dict[str, Any]:
@@ -403,6 +425,11 @@ def _build(data: Mapping[str, Any], source: str, lines: Mapping[str, int]) -> De
                 "output",
             )
     display = DisplaySettings(**data["display"]) if data.get("display") else None
+    converters = {
+        ch: _converter(channels[ch]["converter"], f"channels.{ch}.converter", source, lines)
+        for ch in ("EV", "MV")
+        if "converter" in channels[ch]
+    }
     return DeviceConfig(
         path=source,
         name=str(data.get("name", Path(source).stem)),
@@ -414,6 +441,26 @@ def _build(data: Mapping[str, Any], source: str, lines: Mapping[str, int]) -> De
         emulator=EmulatorSettings(**data.get("emulator", {})),
         display=display,
         rig=rig,
+        converters=converters,
+    )
+
+
+def _converter(
+    spec: Mapping[str, Any], path: str, source: str, lines: Mapping[str, int]
+) -> Converter:
+    steps = tuple(float(s) for s in spec.get("attenuator_steps_db", [0]))
+    if steps[0] != 0 or any(b <= a for a, b in itertools.pairwise(steps)):
+        raise DeviceConfigError(
+            source,
+            _where(f"{path}.attenuator_steps_db", lines),
+            f"{list(steps)} must start at 0 dB and ascend (e.g. [0, 20, 40]); write [0] for a "
+            "channel without a switchable attenuator",
+        )
+    return Converter(
+        bits=int(spec["bits"]),
+        full_scale_v=float(spec["full_scale_v"]),
+        steps_db=steps,
+        min_lsb=float(spec.get("min_lsb", DEFAULT_MIN_LSB)),
     )
 
 

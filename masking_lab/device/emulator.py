@@ -7,8 +7,7 @@ any fault (corrupted frame, over-limit request, any ERR, watchdog, STOP, unplug,
 reports faults as framed events. It runs in a background thread (tests, ``--device emulator``)
 or as a process (``masking-lab emulate``), and can imitate a board that resets when the port is
 opened (``boot_delay_s``) and a set of injected faults (:meth:`FirmwareEmulator.inject`).
-
-Two time modes:
+It speaks protocol 2 through the shim :mod:`masking_lab.device.emulator_v2`. Two time modes:
 
 - real time: PLAY is hardware-timed: the emulator waits until each onset and reports when it
   switched the output on (real onset jitter), and renders each trial's buffers with
@@ -18,9 +17,7 @@ Two time modes:
   so a simulated study runs thousands of trials through the pty in seconds.
 
 It also models the interlock input (:meth:`FirmwareEmulator.set_interlock`) and answers the
-read-only ``DIAG`` command, like ``firmware/`` does.
-
-The host side of the same protocol is :mod:`masking_lab.device.serial_device`.
+read-only ``DIAG`` command, like ``firmware/`` does (host side: ``device.serial_device``).
 """
 
 from __future__ import annotations
@@ -37,6 +34,7 @@ from typing import Any
 
 from masking_lab.core import waveforms
 from masking_lab.core.stimulus import CHANNELS
+from masking_lab.device import emulator_v2 as v2
 from masking_lab.device import protocol as proto
 from masking_lab.device.config import DeviceConfig, default_device_config
 from masking_lab.device.emulator_state import (
@@ -52,7 +50,7 @@ from masking_lab.device.emulator_state import (
     virtual_play,
 )
 
-FIRMWARE_VERSION = "emu-1.0.0"
+FIRMWARE_VERSION = "fw-2.0.0"  # the emulator answers like firmware protocol 2
 HARD_MAX_DRIVE_V = 10.0  # the DAC's range: no config can raise a limit above it
 BOOT_BANNER = b"\r\nML bootloader v0.3 ... starting application\r\n"
 __all__ = ["FirmwareEmulator", "OutputSnapshot"]
@@ -106,6 +104,7 @@ class FirmwareEmulator:
         self.limits = {
             ch: min(HARD_MAX_DRIVE_V, self.config.limits.max_drive_v[ch]) for ch in CHANNELS
         }
+        self.converters = v2.converters_of(self.config, HARD_MAX_DRIVE_V)
         self._lateness = OnsetLateness(seed, round(self.config.emulator.onset_jitter_s * 1e6))
         self._interlock_open = bool(interlock_open)
         self._lock = threading.Lock()
@@ -332,7 +331,7 @@ class FirmwareEmulator:
                 self._booting_until = None
                 self._rx.clear()
                 self._out += BOOT_BANNER
-                self._send_event("BOOT", {"fw": FIRMWARE_VERSION})
+                self._send_event("BOOT", {"fw": FIRMWARE_VERSION, "rst": "power"})
                 self._note("BOOT done")
             self._advance_play(now)
             if self._armed() and self.watchdog_s > 0 and now - self._last_rx > self.watchdog_s:
@@ -375,6 +374,7 @@ class FirmwareEmulator:
         fields.update(max_ev=self.limits["EV"], max_mv=self.limits["MV"])
         fields.update(wd_ms=round(self.watchdog_s * 1000), fs=self.config.waveform.sample_rate_hz)
         fields.update(vt=int(self.virtual_time), il=interlock_text(self._interlock_open))
+        fields.update(v2.hello_fields(self.converters))
         self._ok(frame.seq, fields)
 
     def _cmd_time(self, frame: proto.Frame) -> None:
@@ -438,6 +438,7 @@ class FirmwareEmulator:
             self._err(frame.seq, "BUSY", "PLAY while a trial is playing")
             return
         plan = plan_from(frame, self.config.waveform.sample_rate_hz)
+        self._att = v2.play_steps(frame, plan, self.converters)
         amps = {ch: 0.0 for ch in CHANNELS}
         amps[plan.target.channel] += plan.target_amplitude_v
         if plan.masker is not None:
@@ -499,7 +500,7 @@ class FirmwareEmulator:
     def _send_done(self, play: PlayState, end: float) -> None:
         plan = play.plan
         fields = {"seq": play.seq, "on": play.actual, "end": end}
-        fields.update(tamp=plan.target_amplitude_v, mamp=plan.masker_amplitude_v)
+        fields.update(v2.played(plan, self.converters, getattr(self, "_att", {})))
         self._send_event("DONE", fields)
 
     # ---------------------------------------------------------------- helpers (lock held)

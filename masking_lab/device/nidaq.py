@@ -10,7 +10,14 @@ The task is committed before its timed start and the sample rate the driver chos
 and used to synthesize the buffers. The running task is kept, so STOP, SIGTERM and Ctrl-C abort
 it (stop, close) and then write 0 V: the NI 9264 holds its last value when a task is aborted.
 Where the chassis has a watchdog, it is armed with 0 V expiration states, so the hardware zeroes
-the outputs if the process dies (SIGKILL) and nothing resets the timer any more. The helpers that
+the outputs if the process dies (SIGKILL) and nothing resets the timer any more. A device without
+an analog-output watchdog (X Series boards) is said at session start (:attr:`NidaqDevice.notices`):
+a killed host leaves the last sample on the output, which is 0 V between trials (every buffer ends
+on 0 V) but a stimulus value mid-trial. Where the device allows, each channel's idle output
+behaviour is set to 0 V and the onsets come from the hardware start-trigger timestamp (else from
+the host clock read at start). A watchdog found expired is cleared as NI documents
+(``WatchdogTask.clear_expiration``), and a device left locked by an expired watchdog of a killed
+host is reset (``Device.reset_device``) before anything plays. The helpers that
 talk to the driver are in :mod:`masking_lab.device.nidaq_tasks`; tests drive this module through
 a recording stand-in of the ``nidaqmx`` package (``tests/nidaqmx_standin``), not NI's driver.
 """
@@ -40,9 +47,12 @@ from masking_lab.device.nidaq_tasks import (
     Watchdog,
     as_device_error,
     driver_errors,
+    enable_start_timestamp,
     first_line,
     probe_hardware,
+    set_idle_zero,
     watchdog_device,
+    watchdog_notice,
 )
 
 log = logging.getLogger("masking_lab.device")
@@ -188,6 +198,10 @@ class NidaqDevice:
         self._errors = driver_errors(self._nidaqmx)
         self.lines = resolve_lines(self.config, device_name)
         self.fault_log: list[str] = []
+        self.notices: list[str] = []  # said at session start (watchdog, recovery)
+        self.idle_output = "not set"
+        self.onset_source = "host clock at start"
+        self._stamped: set[int] = set()
         # RLock: a SIGTERM handler runs stop() on the main thread, possibly while play_trial
         # (same thread) holds the lock between two driver calls.
         self._lock = threading.RLock()
@@ -198,16 +212,16 @@ class NidaqDevice:
         lines_text = ", ".join(f"{ch}={line}" for ch, line in self.lines.items())
         try:
             self.hardware: HardwareInfo = probe_hardware(self._nidaqmx, self.lines)
-            self._write_zero()  # start from 0 V whatever the last program left behind
+            wd_device = watchdog_device(
+                self.hardware, self.config.nidaq.watchdog_device, self.lines.values()
+            )
+            self._zero_or_recover(wd_device)  # 0 V whatever the last program left behind
             self.watchdog = Watchdog(
-                self._nidaqmx,
-                watchdog_device(
-                    self.hardware, self.config.nidaq.watchdog_device, self.lines.values()
-                ),
-                list(self.lines.values()),
-                self.config.nidaq.watchdog_s,
+                self._nidaqmx, wd_device, list(self.lines.values()), self.config.nidaq.watchdog_s
             )
             self.watchdog.start()
+            if not self.watchdog.armed:
+                self.notices.append(watchdog_notice(self.watchdog.status))
             self.sample_rate_hz = self._probe_rate()
         except self._errors as exc:
             self.watchdog.close()
@@ -224,6 +238,12 @@ class NidaqDevice:
             ),
             port=None,
             limits=self.config.limits,
+            details={
+                "watchdog": self.watchdog.status,
+                "idle_output": self.idle_output,
+                "onsets": self.onset_source,
+                "notices": list(self.notices),
+            },
         )
         log.info("NI-DAQmx opened: %s; %s", self.identity.model, self.identity.firmware_version)
         self._closed = False
@@ -244,6 +264,8 @@ class NidaqDevice:
             "driver_version": self.hardware.driver_version,
             "sample_rate_hz": self.sample_rate_hz,
             "watchdog": self.watchdog.status,
+            "idle_output": self.idle_output,
+            "onsets": self.onset_source,
         }
 
     def play_trial(self, plan: TrialPlan, start_s: float) -> PlayResult:
@@ -271,6 +293,7 @@ class NidaqDevice:
             with self._lock:
                 self._ensure_not_aborted(task)
                 task.start()
+            t0, source = self._start_time(task, t0)
             self._wait_done(task, plan.duration_s + 2.0)
             with self._lock:
                 self._ensure_not_aborted(task)
@@ -295,7 +318,7 @@ class NidaqDevice:
             actual_onsets_s=[t0 + k / fs for k in onsets.onset_samples],
             played_target_v=plan.target_amplitude_v,
             played_masker_v=plan.masker_amplitude_v if plan.masker is not None else 0.0,
-            extra={"backend": "nidaq", "start_s": t0, "sample_rate_hz": fs},
+            extra={"backend": "nidaq", "start_s": t0, "sample_rate_hz": fs, "onsets": source},
         )
 
     def set_amplitude(self, channel: Channel, stimulus: Stimulus, amplitude_v: float) -> None:
@@ -352,7 +375,38 @@ class NidaqDevice:
     def _add_channels(self, task: Any) -> None:
         for ch in CHANNELS:
             limit = self.config.limits.max_drive_v[ch]
-            task.ao_channels.add_ao_voltage_chan(self.lines[ch], min_val=-limit, max_val=limit)
+            chan = task.ao_channels.add_ao_voltage_chan(
+                self.lines[ch], min_val=-limit, max_val=limit
+            )
+            self.idle_output = set_idle_zero(self._nidaqmx, chan, self.idle_output)
+
+    def _start_time(self, task: Any, software_t0: float) -> tuple[float, str]:
+        """When generation began in session time, s: the hardware start-trigger timestamp
+        where the task has one, else the host clock read just before start()."""
+        if id(task) not in self._stamped:
+            return software_t0, "host clock at start"
+        try:
+            stamp = task.triggers.start_trigger.timestamp_val
+        except (*self._errors, AttributeError) as exc:
+            log.warning("no start-trigger timestamp (%s); onsets from the host clock", exc)
+            return software_t0, "host clock at start"
+        # The stamp is host wall time: map it to the session clock through one paired reading.
+        return self.clock.now() - (time.time() - stamp.timestamp()), "hardware start trigger"
+
+    def _zero_or_recover(self, wd_device: str) -> None:
+        try:
+            self._write_zero()
+        except self._errors as exc:
+            # NI's documented recovery for a device left locked by an expired watchdog (a host
+            # killed mid-session): reset the device, then write 0 V again.
+            log.error("NI-DAQmx could not write 0 V (%s); resetting %s", first_line(exc), wd_device)
+            self._nidaqmx.system.Device(wd_device).reset_device()
+            self._write_zero()
+            self.notices.append(
+                f"{wd_device} could not be written at opening ({first_line(exc)}): it was reset "
+                "(NI-DAQmx Device.reset_device, the documented recovery after an expired "
+                "watchdog) and both outputs set to 0 V"
+            )
 
     def _timed_task(self, rate_hz: float, n_samples: int) -> tuple[Any, float]:
         """A new task on both lines, timed and committed; returns it and the rate read back."""
@@ -365,6 +419,9 @@ class NidaqDevice:
                 sample_mode=constants.AcquisitionType.FINITE,
                 samps_per_chan=n_samples,
             )
+            if enable_start_timestamp(self._nidaqmx, task):
+                self._stamped = {id(task)}  # only the current trial's task matters
+                self.onset_source = "hardware start trigger"
             # Committing reserves the lines and programs the hardware now, so start() is only
             # the trigger, and it makes the driver settle the rate it will really use.
             task.control(constants.TaskMode.TASK_COMMIT)

@@ -297,12 +297,25 @@ class Watchdog:
         """Clear an expired watchdog so the outputs can be used again; True if it had expired.
 
         An expiry while the process lives means the host stalled longer than ``timeout_s``;
-        the outputs were already at 0 V, so the next trial may play.
+        the outputs were already at 0 V, so the next trial may play. NI's documented recovery
+        is ``WatchdogTask.clear_expiration`` (DAQmx Control Watchdog Task, Clear Expiration);
+        if that fails, the device is reset (``Device.reset_device``) and the watchdog re-armed.
         """
+        errors = driver_errors(self.nidaqmx)
         with self._lock:
             if self._task is None or not bool(self._task.expired):
                 return False
-            self._task.clear_expiration()
+            try:
+                self._task.clear_expiration()
+                cleared = True
+            except errors as exc:
+                log.error("clearing the expired watchdog failed (%s); resetting", first_line(exc))
+                cleared = False
+        if not cleared:
+            self.close()
+            self.nidaqmx.system.Device(self.device).reset_device()
+            self._stop = threading.Event()
+            self.start()
         self.expirations += 1
         log.error("NI-DAQmx watchdog had expired (host stalled > %g s); cleared", self.timeout_s)
         return True
@@ -321,6 +334,54 @@ class Watchdog:
             task.stop()
         with contextlib.suppress(*errors):
             task.close()
+
+
+def watchdog_notice(status: str) -> str:
+    """What running without an analog-output watchdog means, said at session start.
+
+    Examples
+    --------
+    >>> watchdog_notice("unsupported on Dev1: not supported")[:40]
+    'no analog-output watchdog (unsupported o'
+    """
+    return (
+        f"no analog-output watchdog ({status}; X Series boards have none): if this program is "
+        "killed, an output keeps its last sample until the device is reset. Every trial's "
+        "buffer ends on 0 V, so between trials that is 0 V; a kill mid-trial leaves the "
+        "stimulus's instantaneous value on the output. Keep the amplifier's enable or the "
+        "E-stop within reach"
+    )
+
+
+def set_idle_zero(nidaqmx: Any, channel: Any, status: str) -> str:
+    """Ask ``channel`` to idle at 0 V between tasks; return the status for the log.
+
+    Devices without the property (many C Series modules) refuse it: then the buffers' closing
+    0 V sample is what holds the line at 0 V.
+    """
+    behaviour = getattr(nidaqmx.constants, "AOIdleOutputBehavior", None)
+    if behaviour is None or channel is None:
+        return "not supported by this nidaqmx"
+    try:
+        channel.ao_idle_output_behavior = behaviour.ZERO_VOLTS
+    except (*driver_errors(nidaqmx), AttributeError) as exc:
+        if status.startswith("unsupported"):
+            return status
+        return f"unsupported ({first_line(exc)}); buffers end on 0 V"
+    return "0 V" if not status.startswith("unsupported") else status
+
+
+def enable_start_timestamp(nidaqmx: Any, task: Any) -> bool:
+    """Ask ``task`` to stamp its start trigger in host time; True where the device can."""
+    timescale = getattr(nidaqmx.constants, "Timescale", None)
+    try:
+        trigger = task.triggers.start_trigger
+        trigger.timestamp_enable = True
+        if timescale is not None:
+            trigger.timestamp_timescale = timescale.USE_HOST
+    except (*driver_errors(nidaqmx), AttributeError):
+        return False
+    return True
 
 
 def watchdog_device(hardware: HardwareInfo, configured: str | None, lines: Iterable[str]) -> str:

@@ -18,13 +18,17 @@ apart from replies. The full specification is ``docs/device-protocol.md``.
 from __future__ import annotations
 
 import binascii
+import itertools
 import math
 import re
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
-PROTOCOL_VERSION = 1
+PROTOCOL_VERSION = 2
+#: Oldest protocol and firmware the host talks to; anything older must be flashed first.
+MIN_PROTOCOL = 2
+MIN_FIRMWARE = "fw-2.0.0"
 SEQ_MODULO = 65536
 MAX_FRAME_BYTES = 256  # longest line either side accepts, terminator included
 
@@ -48,6 +52,17 @@ _INTEGER = re.compile(r"^(0|[1-9][0-9]{0,9})$")
 MAX_WATCHDOG_MS = 60_000
 MAX_LIMIT_V = 1000.0
 MAX_ONSETS = 16
+#: Largest device time the host accepts, s: 2**53 µs, beyond which a float64 in seconds no
+#: longer holds whole microseconds (285 years of uptime: larger is a firmware bug).
+MAX_DEVICE_TIME_S = 2.0**53 / 1e6
+MAX_BITS = 32
+RESET_CAUSES = ("pin", "watchdog", "brownout", "software", "power", "unknown")
+CLOCK_SOURCES = ("hse", "hsi", "host")
+_BUILD = re.compile(r"^[0-9a-f]{12}$")
+# fw-X.Y.Z, an optional pre-release (-rc1: older than X.Y.Z) and build suffix (+stm32, +qemu)
+_FW_VERSION = re.compile(
+    r"^fw-([0-9]{1,6})\.([0-9]{1,6})\.([0-9]{1,6})(-[0-9A-Za-z.-]+)?(\+[0-9A-Za-z.-]+)?$"
+)
 
 
 class FrameError(ValueError):
@@ -144,6 +159,18 @@ class Hello:
         The interlock input is open (``il=open``).
     model, serial_number, firmware : str
         Identity, as reported (``"unknown"``/``"n/a"`` when absent).
+    build : str
+        Firmware source hash, 12 lower-case hex digits (``""`` before protocol 2).
+    clock_source : str
+        ``hse``, ``hsi`` (fallback: the crystal did not start) or ``host`` (``""`` before v2).
+    reset_cause : str
+        Why the board last reset: one of :data:`RESET_CAUSES` (``""`` before v2).
+    bits : Mapping[str, int]
+        Converter resolution per channel, bits (empty before v2).
+    full_scale_v : Mapping[str, float]
+        Converter full scale per channel at the amplifier input with no attenuation, peak V.
+    attenuation_db : tuple of float
+        Attenuator steps the board can switch, dB, ascending, first 0 (``(0.0,)`` without).
     """
 
     version: int
@@ -154,16 +181,23 @@ class Hello:
     model: str
     serial_number: str
     firmware: str
+    build: str = ""
+    clock_source: str = ""
+    reset_cause: str = ""
+    bits: Mapping[str, int] = field(default_factory=dict)
+    full_scale_v: Mapping[str, float] = field(default_factory=dict)
+    attenuation_db: tuple[float, ...] = (0.0,)
 
 
 @dataclass(frozen=True)
 class Done:
-    """A ``DONE`` event: PLAY ``seq`` ended; onsets (device s) and amplitudes played (V)."""
+    """A ``DONE`` event: PLAY ``seq`` ended; onsets and end (device s), amplitudes played (V)."""
 
     seq: int
     onsets_s: tuple[float, ...]
     target_v: float
     masker_v: float
+    end_s: float = math.nan  # always set by parse_done (``end`` is required)
 
 
 @dataclass(frozen=True)
@@ -177,11 +211,17 @@ class Aborted:
 def parse_hello(frame: Frame) -> Hello:
     """Validate a HELLO reply into a :class:`Hello`.
 
+    The protocol-2 fields (``build``, ``clk``, ``rst``, ``bits_*``, ``fsv_*``, ``att``) are
+    checked when the reply says ``proto`` ≥ 2; an older reply parses without them so the host can
+    say which firmware to flash.
+
     Raises
     ------
     FrameError
         A missing field, a fractional or negative version or watchdog period, a limit that is
-        not in (0, 1000] V, or ``vt``/``il`` values other than ``0``/``1`` and ``open``/``closed``.
+        not in (0, 1000] V, ``vt``/``il`` values other than ``0``/``1`` and ``open``/``closed``,
+        or a protocol-2 field out of range (bits not in 1..32, a full scale not in (0, 1000] V,
+        attenuation steps not ascending from 0, an unknown clock source or reset cause).
 
     Examples
     --------
@@ -203,7 +243,7 @@ def parse_hello(frame: Frame) -> Hello:
         raise FrameError(f"HELLO: vt={vt[:20]!r} must be 0 or 1")
     if il not in ("open", "closed"):
         raise FrameError(f"HELLO: il={il[:20]!r} must be open or closed")
-    return Hello(
+    hello = Hello(
         version=version,
         max_v=limits,
         watchdog_ms=watchdog_ms,
@@ -213,10 +253,76 @@ def parse_hello(frame: Frame) -> Hello:
         serial_number=frame.fields.get("sn", "n/a"),
         firmware=frame.fields.get("fw", "unknown"),
     )
+    if version < 2:
+        return hello
+    return _hello_v2(frame, hello)
+
+
+def _hello_v2(frame: Frame, hello: Hello) -> Hello:
+    build, clk, rst = (frame._raw(k) for k in ("build", "clk", "rst"))
+    if not _BUILD.match(build):
+        raise FrameError(f"HELLO: build={build[:20]!r} is not 12 lower-case hex digits")
+    if clk not in CLOCK_SOURCES:
+        raise FrameError(f"HELLO: clk={clk[:20]!r} is not one of {', '.join(CLOCK_SOURCES)}")
+    if rst not in RESET_CAUSES:
+        raise FrameError(f"HELLO: rst={rst[:20]!r} is not one of {', '.join(RESET_CAUSES)}")
+    bits = {ch: frame.integer(f"bits_{ch.lower()}", 1, MAX_BITS) for ch in ("EV", "MV")}
+    fsv = {ch: frame.number(f"fsv_{ch.lower()}") for ch in ("EV", "MV")}
+    for ch, value in fsv.items():
+        if not 0 < value <= MAX_LIMIT_V:
+            raise FrameError(f"HELLO: fsv_{ch.lower()}={value:g} V is not in (0, 1000] V")
+    att = tuple(frame.numbers("att"))
+    if att[0] != 0 or any(b <= a for a, b in itertools.pairwise(att)) or att[-1] > 200:
+        raise FrameError(
+            f"HELLO: att={frame._raw('att')[:40]!r} must ascend from 0 dB (at most 200 dB)"
+        )
+    return replace(
+        hello,
+        build=build,
+        clock_source=clk,
+        reset_cause=rst,
+        bits=bits,
+        full_scale_v=fsv,
+        attenuation_db=att,
+    )
+
+
+def firmware_too_old(version: int, firmware: str) -> str | None:
+    """Why a board must be flashed before the host talks to it, or None if it is recent enough.
+
+    Parameters
+    ----------
+    version : int
+        The board's protocol version (HELLO ``proto``).
+    firmware : str
+        The board's firmware version (HELLO ``fw``), ``fw-X.Y.Z`` compared numerically.
+
+    Examples
+    --------
+    >>> firmware_too_old(2, "fw-2.0.1") is None, firmware_too_old(2, "fw-2.0.0+stm32") is None
+    (True, True)
+    >>> firmware_too_old(2, "fw-2.0.0-rc1")
+    'firmware fw-2.0.0-rc1 is older than fw-2.0.0'
+    >>> firmware_too_old(2, "fw-1.9.10")
+    'firmware fw-1.9.10 is older than fw-2.0.0'
+    >>> firmware_too_old(1, "fw-2.0.0")
+    'protocol version 1 is not 2'
+    """
+    if version != PROTOCOL_VERSION or version < MIN_PROTOCOL:
+        return f"protocol version {version} is not {PROTOCOL_VERSION}"
+    match = _FW_VERSION.match(firmware)
+    if match is None:
+        return f"firmware version {firmware[:30]!r} is not of the form fw-X.Y.Z"
+    need_match = _FW_VERSION.match(MIN_FIRMWARE)
+    assert need_match is not None
+    have, need = (tuple(int(g) for g in m.groups()[:3]) for m in (match, need_match))
+    if have < need or (have == need and match.group(4)):  # 2.0.0-rc1 precedes 2.0.0
+        return f"firmware {firmware} is older than {MIN_FIRMWARE}"
+    return None
 
 
 def parse_time(frame: Frame) -> float:
-    """The device clock of a TIME reply, s (finite, ≥ 0).
+    """The device clock of a TIME reply, s (finite, in 0..:data:`MAX_DEVICE_TIME_S`).
 
     Examples
     --------
@@ -226,6 +332,8 @@ def parse_time(frame: Frame) -> float:
     t = frame.number("t")
     if t < 0:
         raise FrameError(f"TIME: t={t:g} s is negative")
+    if t > MAX_DEVICE_TIME_S:
+        raise FrameError(f"TIME: t={t:g} s is beyond {MAX_DEVICE_TIME_S:.4g} s (2**53 µs)")
     return t
 
 
@@ -234,8 +342,8 @@ def parse_done(frame: Frame) -> Done:
 
     Examples
     --------
-    >>> f = decode(encode_event(4, "DONE", {"seq": 12, "on": [1.0, 2.0, 3.0], "tamp": 0.5,
-    ...                                      "mamp": 0.0}))
+    >>> f = decode(encode_event(4, "DONE", {"seq": 12, "on": [1.0, 2.0, 3.0], "end": 3.2,
+    ...                                      "tamp": 0.5, "mamp": 0.0}))
     >>> parse_done(f).onsets_s
     (1.0, 2.0, 3.0)
     """
@@ -244,9 +352,13 @@ def parse_done(frame: Frame) -> Done:
     if not 1 <= len(onsets) <= MAX_ONSETS:
         raise FrameError(f"DONE: {len(onsets)} onsets (expected 1..{MAX_ONSETS})")
     target, masker = frame.number("tamp"), frame.number("mamp")
-    if target < 0 or masker < 0:
-        raise FrameError("DONE: a played amplitude is negative")
-    return Done(seq, tuple(onsets), target, masker)
+    if not (0 <= target <= MAX_LIMIT_V and 0 <= masker <= MAX_LIMIT_V):
+        raise FrameError("DONE: a played amplitude is negative or above 1000 V")
+    end = frame.number("end")  # protocol 2: when the output stage finished
+    for t in (*onsets, end):
+        if not 0 <= t <= MAX_DEVICE_TIME_S:
+            raise FrameError(f"DONE: time {t:g} s is not in 0..{MAX_DEVICE_TIME_S:.4g} s")
+    return Done(seq, tuple(onsets), target, masker, end)
 
 
 def parse_aborted(frame: Frame) -> Aborted:

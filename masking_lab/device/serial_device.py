@@ -8,8 +8,11 @@ clock (TIME), and then plays trials (PLAY → OK → DONE with actual onsets), s
 Every amplitude is checked on the host before it is sent (SafetyLimitError, nothing sent). Every
 fault becomes a DeviceError subclass whose message names the port and says what to do; on a
 fault the host sends a best-effort STOP and records the fault in :attr:`SerialDevice.fault_log`.
-Timeouts are real-time waits on the serial link; the session clock is only read (and, for a
-:class:`~masking_lab.core.clock.VirtualClock`, advanced to the end of each trial), never slept on.
+Every number the board sends is checked against its trial (``device.reply_checks``): a
+violation is a DeviceProtocolError, nothing logged as played. Timeouts are real-time waits for
+a real clock; with a VirtualClock replies are awaited without a deadline load could trip (a
+closed link ends the wait at once; ``serial.virtual_hang_guard_s`` guards against a hung peer).
+The session clock is only read (a VirtualClock advanced to each trial's end), never slept on.
 """
 
 from __future__ import annotations
@@ -29,20 +32,20 @@ from masking_lab.core.errors import (
     DeviceDisconnectedError,
     DeviceError,
     DeviceProtocolError,
-    DeviceTimeModeError,
     DeviceTimeoutError,
     SafetyLimitError,
 )
 from masking_lab.core.stimulus import Channel, Stimulus
 from masking_lab.device import protocol as proto
-from masking_lab.device import safety, serial_faults
+from masking_lab.device import reply_checks, safety, serial_checks, serial_faults
 from masking_lab.device.base import DeviceIdentity, DeviceLimits, PlayResult, TrialPlan
 from masking_lab.device.config import DeviceConfig, default_device_config
 
 log = logging.getLogger("masking_lab.device")
 
 RESUME_HINT = serial_faults.RESUME_HINT
-_AMP_TOLERANCE_V = 2e-6  # amplitudes travel with 6 decimals
+#: A DONE onset or end may be this late (or serial.done_margin_s if larger), s.
+LATE_TOLERANCE_S = 1.0
 
 
 class SerialDevice:
@@ -97,10 +100,14 @@ class SerialDevice:
         self._aborted: dict[int, proto.Frame] = {}
         self._streams: dict[str, tuple[float, float | None]] = {}
         self._offset_s = 0.0
+        self._last_device_t = 0.0
         self._sync_rtt_s = math.inf
         self._dead: str | None = None
         self._closed = False
         self.watchdog_s = 0.0
+        self.converters: dict[str, Any] = {}
+        self.hello_details: dict[str, Any] = {}
+        self.hello: proto.Hello | None = None
         self.emulator: Any = None  # set by the factory when it started an emulator for us
         self._ser = self._open()
         try:
@@ -209,53 +216,48 @@ class SerialDevice:
             self._sync_clock(samples=1)
         self._streams.clear()  # PLAY takes the outputs over from any stream
         masker = plan.masker
-        fields: dict[str, Any] = {
-            "tch": plan.target.channel,
-            "tcar": plan.target.carrier_hz,
-            "tenv": plan.target.envelope_hz or 0.0,
-            "tamp": plan.target_amplitude_v,
-            "ti": plan.target_interval,
-            "mch": masker.channel if masker else "-",
-            "mcar": masker.carrier_hz if masker else 0.0,
-            "menv": (masker.envelope_hz or 0.0) if masker else 0.0,
-            "mamp": plan.masker_amplitude_v if masker else 0.0,
-            "stim": plan.stimulus_s,
-            "gap": plan.gap_s,
-            "lead": plan.lead_in_s,
-            "n": plan.n_intervals,
-            "at": start_s + self._offset_s,
-        }
+        steps = serial_checks.choose_steps(plan, self.converters, f"device on {self.port}")
+        at = start_s + self._offset_s
+        fields = serial_checks.play_fields(plan, at, steps)
         self._command("PLAY", fields)
         seq = self._seq
         done = self._wait_done(seq, plan, start_s)
+        late = max(LATE_TOLERANCE_S, self._settings.done_margin_s)
+        want = serial_checks.expected_done(plan, at, steps, self.converters, late)
+        try:
+            reply_checks.check_done(done.onsets_s, done.end_s, done.target_v, done.masker_v, want)
+        except reply_checks.ReplyError as exc:
+            raise DeviceProtocolError(
+                f"device on {self.port} reported for PLAY #{seq} what the trial cannot have "
+                f"done ({exc}); the trial is not logged as played: check the firmware "
+                f"(docs/device-protocol.md), {RESUME_HINT}"
+            ) from exc
         onsets = [t - self._offset_s for t in done.onsets_s]
-        if len(onsets) != plan.n_intervals:
-            raise DeviceProtocolError(
-                f"device on {self.port} reported {len(onsets)} onsets for PLAY #{seq}, expected "
-                f"{plan.n_intervals}: firmware bug; stop and check the firmware version"
-            )
-        played_t, played_m = done.target_v, done.masker_v
-        if abs(played_t - plan.target_amplitude_v) > _AMP_TOLERANCE_V or (
-            abs(played_m - (plan.masker_amplitude_v if masker else 0.0)) > _AMP_TOLERANCE_V
-        ):
-            raise DeviceProtocolError(
-                f"device on {self.port} played {played_t:g} V / {played_m:g} V instead of "
-                f"{plan.target_amplitude_v:g} V / {plan.masker_amplitude_v:g} V in PLAY #{seq}"
-            )
         self.clock.sleep_until(start_s + plan.duration_s)  # jumps a VirtualClock; no-op if real
         return PlayResult(
             planned_onsets_s=plan.planned_onsets_s(start_s),
             actual_onsets_s=onsets,
-            played_target_v=played_t,
-            played_masker_v=played_m,
-            extra={"device_seq": seq, "garbage_lines": self.garbage_lines},
+            played_target_v=done.target_v,
+            played_masker_v=done.masker_v,
+            extra={
+                "device_seq": seq,
+                "garbage_lines": self.garbage_lines,
+                "requested_target_v": plan.target_amplitude_v,
+                "requested_masker_v": plan.masker_amplitude_v if masker else 0.0,
+                "target_att_db": steps.target_db,
+                "masker_att_db": steps.masker_db,
+                # onset lateness in device time, µs: free of the host's clock-offset estimate
+                "device_late_us": [
+                    round((o - p) * 1e6) for o, p in zip(done.onsets_s, want.onsets_s, strict=True)
+                ],
+            },
         )
 
     def _wait_done(self, seq: int, plan: TrialPlan, start_s: float) -> proto.Done:
         """Wait for DONE of PLAY ``seq``, PINGing to keep the watchdog fed."""
         margin = self._settings.done_margin_s
         if self.clock.virtual:
-            budget = self._settings.reply_timeout_s + margin
+            budget = self._reply_wait_s + margin
         else:
             budget = max(0.0, start_s + plan.duration_s - self.clock.now()) + margin
         deadline = time.monotonic() + budget
@@ -268,7 +270,7 @@ class SerialDevice:
             if now >= deadline:
                 raise DeviceTimeoutError(
                     f"device on {self.port} did not report the end of trial PLAY #{seq} within "
-                    f"{budget:.2f} s: check the cable and power, {RESUME_HINT}"
+                    f"{budget:.2f} s{self._hang_note}: check the cable and power, {RESUME_HINT}"
                 )
             if now >= next_ping:
                 self._command("PING")
@@ -310,9 +312,9 @@ class SerialDevice:
                 self._ser.reset_input_buffer()  # bytes left by a previous session are stale
             except (serial.SerialException, OSError) as exc:
                 raise self._disconnected("opening", exc) from exc
-            boot = max(s.boot_timeout_s, s.reply_timeout_s)  # the whole handshake's budget
+            boot = max(s.boot_timeout_s, self._reply_wait_s)  # the whole handshake's budget
             give_up = time.monotonic() + boot
-            per_try = s.hello_retry_s if s.boot_timeout_s > 0 else s.reply_timeout_s
+            per_try = s.hello_retry_s if s.boot_timeout_s > 0 else self._reply_wait_s
             sent: set[int] = set()
             hello: proto.Frame | None = None
             last_problem: DeviceError | None = None
@@ -332,17 +334,8 @@ class SerialDevice:
                         break
             self._set_write_timeout(self._write_timeout_s)
             if hello is None:
-                if self._last_garbage:
-                    raise DeviceProtocolError(
-                        f"device on {self.port} sends lines that are not masking-lab frames "
-                        f"(e.g. {self._last_garbage[:40]!r}) and never answered HELLO in "
-                        f"{boot:.1f} s: wrong device, wrong baud rate "
-                        f"(serial.baud_rate={s.baud_rate}) or firmware not flashed"
-                    ) from last_problem
-                raise DeviceTimeoutError(
-                    f"no answer to HELLO from {self.port} within {boot:.1f} s: check that the "
-                    "board runs masking-lab firmware, its power and cable; a board that resets "
-                    "when the port opens may need a longer serial.boot_timeout_s"
+                raise serial_faults.no_hello_error(
+                    self.port, boot, self._last_garbage, s.baud_rate, self._hang_note
                 ) from last_problem
         return self._identity_from(hello, backend)
 
@@ -351,28 +344,13 @@ class SerialDevice:
             hello = proto.parse_hello(frame)
         except proto.FrameError as exc:
             raise serial_faults.malformed_error(self.port, "HELLO", exc) from exc
-        version, fw_limits, virtual = hello.version, dict(hello.max_v), hello.virtual
-        if version != proto.PROTOCOL_VERSION:
-            raise DeviceProtocolError(
-                f"device on {self.port} speaks protocol version {version}; this host speaks "
-                f"{proto.PROTOCOL_VERSION}: update the firmware or masking-lab so they match"
-            )
-        if not all(v > 0 for v in fw_limits.values()):
-            raise DeviceProtocolError(
-                f"device on {self.port} reports limits {fw_limits} V: a limit must be > 0 V"
-            )
-        if virtual != self.clock.virtual:
-            mode = "virtual" if virtual else "real"
-            want = "a virtual clock (simulation)" if virtual else "a real clock"
-            raise DeviceTimeModeError(
-                f"device on {self.port} runs in {mode} time and needs {want}; start the emulator "
-                f"{'without' if virtual else 'with'} --virtual-time, or switch the session clock",
-                device_virtual=virtual,
-            )
-        if hello.interlock_open:
-            raise serial_faults.interlock_error(self.port, "at HELLO (session not started)")
+        self.hello = hello
+        self.converters = serial_checks.accept_hello(
+            self.port, hello, self.config, clock_virtual=self.clock.virtual
+        )
+        self.hello_details = serial_checks.hello_details(hello)
         self.watchdog_s = hello.watchdog_ms / 1000.0
-        limits = safety.stricter_limits(self.config.limits, DeviceLimits(fw_limits))
+        limits = safety.stricter_limits(self.config.limits, DeviceLimits(dict(hello.max_v)))
         return DeviceIdentity(
             backend=backend,
             model=hello.model,
@@ -380,6 +358,7 @@ class SerialDevice:
             firmware_version=hello.firmware,
             port=self.port,
             limits=limits,
+            details=self.hello_details,
         )
 
     def _sync_clock(self, samples: int) -> None:
@@ -392,8 +371,14 @@ class SerialDevice:
             t1 = self.clock.now()
             try:
                 device_t = proto.parse_time(frame)
+                if device_t < self._last_device_t:  # a device clock never steps back
+                    raise proto.FrameError(
+                        f"TIME: t={device_t:.6f} s is before the {self._last_device_t:.6f} s "
+                        "it reported earlier (the device clock stepped back)"
+                    )
             except proto.FrameError as exc:
                 raise serial_faults.malformed_error(self.port, "TIME reply", exc) from exc
+            self._last_device_t = device_t
             if t1 - t0 < best_rtt:
                 best_rtt, best_offset = t1 - t0, device_t - (t0 + t1) / 2
         # A slow round trip (scheduler hiccup) gives a poor estimate: keep the previous one.
@@ -415,8 +400,15 @@ class SerialDevice:
         seq = self._seq
         if accept is not None:
             accept.add(seq)
-        self._write(proto.encode_command(seq, name, fields))
-        wait = self._settings.reply_timeout_s if timeout is None else timeout
+        try:
+            data = proto.encode_command(seq, name, fields)
+        except proto.FrameError as exc:  # e.g. a time beyond the frame from a bad clock offset
+            raise DeviceProtocolError(
+                f"cannot send {name} to the device on {self.port} ({exc}): a value the device "
+                f"reported earlier (TIME) is out of range; {RESUME_HINT}"
+            ) from exc
+        self._write(data)
+        wait = self._reply_wait_s if timeout is None else timeout
         deadline = time.monotonic() + wait
         what = f"{name} #{seq}"
         while True:
@@ -480,8 +472,8 @@ class SerialDevice:
                     f", after {self._garbage_run} garbled line(s)" if self._garbage_run else ""
                 )
                 raise DeviceTimeoutError(
-                    f"device on {self.port} stopped answering after {wait_s:.2g} s "
-                    f"(no reply to {what}{garbage}): "
+                    f"device on {self.port} stopped answering after {wait_s:.2g} s"
+                    f"{self._hang_note} (no reply to {what}{garbage}): "
                     f"check the cable and power, {RESUME_HINT}"
                 )
             try:
@@ -508,11 +500,7 @@ class SerialDevice:
         self._last_garbage = line
         log.debug("discarded line from %s (%s): %r", self.port, why, line[:60])
         if self._garbage_run > self._settings.max_garbage_lines:
-            raise DeviceProtocolError(
-                f"device on {self.port} sent {self._garbage_run} unframed or corrupted lines in "
-                f"a row while the host waited for {what} (last: {line[:40]!r}, {why}): check the "
-                f"cable, the baud rate (serial.baud_rate) and the firmware; {RESUME_HINT}"
-            )
+            raise serial_faults.garbage_error(self.port, self._garbage_run, what, line, why)
 
     def _read_line(self, deadline: float) -> bytes | None:
         while True:
@@ -535,6 +523,23 @@ class SerialDevice:
             self._buf += chunk
 
     @property
+    def _reply_wait_s(self) -> float:
+        """Reply wait, s: the reply timeout; in virtual time the hang guard (a closed link still
+        ends any wait at once: EIO/EOF on read)."""
+        s = self._settings
+        return (
+            max(s.reply_timeout_s, s.virtual_hang_guard_s)
+            if self.clock.virtual
+            else (s.reply_timeout_s)
+        )
+
+    @property
+    def _hang_note(self) -> str:
+        if not self.clock.virtual:
+            return ""
+        return " (virtual time: the hang guard serial.virtual_hang_guard_s ran out)"
+
+    @property
     def _write_timeout_s(self) -> float:
         """Longest a write may block, s (the reply timeout: a device reads what it answers)."""
         return max(0.05, self._settings.reply_timeout_s)
@@ -553,10 +558,7 @@ class SerialDevice:
 
     def _disconnected(self, doing: str, exc: BaseException) -> DeviceDisconnectedError:
         self._dead = f"disconnected while {doing} ({exc})"
-        return DeviceDisconnectedError(
-            f"device on {self.port} disconnected while {doing} ({exc}): the firmware zeroes its "
-            f"outputs when the link drops. Reconnect the cable, {RESUME_HINT}"
-        )
+        return serial_faults.disconnected_error(self.port, doing, exc)
 
     # ------------------------------------------------------------------ faults
 

@@ -9,6 +9,7 @@ with a message that names the port and says what to check. The ``kind`` attribut
 from __future__ import annotations
 
 from masking_lab.core.errors import (
+    DeviceDisconnectedError,
     DeviceError,
     DeviceFaultError,
     DeviceProtocolError,
@@ -137,4 +138,57 @@ def write_timeout_error(port: str, seconds: float | None) -> DeviceTimeoutError:
         f"device on {port} does not read what the host sends (a write blocked for "
         f"{seconds or 0:.2g} s): check that the board runs masking-lab firmware and is not "
         f"stuck; {RESUME_HINT}"
+    )
+
+
+def no_hello_error(
+    port: str, boot_s: float, last_garbage: bytes, baud_rate: int, note: str = ""
+) -> DeviceError:
+    """No HELLO answer within the handshake's ``boot_s`` s (chatter, or silence).
+
+    Examples
+    --------
+    >>> "wrong baud rate" in str(no_hello_error("/dev/ttyUSB0", 4.0, b"$GPGGA", 115200))
+    True
+    """
+    if last_garbage:
+        return DeviceProtocolError(
+            f"device on {port} sends lines that are not masking-lab frames "
+            f"(e.g. {last_garbage[:40]!r}) and never answered HELLO in "
+            f"{boot_s:.1f} s{note}: wrong device, wrong baud rate "
+            f"(serial.baud_rate={baud_rate}) or firmware not flashed"
+        )
+    return DeviceTimeoutError(
+        f"no answer to HELLO from {port} within {boot_s:.1f} s{note}: check that the "
+        "board runs masking-lab firmware, its power and cable; a board that resets "
+        "when the port opens may need a longer serial.boot_timeout_s"
+    )
+
+
+def garbage_error(port: str, run: int, what: str, line: bytes, why: str) -> DeviceProtocolError:
+    """``run`` unframed or corrupted lines in a row while the host waited for ``what``.
+
+    Examples
+    --------
+    >>> "baud rate" in str(garbage_error("/dev/ttyUSB0", 17, "HELLO", b"x", "no '*'"))
+    True
+    """
+    return DeviceProtocolError(
+        f"device on {port} sent {run} unframed or corrupted lines in a row while the host "
+        f"waited for {what} (last: {line[:40]!r}, {why}): check the cable, the baud rate "
+        f"(serial.baud_rate) and the firmware; {RESUME_HINT}"
+    )
+
+
+def disconnected_error(port: str, doing: str, exc: BaseException) -> DeviceDisconnectedError:
+    """The link dropped while the host was ``doing`` something (the firmware zeroes itself).
+
+    Examples
+    --------
+    >>> str(disconnected_error("/dev/ttyACM0", "reading", OSError("EIO")))[:46]
+    'device on /dev/ttyACM0 disconnected while read'
+    """
+    return DeviceDisconnectedError(
+        f"device on {port} disconnected while {doing} ({exc}): the firmware zeroes its "
+        f"outputs when the link drops. Reconnect the cable, {RESUME_HINT}"
     )

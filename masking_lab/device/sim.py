@@ -1,7 +1,9 @@
 """In-process simulated device: plays nothing, but behaves like one on the session clock.
 
-:class:`SimDevice` checks limits exactly like a real back-end, reports onsets (planned plus an
-optional seeded lateness) and advances the session clock to the end of each trial, so a
+:class:`SimDevice` checks limits exactly like a real back-end, quantises amplitudes like the
+rig's converters (attenuator step per stimulus, whole LSBs; see
+:mod:`masking_lab.device.levels_range`), reports onsets (planned plus an optional seeded
+lateness) and advances the session clock to the end of each trial, so a
 VirtualClock session runs as fast as the responder answers. The simulated *observer* that
 answers trials is a responder (``masking_lab.responders.sim``), not part of the device.
 """
@@ -14,7 +16,7 @@ from masking_lab import __version__
 from masking_lab.core.clock import Clock, VirtualClock
 from masking_lab.core.errors import DeviceError, SafetyLimitError
 from masking_lab.core.stimulus import CHANNELS, Channel, Stimulus
-from masking_lab.device import safety
+from masking_lab.device import safety, serial_checks
 from masking_lab.device.base import DeviceIdentity, PlayResult, TrialPlan
 from masking_lab.device.config import DeviceConfig, default_device_config
 
@@ -59,9 +61,22 @@ class SimDevice:
         self.trials_played = 0
 
     def play_trial(self, plan: TrialPlan, start_s: float) -> PlayResult:
-        """Check limits, advance the clock to the end of the trial, report the onsets (s)."""
+        """Check limits, advance the clock to the end of the trial, report the onsets (s) and the
+        amplitudes the converters play (V)."""
         safety.check_plan(plan, self.identity.limits)
         self._check_open()
+        extra: dict[str, object] = {"backend": "sim"}
+        played_t = plan.target_amplitude_v
+        played_m = plan.masker_amplitude_v if plan.masker is not None else 0.0
+        if set(self.config.converters) >= {"EV", "MV"}:
+            steps = serial_checks.choose_steps(plan, self.config.converters, "simulated device")
+            played_t, played_m = steps.target_v, steps.masker_v
+            extra.update(
+                requested_target_v=plan.target_amplitude_v,
+                requested_masker_v=plan.masker_amplitude_v if plan.masker is not None else 0.0,
+                target_att_db=steps.target_db,
+                masker_att_db=steps.masker_db,
+            )
         planned = plan.planned_onsets_s(start_s)
         late = (
             np.abs(self._rng.normal(0.0, self.onset_jitter_s, len(planned)))
@@ -74,9 +89,9 @@ class SimDevice:
         return PlayResult(
             planned_onsets_s=planned,
             actual_onsets_s=[t + float(d) for t, d in zip(planned, late, strict=True)],
-            played_target_v=plan.target_amplitude_v,
-            played_masker_v=plan.masker_amplitude_v if plan.masker is not None else 0.0,
-            extra={"backend": "sim"},
+            played_target_v=played_t,
+            played_masker_v=played_m,
+            extra=extra,
         )
 
     def set_amplitude(self, channel: Channel, stimulus: Stimulus, amplitude_v: float) -> None:

@@ -368,6 +368,7 @@ class ATrial(_View, tag="trial"):
     correct: Bool = UNSET
     reversal: Bool = UNSET
     posterior: Any = UNSET
+    played_target_v: OptFloat = UNSET  # compared with the request (analysis.played_levels)
 
 
 class ASetEnd(_View, tag="set_end"):

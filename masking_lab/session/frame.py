@@ -406,6 +406,8 @@ def start(
             sync=sync_policy(opening.virtual),
         )
     frame.out.message(f"session log: {writer.path}")
+    for note in device.identity.details.get("notices", ()):  # e.g. no hardware watchdog
+        frame.out.message(f"device: {note}")
     return _run(plan, opening, Opened(device, responder, writer, frame.out), options.device)
 
 
@@ -502,6 +504,8 @@ def _resume_locked(
         writer, _ = SessionLogWriter.reopen(path, lock=lock, sync=sync_policy(opening.virtual))
     record_resume(writer, log, device.identity, frame.out, plan.position())
     frame.out.message(plan.resume_message(path))
+    for note in device.identity.details.get("notices", ()):
+        frame.out.message(f"device: {note}")
     return _run(plan, opening, Opened(device, responder, writer, frame.out), spec)
 
 

@@ -27,6 +27,7 @@ from masking_lab.core.errors import (
     MaskingLabError,
 )
 from masking_lab.device.base import Device
+from masking_lab.device.level_check import refuse_unplayable
 from masking_lab.device.rig_limits import max_level_db_sl
 from masking_lab.formats.calibration import load_calibration, require
 from masking_lab.formats.protocol import Protocol, load_protocol
@@ -204,6 +205,8 @@ class ThresholdKind:
             needed = stimuli_of(protocol, order)
             require(cal, needed, data_dir)
             calibration = {name: float(cal.unmasked_al_db_v[name]) for name in sorted(needed)}
+        # Every level the sets may ask for must be playable on this rig (converter resolution).
+        refuse_unplayable(protocol, order, calibration, options.device_config)
         return _ThresholdPlan(protocol, data_dir, order, calibration, {}, (None, None))
 
     def plan_resume(

@@ -251,7 +251,7 @@ def drop_none(record: dict[str, Any]) -> dict[str, Any]:
 
 def device_record(identity: DeviceIdentity) -> dict[str, Any]:
     """The log's record of a device: back-end, model, serial, firmware, port, max drive (V)."""
-    return {
+    record = {
         "backend": identity.backend,
         "model": identity.model,
         "serial_number": identity.serial_number,
@@ -259,6 +259,9 @@ def device_record(identity: DeviceIdentity) -> dict[str, Any]:
         "port": identity.port,
         "max_drive_v": {k: float(v) for k, v in identity.limits.max_drive_v.items()},
     }
+    if identity.details:  # build hash, reset cause, converter (serial); watchdog support (NI)
+        record["details"] = dict(identity.details)
+    return record
 
 
 def utc_now() -> str:

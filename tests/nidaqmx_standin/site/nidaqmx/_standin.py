@@ -31,6 +31,14 @@ class Unit:
     chassis: str | None = None
     simulated: bool = False
     has_watchdog: bool = False
+    # Capabilities the back-end asks for where the device allows them (the stand-in's model:
+    # an X Series board has idle-output control and start-trigger timestamps, the cDAQ
+    # modules here have neither; a real device may differ, the back-end handles both).
+    idle_zero: bool = False
+    start_timestamp: bool = False
+    # A watchdog expired and nobody cleared it (a killed host): writes to its lines fail
+    # until the expiration is cleared or the device is reset (reset_device).
+    expired: bool = False
 
 
 def _default_units() -> dict[str, Unit]:
@@ -39,7 +47,9 @@ def _default_units() -> dict[str, Unit]:
         "cDAQ1": Unit("cDAQ-9174", 0x01A2B3C4, has_watchdog=True),
         "cDAQ1Mod1": Unit("NI 9264", 0x01D4E5F6, chassis="cDAQ1"),
         "cDAQ1Mod2": Unit("NI 9264", 0x01D4E5F7, chassis="cDAQ1"),
-        "Dev1": Unit("USB-6343", 0x0180C0DE, has_watchdog=False),
+        "Dev1": Unit(
+            "USB-6343", 0x0180C0DE, has_watchdog=False, idle_zero=True, start_timestamp=True
+        ),
     }
 
 
@@ -66,6 +76,9 @@ class State:
     reserved: dict[str, int] = field(default_factory=dict)
     watchdogs: list[Any] = field(default_factory=list)
     next_id: int = 1
+    # Host time (time.time()) the hardware stamps a start trigger with, minus when start()
+    # ran: lets a test tell a hardware timestamp from a software reading.
+    timestamp_lag_s: float = 0.0
 
     def record(self, *call: Any) -> None:
         """Append a call; with NIDAQMX_STANDIN_TRACE set, also write it to that file."""
@@ -94,6 +107,19 @@ class State:
             raise DaqNotFoundError(NOT_FOUND)
         if op in self.fail_on:
             raise self.fail_on.pop(op)
+
+    def unit_of(self, line: str) -> Unit | None:
+        """The unit a physical channel belongs to, or the chassis holding it."""
+        return self.units.get(line.split("/")[0])
+
+    def expired_unit(self, line: str) -> str | None:
+        """Name of the expired watchdog device that locks ``line`` (module or its chassis)."""
+        name = line.split("/")[0]
+        unit = self.units.get(name)
+        for candidate in (name, unit.chassis if unit else None):
+            if candidate and self.units.get(candidate) and self.units[candidate].expired:
+                return candidate
+        return None
 
 
 STATE = State()

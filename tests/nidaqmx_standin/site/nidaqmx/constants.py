@@ -28,3 +28,14 @@ class WatchdogAOExpirState(Enum):
 class WDTTaskAction(Enum):
     RESET_TIMER = 0
     CLEAR_EXPIRATION = 1
+
+
+class AOIdleOutputBehavior(Enum):
+    ZERO_VOLTS = 12526
+    HIGH_IMPEDANCE = 12527
+    MAINTAIN_EXISTING_VALUE = 12528
+
+
+class Timescale(Enum):
+    USE_HOST = 16126
+    USE_IO_DEVICE = 16127

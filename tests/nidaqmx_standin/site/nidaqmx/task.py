@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import datetime as dt
+import time
 from typing import Any
 
 import numpy as np
@@ -13,6 +15,72 @@ from nidaqmx.errors import DaqError
 INVALID_TASK = -200088
 RESERVED = -50103
 BAD_DEVICE = -200220
+NOT_SUPPORTED = -200452
+WATCHDOG_EXPIRED = -1  # the stand-in's own code: the message is what tests read
+
+
+class _AOChannel:
+    """One analog output channel: its idle output behaviour (where the device has one)."""
+
+    def __init__(self, line: str) -> None:
+        self.line = line
+        self._idle: Any = None
+
+    @property
+    def ao_idle_output_behavior(self) -> Any:
+        return self._idle
+
+    @ao_idle_output_behavior.setter
+    def ao_idle_output_behavior(self, value: Any) -> None:
+        st = _standin.state()
+        st.record("ao_idle_output_behavior", self.line, value.name)
+        unit = st.unit_of(self.line)
+        if unit is None or not unit.idle_zero:
+            raise DaqError(
+                "Specified property is not supported by the device or is not applicable to the "
+                f"task.\nProperty: AO.IdleOutputBehavior\nChannel: {self.line}",
+                NOT_SUPPORTED,
+            )
+        self._idle = value
+
+
+class _StartTrigger:
+    """The start trigger: a hardware timestamp of when generation began, where supported."""
+
+    def __init__(self, task: Task) -> None:
+        self._task = task
+        self._enabled = False
+        self.timestamp_timescale: Any = None
+
+    @property
+    def timestamp_enable(self) -> bool:
+        return self._enabled
+
+    @timestamp_enable.setter
+    def timestamp_enable(self, value: bool) -> None:
+        st = _standin.state()
+        st.record("start_trigger.timestamp_enable", self._task.id, bool(value))
+        units = [st.unit_of(line) for line in self._task.lines]
+        if value and not all(u is not None and u.start_timestamp for u in units):
+            raise DaqError(
+                "Specified property is not supported by the device or is not applicable to the "
+                "task.\nProperty: StartTrig.TimestampEnable",
+                NOT_SUPPORTED,
+            )
+        self._enabled = bool(value)
+
+    @property
+    def timestamp_val(self) -> dt.datetime:
+        st = _standin.state()
+        st.record("start_trigger.timestamp_val", self._task.id)
+        if not self._enabled or self._task.started_at is None:
+            raise DaqError("Timestamp is not available.", NOT_SUPPORTED)
+        return dt.datetime.fromtimestamp(self._task.started_at + st.timestamp_lag_s, dt.UTC)
+
+
+class _Triggers:
+    def __init__(self, task: Task) -> None:
+        self.start_trigger = _StartTrigger(task)
 
 
 class _Channels:
@@ -26,7 +94,7 @@ class _Channels:
         min_val: float = -10.0,
         max_val: float = 10.0,
         **_: Any,
-    ) -> None:
+    ) -> _AOChannel:
         st = _standin.state()
         self._task._alive()
         st.record("add_ao_voltage_chan", self._task.id, physical_channel, min_val, max_val)
@@ -36,6 +104,7 @@ class _Channels:
             raise DaqError(f"Device identifier is invalid.\nDevice Specified: {device}", BAD_DEVICE)
         self._task.lines.append(physical_channel)
         self._task.ranges.append((min_val, max_val))
+        return _AOChannel(physical_channel)
 
 
 class _Timing:
@@ -88,6 +157,8 @@ class Task:
         self.closed = False
         self.ao_channels = _Channels(self)
         self.timing = _Timing(self)
+        self.triggers = _Triggers(self)
+        self.started_at: float | None = None
         st.record("Task", self.id)
 
     def __enter__(self) -> Task:
@@ -132,6 +203,14 @@ class Task:
             if row.min() < rmin or row.max() > rmax:
                 raise DaqError("Data exceeds the channel's voltage range.", -200561)
         self.buffer = arr
+        for line in self.lines:
+            locked = st.expired_unit(line)
+            if locked is not None and auto_start:
+                raise DaqError(
+                    f"The watchdog timer of {locked} expired; its outputs are held in their "
+                    "expiration states until the expiration is cleared or the device is reset.",
+                    WATCHDOG_EXPIRED,
+                )
         if auto_start and not self.timed:
             self._reserve()
             for line, row in zip(self.lines, arr, strict=True):
@@ -146,6 +225,7 @@ class Task:
         self._reserve()
         self.running = True
         self.polls = 0
+        self.started_at = time.time()
         assert self.buffer is not None
         for line, row in zip(self.lines, self.buffer, strict=True):
             # While it plays the line swings up to the buffer's peak.

@@ -30,6 +30,19 @@ class Device:
     def name(self) -> str:
         return self._name
 
+    def reset_device(self) -> None:
+        """NI's documented recovery: abort the device's tasks, back to the initial state (an
+        expired watchdog is cleared; its lines stay at their expiration states, 0 V here)."""
+        unit = self._unit("reset_device")
+        unit.expired = False
+        st = _standin.state()
+        for other in st.units.values():
+            if other.chassis == self._name:
+                other.expired = False
+        for wd in st.watchdogs:
+            if wd.device == self._name:
+                wd.expired = False
+
     @property
     def product_type(self) -> str:
         return self._unit("product_type").product_type

@@ -80,13 +80,19 @@ class WatchdogTask:
             self.expired = False
 
     def clear_expiration(self) -> None:
-        _standin.state().record("watchdog.clear_expiration", self.device)
+        st = _standin.state()
+        st.record("watchdog.clear_expiration", self.device)
+        st.check("watchdog.clear_expiration")
         self._control_watchdog_task(WDTTaskAction.CLEAR_EXPIRATION)
+        if self.device in st.units:
+            st.units[self.device].expired = False
 
     def expire(self) -> None:
         """Play the hardware: the timer ran out, lines go to their expiration states."""
         st = _standin.state()
         self.expired = True
+        if self.device in st.units:
+            st.units[self.device].expired = True
         for e in self.states:
             st.levels[e.physical_channel] = float(e.expiration_state)
 
