@@ -296,3 +296,37 @@ def test_measurement_protocol_needs_something_to_measure():
         }
     ]
     assert math.isclose(doc["timing"]["stimulus_s"], 1.8)
+
+
+def test_bd_one_ulp_below_one_is_ill_conditioned_and_exits_1(tmp_path, capsys):
+    # Was (issue 21): "unique" inputs of ~1e17 dB SL, 52 dB off through the model, exit 0.
+    doc = json.loads(Path(write_params(tmp_path / "p.json")).read_text())
+    for f in doc["functions"]:
+        if (f["target"], f["masker"]) == ("MV180", "EV270"):
+            f["intercept_db"], f["slope"] = 1.39, 1.0
+        if (f["target"], f["masker"]) == ("EV270", "MV180"):
+            f["intercept_db"], f["slope"] = -6.22, 1.0 - 2.0**-53
+    (tmp_path / "p.json").write_text(json.dumps(doc))
+    scene = str(ROOT / "protocols" / "scenes" / "bump_rough.yaml")
+    out = tmp_path / "o"
+    code = main(["render", scene, "--params", str(tmp_path / "p.json"), "--out", str(out)])
+    text = capsys.readouterr().out
+    assert code == 1
+    assert "ill-conditioned" in text and "b·d ≥ 1" not in text
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["status_counts"]["unique"] == 0
+    (reason,) = summary["no_answer_reasons"]
+    assert reason.startswith("ill-conditioned")
+    table = pd.read_csv(out / "points.csv")
+    assert table["mv_input_db_sl"].isna().all() and (table["status"] == "none").all()
+
+
+def test_the_output_guard_refuses_a_non_finite_number_and_names_the_point(tmp_path):
+    scene = Scene("bump", PathSpec(n_points=5), GeometrySpec("bump"), None, source="s.yaml")
+    r = render_scene(scene, None)
+    ev = r.ev_input_db_sl.copy()
+    ev[2] = np.inf  # as if a defect upstream let an infinite level through
+    with pytest.raises(SolverError, match=r"s\.yaml: ev_input_db_sl is inf .* x = 45\.9 mm"):
+        write_rendering(r.with_inputs(r.mv_input_db_sl, ev), tmp_path / "o", figure=False)
+    assert not (tmp_path / "o").exists()
+    write_rendering(r, tmp_path / "o", figure=False)  # −inf for the silent MV is fine

@@ -78,7 +78,7 @@ def run(args: argparse.Namespace) -> int:
     else:
         print(
             f"{scene.name}: {pair.mv} with {pair.ev} (a={pair.a_db:g}, b={pair.b:g}, "
-            f"c={pair.c_db:g}, d={pair.d:g}, b·d={pair.bd:.3g}); "
+            f"c={pair.c_db:g}, d={pair.d:g}, b·d={pair.bd_text}); "
             + ", ".join(f"{k} {v}" for k, v in summary["status_counts"].items() if v)
         )
     for name, ch in summary["channels"].items():
@@ -108,9 +108,16 @@ def run(args: argparse.Namespace) -> int:
         print(f"  wrote {path}")
     unsolved = summary["status_counts"]["none"] + summary["status_counts"]["multiple"]
     if unsolved:
+        # Name each real cause: a NaN target or an ill-conditioned pair is not a b·d ≥ 1 fold.
+        why = [f"{n} {text}" for text, n in summary["no_answer_reasons"].items()]
+        if summary["status_counts"]["multiple"]:
+            why.append(
+                f"{summary['status_counts']['multiple']} with several answers (b·d ≥ 1: the "
+                "masking folds)"
+            )
         print(
             f"  {unsolved} points have no unique compensated input (see the status column of "
-            "points.csv); with b·d ≥ 1 this pair cannot be compensated everywhere"
+            "points.csv): " + "; ".join(why)
         )
         return 1
     return 0

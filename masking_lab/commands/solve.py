@@ -163,7 +163,7 @@ def as_table(mm: Any, sol: Any) -> str:
 
     head = (
         f"{mm.mv} masked by {mm.ev}: max(0, {mm.a_db:g} + {mm.b:g}·e_i);  "
-        f"{mm.ev} masked by {mm.mv}: max(0, {mm.c_db:g} + {mm.d:g}·m_i);  b·d = {mm.bd:.6g}"
+        f"{mm.ev} masked by {mm.mv}: max(0, {mm.c_db:g} + {mm.d:g}·m_i);  b·d = {mm.bd_text}"
     )
     lines = [head, *(f"note: {n}" for n in mm.notes), ""]
     lines.append(f"{'m_p':>9} {'e_p':>9} {'m_i':>10} {'e_i':>10} case  status    notes")

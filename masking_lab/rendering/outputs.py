@@ -20,6 +20,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import yaml
 
 from masking_lab.core.errors import SolverError
@@ -33,6 +34,7 @@ from masking_lab.rendering.solver import PairProblem
 __all__ = [
     "MEASURE_LEVELS_DB_SL",
     "POINT_COLUMNS",
+    "check_outputs_finite",
     "measurement_protocol",
     "measurement_protocols",
     "points_csv",
@@ -63,6 +65,50 @@ POINT_COLUMNS = (
     "mv_perceived_uncomp_db_sl",
     "ev_perceived_uncomp_db_sl",
 )
+
+
+def check_outputs_finite(r: Rendering) -> None:
+    """The output guard: every number render writes is finite where it should be.
+
+    Empty fields are allowed in exactly two places: a channel the scene does not play (its
+    target is −inf) and the compensated columns of a point without a unique answer (its status
+    says why). Anything else non-finite is a defect of the inputs or of the model, refused here
+    before a file is written.
+
+    Raises
+    ------
+    SolverError
+        Naming the scene file, the column, the point (position, mm) and its targets.
+
+    Examples
+    --------
+    >>> check_outputs_finite(render_scene(scene, pair))  # doctest: +SKIP
+    """
+    sol = r.solution
+    unique = np.asarray(sol.status == 1)
+    for name in POINT_COLUMNS:
+        if name in ("case", "status") or name.endswith("exceeds_rating"):
+            continue
+        values = np.asarray(getattr(r, name), dtype=float)
+        ch = "mv" if name.startswith("mv") else ("ev" if name.startswith("ev") else "")
+        absent = getattr(r, f"{ch}_target_db_sl") == -np.inf if ch else np.zeros_like(unique)
+        allowed = np.isfinite(values)
+        if ch:
+            # A silent channel is −inf (its masked AL is 0); NaN for no unique answer.
+            allowed |= absent & (values == -np.inf)
+            compensated = "target" not in name and not name.endswith("_uncomp_db_sl")
+            if compensated:
+                allowed |= ~unique & np.isnan(values)
+        bad = np.flatnonzero(~allowed)
+        if bad.size:
+            i = int(bad[0])
+            where = f"x = {float(r.x_mm[i]):g} mm"
+            targets = f"MV {float(r.mv_target_db_sl[i])!r}, EV {float(r.ev_target_db_sl[i])!r}"
+            raise SolverError(
+                f"{r.scene.source}: {name} is {float(values[i])!r} at {bad.size} point(s), "
+                f"first at {where} (targets {targets} dB SL); nothing was written. Check the "
+                "scene's levels and the masking parameters"
+            )
 
 
 def points_csv(r: Rendering) -> str:
@@ -97,6 +143,7 @@ def write_rendering(r: Rendering, out_dir: str | Path, *, figure: bool = True) -
 
     Each file is written atomically and fsynced. Returns the paths written.
     """
+    check_outputs_finite(r)
     out = Path(out_dir)
     written = [
         write_text_atomic(out / "points.csv", points_csv(r)),
