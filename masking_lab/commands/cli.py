@@ -25,6 +25,7 @@ COMMANDS = (
     "usertest-report",
     "solve",
     "render",
+    "gamut",
     "plan",
     "study",
     "demo",
