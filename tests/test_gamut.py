@@ -155,7 +155,7 @@ def test_bounds_must_be_finite_and_ordered():
     mm = MutualMasking(0.0, 0.5, 0.0, 0.5)
     with pytest.raises(SolverError, match="max_mv_db_sl must be a finite"):
         perceptual_gamut(mm, math.inf, 30.0)
-    with pytest.raises(SolverError, match="floor .* is above the rated maximum"):
+    with pytest.raises(SolverError, match=r"floor .* is above the rated maximum"):
         perceptual_gamut(mm, 30.0, 30.0, floor_ev_db_sl=40.0)
 
 

@@ -1,8 +1,8 @@
 """The perceptual gamut drawn after the paper's Figure 6 (PNG, matplotlib Agg backend).
 
 The (m_p, e_p) plane, dB SL, with the boundary lines of the four solver regions of Table 4
-(they meet where U = a + b·e_p and V = c + d·m_p are both 0), the rated input box mapped into it (one
-filled polygon per linear piece, so a fold at b·d ≥ 1 shows as overlapping pieces), the felt
+(they meet where U = a + b·e_p and V = c + d·m_p are both 0), the rated input box mapped into
+it (one filled polygon per linear piece, so a fold at b·d ≥ 1 shows as overlapping pieces), the felt
 quadrant, and optionally a scene's targets: inside the gamut and outside it.
 """
 
