@@ -27,7 +27,15 @@ def register(sub: argparse._SubParsersAction) -> None:
         "rig config whose channels.<EV|MV>.max_level_db_sl are the rated maxima unless "
         "--max-* say otherwise (default: the reference rig, protocols/devices/default.yaml)",
     )
-    p.add_argument("--no-figure", action="store_true", help="skip figure4.png")
+    p.add_argument(
+        "--gamut-map",
+        choices=("clip", "scale", "compress", "none"),
+        default="clip",
+        help="bring targets the rig cannot render into its gamut: clip (nearest renderable "
+        "pair, the default), scale (one gain on the whole scene), compress (soft knee that "
+        "keeps the profile), none (flag the points above a rating, play nothing different)",
+    )
+    p.add_argument("--no-figure", action="store_true", help="skip figure4.png and gamut.png")
     p.set_defaults(handler=run)
 
 
@@ -70,7 +78,13 @@ def run(args: argparse.Namespace) -> int:
                 "participants' baseline, analyse them together with the rest of the study, and "
                 "render again"
             ) from exc
-    rendering = render_scene(scene, pair, max_mv_db_sl=max_mv, max_ev_db_sl=max_ev)
+    gamut_map = args.gamut_map
+    if gamut_map != "none" and (max_mv is None or max_ev is None):
+        # Nothing is rated on some channel: there is no gamut to map into.
+        gamut_map = "none"
+    rendering = render_scene(
+        scene, pair, max_mv_db_sl=max_mv, max_ev_db_sl=max_ev, gamut_map=gamut_map
+    )
     written = write_rendering(rendering, args.out, figure=not args.no_figure)
     summary = summarize(rendering)
     if pair is None:
@@ -102,6 +116,21 @@ def run(args: argparse.Namespace) -> int:
             f"{unc['points_not_felt']} points not felt"
         )
         print(line)
+    gm = summary["gamut_mapping"]
+    played = gm["as_played"]
+    print(
+        f"  gamut mapping {gm['strategy']}: {gm['points_moved']} of {summary['n_points']} targets "
+        f"moved into the gamut"
+        + (f" (gain {gm['gain']:.3g})" if gm["strategy"] == "scale" else "")
+        + (
+            f", {gm['points_from_gamut_edge']} with inputs found on the gamut's edge"
+            if gm["points_from_gamut_edge"]
+            else ""
+        )
+        + f"; as played: RMS error {_f(played['rms_error_db'])} dB, max "
+        f"{_f(played['max_error_db'])} dB, {100 * (played['share_within_ratings'] or 0):.0f}% "
+        "of points within the ratings"
+    )
     for note in summary["notes"]:
         print(f"  note: {note}")
     for path in written:

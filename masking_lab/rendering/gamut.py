@@ -55,14 +55,17 @@ class GamutPiece:
     mv_input_db_sl, ev_input_db_sl : tuple[float, float]
         The rectangle of inputs, dB SL.
     vertices : ndarray, shape (4, 2)
-        Its image, (m_p, e_p) in dB SL, counter-clockwise (two pairs coincide-in-line when the
-        piece is degenerate, b·d = 1).
+        Its image, (m_p, e_p) in dB SL, counter-clockwise (collapsed onto a line when the piece
+        is degenerate, b·d = 1).
+    corners : ndarray, shape (4, 2)
+        The input pairs (m_i, e_i), dB SL, whose images are ``vertices``, in the same order.
     """
 
     case: int
     mv_input_db_sl: tuple[float, float]
     ev_input_db_sl: tuple[float, float]
     vertices: NDArray[np.float64]
+    corners: NDArray[np.float64]
 
 
 @dataclass(frozen=True)
@@ -108,7 +111,9 @@ class Gamut:
 
         Examples
         --------
-        >>> g = perceptual_gamut(MutualMasking(0.0, 0.5, 0.0, 0.5), 30.0, 30.0)
+        Without masking the gamut is the box itself:
+
+        >>> g = perceptual_gamut(MutualMasking(0.0, 0.0, 0.0, 0.0), 30.0, 30.0)
         >>> g.distance_db([10.0, 40.0], [5.0, 0.0]).tolist()
         [0.0, 10.0]
         """
@@ -170,6 +175,56 @@ class Gamut:
             best[closer] = q[closer]
             best_d[closer] = d[closer]
         return best[:, 0].reshape(m.shape), best[:, 1].reshape(m.shape)
+
+    def boundary_inputs(
+        self, mv_db_sl: ArrayLike, ev_db_sl: ArrayLike
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+        """The nearest renderable pair on a piece's edge, and inputs in the box that produce it.
+
+        An affine map keeps where a point sits along a segment, so the point at fraction t of
+        the edge between two vertices is the image of the point at t between their corners: an
+        input pair inside the box by construction, found without solving anything (and so
+        without dividing by 1 − b·d).
+
+        Parameters
+        ----------
+        mv_db_sl, ev_db_sl : array_like
+            Perceived pairs, dB SL (finite), broadcast.
+
+        Returns
+        -------
+        mv_db_sl, ev_db_sl, mv_input_db_sl, ev_input_db_sl : ndarray
+            Nearest edge point (dB SL) and its inputs (dB SL, clamped into the box).
+
+        Examples
+        --------
+        >>> g = perceptual_gamut(MutualMasking(0.0, 0.0, 0.0, 0.0), 30.0, 30.0)
+        >>> [float(v[0]) for v in g.boundary_inputs([40.0], [0.0])]
+        [30.0, 0.0, 30.0, 0.0]
+        """
+        m, e = np.broadcast_arrays(np.asarray(mv_db_sl, float), np.asarray(ev_db_sl, float))
+        p = np.stack([m.ravel(), e.ravel()], axis=-1)
+        best_d = np.full(p.shape[0], np.inf)
+        best = p.copy()
+        inputs = np.full_like(p, np.nan)
+        for piece in self.pieces:
+            v, c = piece.vertices, piece.corners
+            for i in range(4):
+                j = (i + 1) % 4
+                q, d, t = _segment_projection(v[i], v[j], p)
+                closer = d < best_d
+                best[closer] = q[closer]
+                best_d[closer] = d[closer]
+                inputs[closer] = c[i] + t[closer, None] * (c[j] - c[i])
+        np.clip(inputs[:, 0], *self.mv_box_db_sl, out=inputs[:, 0])
+        np.clip(inputs[:, 1], *self.ev_box_db_sl, out=inputs[:, 1])
+        shape = m.shape
+        return (
+            best[:, 0].reshape(shape),
+            best[:, 1].reshape(shape),
+            inputs[:, 0].reshape(shape),
+            inputs[:, 1].reshape(shape),
+        )
 
     def as_dict(self) -> dict[str, object]:
         """JSON-ready description: the box, b·d, the pieces and (b·d < 1) the outline, dB SL."""
@@ -263,11 +318,12 @@ def perceptual_gamut(
             g_on = m0 >= km  # the lower edge is at or past the knee: the whole strip rises
             f_on = e0 >= ke
             case = 1 + int(g_on) + 2 * int(f_on)
-            corners = [(m0, e0), (m1, e0), (m1, e1), (m0, e1)]
+            corners = np.array([(m0, e0), (m1, e0), (m1, e1), (m0, e1)])
             v = np.array([pair.forward_point(m, e) for m, e in corners])
             if case == 4 and pair.bd_side > 0:
-                v = v[::-1]  # the map reverses orientation here: keep vertices counter-clockwise
-            pieces.append(GamutPiece(case, (m0, m1), (e0, e1), v))
+                # The map reverses orientation here: keep vertices counter-clockwise.
+                v, corners = v[::-1], corners[::-1]
+            pieces.append(GamutPiece(case, (m0, m1), (e0, e1), v, corners))
     outline = None
     if pair.bd_side < 0:
         ring = _boundary_ring(m_lo, m_hi, e_lo, e_hi, km, ke)
@@ -355,15 +411,23 @@ def _drop_collinear(v: NDArray[np.float64]) -> NDArray[np.float64]:
     return np.array(keep) if len(keep) >= 3 else v
 
 
-def _segment_distance(
+def _segment_projection(
     a: NDArray[np.float64], b: NDArray[np.float64], p: NDArray[np.float64]
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Nearest points on segment a–b to points p (n, 2), and their distances."""
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Nearest points on segment a–b to points p (n, 2), their distances and fractions t."""
     ab = b - a
     den = float(ab @ ab)
     t = np.zeros(len(p)) if den == 0.0 else np.clip(((p - a) @ ab) / den, 0.0, 1.0)
     q = a + t[:, None] * ab
-    return q, np.hypot(p[:, 0] - q[:, 0], p[:, 1] - q[:, 1])
+    return q, np.hypot(p[:, 0] - q[:, 0], p[:, 1] - q[:, 1]), t
+
+
+def _segment_distance(
+    a: NDArray[np.float64], b: NDArray[np.float64], p: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Nearest points on segment a–b to points p (n, 2), and their distances."""
+    q, d, _ = _segment_projection(a, b, p)
+    return q, d
 
 
 def _inside_convex(v: NDArray[np.float64], p: NDArray[np.float64]) -> NDArray[np.bool_]:

@@ -28,7 +28,7 @@ from masking_lab.formats.fileio import write_bytes_atomic, write_text_atomic
 from masking_lab.formats.protocol import parse_protocol
 from masking_lab.formats.resources import shipped
 from masking_lab.rendering.figures import figure4_png
-from masking_lab.rendering.render import Rendering, summarize
+from masking_lab.rendering.render import Rendering, intended, summarize
 from masking_lab.rendering.solver import PairProblem
 
 __all__ = [
@@ -64,6 +64,8 @@ POINT_COLUMNS = (
     "ev_masked_al_uncomp_db_sl",
     "mv_perceived_uncomp_db_sl",
     "ev_perceived_uncomp_db_sl",
+    "mv_intended_db_sl",
+    "ev_intended_db_sl",
 )
 
 
@@ -87,7 +89,7 @@ def check_outputs_finite(r: Rendering) -> None:
     sol = r.solution
     unique = np.asarray(sol.status == 1)
     for name in POINT_COLUMNS:
-        if name in ("case", "status") or name.endswith("exceeds_rating"):
+        if name in ("case", "status") or name.endswith(("exceeds_rating", "intended_db_sl")):
             continue
         values = np.asarray(getattr(r, name), dtype=float)
         ch = "mv" if name.startswith("mv") else ("ev" if name.startswith("ev") else "")
@@ -126,6 +128,8 @@ def points_csv(r: Rendering) -> str:
             cols.append(sol.status_names())
         elif name.endswith("exceeds_rating"):
             cols.append(["1" if v else "0" for v in getattr(sol, name)])
+        elif name.endswith("intended_db_sl"):
+            cols.append([_number(v) for v in intended(r)[0 if name[:2] == "mv" else 1]])
         else:
             cols.append([_number(v) for v in getattr(r, name)])
     lines = [",".join(POINT_COLUMNS)]
@@ -153,6 +157,13 @@ def write_rendering(r: Rendering, out_dir: str | Path, *, figure: bool = True) -
     ]
     if figure:
         written.append(write_bytes_atomic(out / "figure4.png", figure4_png(r)))
+        if r.gamut is not None and r.pair is not None:
+            from masking_lab.rendering.gamut_figure import gamut_png
+
+            want_m, want_e = intended(r)
+            mapped = None if r.gamut_map == "none" else (r.mv_target_db_sl, r.ev_target_db_sl)
+            png = gamut_png(r.gamut, mv_target_db_sl=want_m, ev_target_db_sl=want_e, mapped=mapped)
+            written.append(write_bytes_atomic(out / "gamut.png", png))
     return written
 
 
