@@ -15,7 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from masking_lab.formats.png_figure import legible, png_bytes
-from masking_lab.rendering.render import Rendering
+from masking_lab.rendering.render import Rendering, intended
 from masking_lab.rendering.solver import forward
 
 __all__ = ["clipped_perceived", "figure4_png"]
@@ -121,7 +121,26 @@ def figure4_png(r: Rendering, *, dpi: int = 100) -> bytes:
                         x, masked[k], "--", color=other, label=f"masked AL of {name} (by {by})"
                     )
                 right.plot(x, perceived[k], color=colour, label=f"{name} perceived")
-                right.plot(x, target, "--", color=colour, alpha=0.6, label=f"{name} intended")
+                mapped = row == 2 and r.gamut_map != "none"
+                right.plot(
+                    x,
+                    target,
+                    "--",
+                    color=colour,
+                    alpha=0.6,
+                    label=f"{name} target after {r.gamut_map} mapping"
+                    if mapped
+                    else f"{name} intended",
+                )
+                if mapped:
+                    right.plot(
+                        x,
+                        intended(r)[k],
+                        ":",
+                        color="0.3",
+                        lw=1.0,
+                        label=f"{name} intended by the scene",
+                    )
                 # Grey where this channel is below its masked AL: not felt.
                 right.fill_between(
                     x,
@@ -188,10 +207,11 @@ def _mark_unplayable(
 
 
 def _suptitle(r: Rendering) -> str:
+    mapping = "" if r.gamut_map == "none" else f"; gamut mapping: {r.gamut_map}"
     if r.pair is None:
-        return f"scene {r.scene.name}: one channel, no mutual masking"
+        return f"scene {r.scene.name}: one channel, no mutual masking{mapping}"
     p = r.pair
     return (
         f"scene {r.scene.name}: {p.mv} masked by {p.ev} (f: a = {p.a_db:.3g} dB, b = {p.b:.3g}) "
-        f"and {p.ev} masked by {p.mv} (g: c = {p.c_db:.3g} dB, d = {p.d:.3g})"
+        f"and {p.ev} masked by {p.mv} (g: c = {p.c_db:.3g} dB, d = {p.d:.3g}){mapping}"
     )
