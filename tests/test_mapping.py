@@ -119,3 +119,25 @@ def test_metrics_of_a_perfect_rendering():
     got[2] = np.nan
     out = mapping_metrics(x, np.full(5, 6.0), ev, np.full(5, 6.0), got, np.ones(5, bool))
     assert out["points_without_a_level"] == 1 and out["share_at_target"] == 0.8
+
+
+def test_demo_scene_renders_within_the_ratings_and_the_summary_shows_the_trade(tmp_path):
+    import sys
+    from pathlib import Path
+
+    from masking_lab import demo, demo_summary
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from test_render import write_params
+
+    (tmp_path / "analysis").mkdir()
+    write_params(tmp_path / "analysis" / "masking_params.json")
+    summary = demo._render(tmp_path)
+    gm = summary["gamut_mapping"]
+    assert gm["strategy"] == "clip" and gm["as_played"]["share_within_ratings"] == 1.0
+    for ch in summary["channels"].values():
+        assert ch["points_above_rating"] == 0
+    rows = demo_summary._mapping(summary)
+    assert rows["mapping"] == "clip" and [r[0] for r in rows["strategies"]] == list(STRATEGIES)
+    none = rows["strategies"][-1]
+    assert none[5] < 0.1  # played as designed, most points would need more than the rig has
