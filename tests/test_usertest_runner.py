@@ -432,6 +432,27 @@ def test_allow_clipping_plays_at_the_limit_and_logs_it_per_trial(lab, tmp_path):
     assert any("clipped" in t for t in trials(recs))
 
 
+def test_gamut_mapped_scenes_play_within_the_limits_and_the_report_names_it(lab, tmp_path):
+    # The same session that is refused unmapped (MV180 needs 58.5 dB SL) runs when each object
+    # is mapped into the gamut of its stimuli's limits: nothing clipped, the strategy logged.
+    data = tmp_path / "data"
+    write_calibration(data, "S01", CAL)
+    result = run_usertest(options(lab, data, gamut_map="clip"), stream=io.StringIO())
+    assert result.exit_code == 0
+    recs = records(result.log_path)
+    header = recs[0]
+    assert header["usertest"]["gamut_map"] == "clip"
+    assert header["usertest"]["clipped_objects"] == []
+    limit_ev = 20 * math.log10(5.0) + 14.0  # dB SL: 5 V at the calibrated EV AL
+    for t in trials(recs):
+        assert "clipped" not in t
+        assert t["played"]["EV"]["max_db_sl"] <= limit_ev + 1e-6
+        assert t["played"]["MV"]["max_db_sl"] <= 30.0 + 1e-6
+    assert main(["usertest-report", str(data), "--out", str(tmp_path / "rep")]) == 0
+    report = (tmp_path / "rep" / "report.txt").read_text()
+    assert "mapped into the rig's gamut (clip)" in report
+
+
 def _clipped_keys(header):
     return [(c["object"], c["condition"]) for c in header["usertest"]["clipped_objects"]]
 
