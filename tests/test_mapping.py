@@ -122,13 +122,9 @@ def test_metrics_of_a_perfect_rendering():
 
 
 def test_demo_scene_renders_within_the_ratings_and_the_summary_shows_the_trade(tmp_path):
-    import sys
-    from pathlib import Path
+    from test_render import write_params
 
     from masking_lab import demo, demo_summary
-
-    sys.path.insert(0, str(Path(__file__).parent))
-    from test_render import write_params
 
     (tmp_path / "analysis").mkdir()
     write_params(tmp_path / "analysis" / "masking_params.json")

@@ -59,7 +59,9 @@ def test_render_writes_outputs_for_every_shipped_scene(scene_file, params, tmp_p
     assert main(["render", str(scene_file), "--params", params, "--out", str(out)]) == 0
     assert "wrote" in capsys.readouterr().out
     table = pd.read_csv(out / "points.csv")
-    assert tuple(table.columns) == POINT_COLUMNS
+    # The fixed columns, then the uncertainty intervals and flags (test_uncertainty.py).
+    assert tuple(table.columns)[: len(POINT_COLUMNS)] == POINT_COLUMNS
+    assert "compensation_not_better" in table.columns
     scene = load_scene(scene_file)
     assert len(table) == scene.path.n_points
     (a, b), (c, d) = RAMPS[scene.texture.stimulus]

@@ -62,6 +62,8 @@ def run(args: argparse.Namespace) -> int:
             + "; give --max-mv-db-sl/--max-ev-db-sl or channels.<MV|EV>.max_level_db_sl"
         )
     if args.fitted_range_only:
+        from masking_lab.rendering.gamut import fitted_caps
+
         max_mv, max_ev = fitted_caps(pair, max_mv, max_ev)
     g = perceptual_gamut(pair, max_mv, max_ev)
     print(
@@ -92,14 +94,3 @@ def run(args: argparse.Namespace) -> int:
     for path in written:
         print(f"  wrote {path}")
     return 0
-
-
-def fitted_caps(pair, max_mv: float, max_ev: float) -> tuple[float, float]:  # type: ignore[no-untyped-def]
-    """Rated maxima capped at the top of the masker range each ramp was fitted on, dB SL.
-
-    MV's input is the masker of g, EV's the masker of f; an unknown range leaves the rating.
-    """
-    g_rng, f_rng = pair.g_fitted_range_db_sl, pair.f_fitted_range_db_sl
-    mv = min(max_mv, g_rng[1]) if g_rng else max_mv
-    ev = min(max_ev, f_rng[1]) if f_rng else max_ev
-    return mv, ev

@@ -35,6 +35,20 @@ def register(sub: argparse._SubParsersAction) -> None:
         "pair, the default), scale (one gain on the whole scene), compress (soft knee that "
         "keeps the profile), none (flag the points above a rating, play nothing different)",
     )
+    p.add_argument(
+        "--fitted-range-only",
+        action="store_true",
+        help="restrict the gamut to the masker levels the ramps were fitted on: each channel's "
+        "maximum is capped at the top of the fitted range of the ramp it drives",
+    )
+    p.add_argument(
+        "--uncertainty-draws",
+        type=int,
+        default=200,
+        metavar="N",
+        help="parameter draws carrying the masking fits' uncertainty to per-point intervals of "
+        "what is felt (default 200; 0: none)",
+    )
     p.add_argument("--no-figure", action="store_true", help="skip figure4.png and gamut.png")
     p.set_defaults(handler=run)
 
@@ -78,6 +92,10 @@ def run(args: argparse.Namespace) -> int:
                 "participants' baseline, analyse them together with the rest of the study, and "
                 "render again"
             ) from exc
+    if args.fitted_range_only and pair is not None and max_mv is not None and max_ev is not None:
+        from masking_lab.rendering.gamut import fitted_caps
+
+        max_mv, max_ev = fitted_caps(pair, max_mv, max_ev)
     gamut_map = args.gamut_map
     if gamut_map != "none" and (max_mv is None or max_ev is None):
         # Nothing is rated on some channel: there is no gamut to map into.
@@ -85,7 +103,15 @@ def run(args: argparse.Namespace) -> int:
     rendering = render_scene(
         scene, pair, max_mv_db_sl=max_mv, max_ev_db_sl=max_ev, gamut_map=gamut_map
     )
-    written = write_rendering(rendering, args.out, figure=not args.no_figure)
+    uncertainty = None
+    if pair is not None and args.uncertainty_draws:
+        from masking_lab.rendering.uncertainty import pair_spread, perceived_intervals
+
+        spread = pair_spread(params, mv=pair.mv, ev=pair.ev)
+        uncertainty = perceived_intervals(rendering, spread, n_draws=args.uncertainty_draws)
+    written = write_rendering(
+        rendering, args.out, figure=not args.no_figure, uncertainty=uncertainty
+    )
     summary = summarize(rendering)
     if pair is None:
         print(f"{scene.name}: single-channel scene, targets passed straight through")
@@ -131,6 +157,14 @@ def run(args: argparse.Namespace) -> int:
         f"{_f(played['max_error_db'])} dB, {100 * (played['share_within_ratings'] or 0):.0f}% "
         "of points within the ratings"
     )
+    if uncertainty is not None:
+        u = uncertainty.summary()
+        print(
+            f"  uncertainty ({u['n_draws']} parametric draws of the fits, "
+            f"{100 * u['level']:.0f} % intervals): compensation not better than none at "
+            f"{u['points_compensation_not_better']} points; {u['points_beyond_fitted_range']} "
+            "points rely on a ramp beyond its fitted masker range"
+        )
     for note in summary["notes"]:
         print(f"  note: {note}")
     for path in written:

@@ -11,6 +11,8 @@ there if the input were clipped at that maximum. Drawn in the package's legible 
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -58,7 +60,7 @@ def clipped_perceived(
     return mv_p, ev_p, over
 
 
-def figure4_png(r: Rendering, *, dpi: int = 100) -> bytes:
+def figure4_png(r: Rendering, *, dpi: int = 100, bands: Any = None) -> bytes:
     """The Figure-4-like panel for ``r`` as PNG bytes.
 
     Parameters
@@ -67,6 +69,9 @@ def figure4_png(r: Rendering, *, dpi: int = 100) -> bytes:
         A rendered scene.
     dpi : int
         Resolution, dots per inch (font sizes are in points, the same at any dpi).
+    bands : RenderingUncertainty, optional
+        Per-point intervals of the perceived intensities, drawn as shaded bands in rows (b)
+        and (c) (:mod:`masking_lab.rendering.uncertainty`).
 
     Returns
     -------
@@ -121,6 +126,18 @@ def figure4_png(r: Rendering, *, dpi: int = 100) -> bytes:
                         x, masked[k], "--", color=other, label=f"masked AL of {name} (by {by})"
                     )
                 right.plot(x, perceived[k], color=colour, label=f"{name} perceived")
+                if bands is not None and row > 0:
+                    ch = ("mv", "ev")[k] + ("" if row == 2 else "_uncomp")
+                    lo, hi = getattr(bands, f"{ch}_lo"), getattr(bands, f"{ch}_hi")
+                    right.fill_between(
+                        x,
+                        lo,
+                        hi,
+                        color=colour,
+                        alpha=0.2,
+                        lw=0,
+                        label=f"{name} {100 * bands.level:.0f} % interval (masking fits)",
+                    )
                 mapped = row == 2 and r.gamut_map != "none"
                 right.plot(
                     x,

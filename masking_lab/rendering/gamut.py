@@ -37,7 +37,7 @@ from numpy.typing import ArrayLike, NDArray
 from masking_lab.core.errors import SolverError
 from masking_lab.rendering.pair import MutualMasking
 
-__all__ = ["Gamut", "GamutPiece", "gamut_for_targets", "perceptual_gamut"]
+__all__ = ["Gamut", "GamutPiece", "fitted_caps", "gamut_for_targets", "perceptual_gamut"]
 
 #: Default lowest input considered, dB SL (threshold: below it a channel is not felt).
 DEFAULT_FLOOR_DB_SL = 0.0
@@ -357,6 +357,27 @@ def gamut_for_targets(
     return perceptual_gamut(
         pair, max_mv_db_sl, max_ev_db_sl, floor_mv_db_sl=floors[0], floor_ev_db_sl=floors[1]
     )
+
+
+def fitted_caps(
+    pair: MutualMasking, max_mv_db_sl: float, max_ev_db_sl: float
+) -> tuple[float, float]:
+    """Rated maxima capped at the top of the masker range each ramp was fitted on, dB SL.
+
+    MV's input is the masker of g, EV's the masker of f: with these caps the gamut holds only
+    what the fitted ramps cover (no extrapolation). An unknown range leaves the rating.
+
+    Examples
+    --------
+    >>> pair = MutualMasking(1.3, 1.06, -5.9, 0.66, f_fitted_range_db_sl=(5.0, 25.0),
+    ...                      g_fitted_range_db_sl=(5.0, 20.0))
+    >>> fitted_caps(pair, 30.0, 30.0)
+    (20.0, 25.0)
+    """
+    g_rng, f_rng = pair.g_fitted_range_db_sl, pair.f_fitted_range_db_sl
+    mv = min(max_mv_db_sl, g_rng[1]) if g_rng else max_mv_db_sl
+    ev = min(max_ev_db_sl, f_rng[1]) if f_rng else max_ev_db_sl
+    return mv, ev
 
 
 # --------------------------------------------------------------------------------------------

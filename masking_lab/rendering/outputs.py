@@ -30,6 +30,7 @@ from masking_lab.formats.resources import shipped
 from masking_lab.rendering.figures import figure4_png
 from masking_lab.rendering.render import Rendering, intended, summarize
 from masking_lab.rendering.solver import PairProblem
+from masking_lab.rendering.uncertainty import RenderingUncertainty
 
 __all__ = [
     "MEASURE_LEVELS_DB_SL",
@@ -113,11 +114,12 @@ def check_outputs_finite(r: Rendering) -> None:
             )
 
 
-def points_csv(r: Rendering) -> str:
+def points_csv(r: Rendering, uncertainty: RenderingUncertainty | None = None) -> str:
     """The per-point table as CSV text (floats round-trip exactly).
 
     No non-finite number reaches the file: a silent channel (−inf dB SL) and a point without a
-    unique answer (NaN) are empty fields; ``status`` tells them apart.
+    unique answer (NaN) are empty fields; ``status`` tells them apart. With ``uncertainty``,
+    its interval columns and flags (0/1) follow :data:`POINT_COLUMNS`.
     """
     sol = r.solution
     cols: list[Sequence[Any]] = []
@@ -132,7 +134,15 @@ def points_csv(r: Rendering) -> str:
             cols.append([_number(v) for v in intended(r)[0 if name[:2] == "mv" else 1]])
         else:
             cols.append([_number(v) for v in getattr(r, name)])
-    lines = [",".join(POINT_COLUMNS)]
+    names = list(POINT_COLUMNS)
+    if uncertainty is not None:
+        for name, values in uncertainty.columns().items():
+            names.append(name)
+            if values.dtype == bool:
+                cols.append(["1" if v else "0" for v in values])
+            else:
+                cols.append([_number(v) for v in values])
+    lines = [",".join(names)]
     lines += [",".join(row) for row in zip(*cols, strict=True)]
     return "\n".join(lines) + "\n"
 
@@ -142,21 +152,30 @@ def _number(v: float) -> str:
     return repr(x) if math.isfinite(x) else ""
 
 
-def write_rendering(r: Rendering, out_dir: str | Path, *, figure: bool = True) -> list[Path]:
-    """Write ``points.csv``, ``summary.json`` and (optionally) ``figure4.png`` into ``out_dir``.
+def write_rendering(
+    r: Rendering,
+    out_dir: str | Path,
+    *,
+    figure: bool = True,
+    uncertainty: RenderingUncertainty | None = None,
+) -> list[Path]:
+    """Write ``points.csv``, ``summary.json`` and (optionally) ``figure4.png`` and ``gamut.png``
+    into ``out_dir``; with ``uncertainty``, its intervals as columns, bands and a summary entry.
 
     Each file is written atomically and fsynced. Returns the paths written.
     """
     check_outputs_finite(r)
     out = Path(out_dir)
+    summary = summarize(r)
+    summary["uncertainty"] = None if uncertainty is None else uncertainty.summary()
     written = [
-        write_text_atomic(out / "points.csv", points_csv(r)),
+        write_text_atomic(out / "points.csv", points_csv(r, uncertainty)),
         write_text_atomic(
-            out / "summary.json", json.dumps(summarize(r), indent=2, allow_nan=False) + "\n"
+            out / "summary.json", json.dumps(summary, indent=2, allow_nan=False) + "\n"
         ),
     ]
     if figure:
-        written.append(write_bytes_atomic(out / "figure4.png", figure4_png(r)))
+        written.append(write_bytes_atomic(out / "figure4.png", figure4_png(r, bands=uncertainty)))
         if r.gamut is not None and r.pair is not None:
             from masking_lab.rendering.gamut_figure import gamut_png
 
