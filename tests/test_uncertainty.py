@@ -4,6 +4,7 @@ errors, the two per-point flags, columns, summary and CLI."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -116,3 +117,16 @@ def test_render_writes_interval_columns_flags_and_counts(tmp_path, capsys):
     assert summary["gamut"]["mv_input_box_db_sl"][1] <= 25.0
     assert main([*args, "--uncertainty-draws", "3"]) == 2
     assert "at least 20 draws" in capsys.readouterr().err
+
+
+def test_absurd_standard_errors_give_no_band_rather_than_a_traceback(tmp_path, capsys):
+    doc = json.loads(Path(write_params(tmp_path / "p.json")).read_text())
+    for f in doc["functions"]:
+        f["intercept_se_db"], f["slope_se"] = 1e308, 1e300
+    (tmp_path / "p.json").write_text(json.dumps(doc))
+    scene = str(ROOT / "protocols" / "scenes" / "bump_rough.yaml")
+    args = ["render", scene, "--params", str(tmp_path / "p.json"), "--out", str(tmp_path / "o")]
+    assert main(args) == 0
+    capsys.readouterr()
+    summary = json.loads((tmp_path / "o" / "summary.json").read_text())  # strict JSON
+    assert summary["uncertainty"]["points_compensation_not_better"] == summary["n_points"]

@@ -129,6 +129,8 @@ def figure4_png(r: Rendering, *, dpi: int = 100, bands: Any = None) -> bytes:
                 if bands is not None and row > 0:
                     ch = ("mv", "ev")[k] + ("" if row == 2 else "_uncomp")
                     lo, hi = getattr(bands, f"{ch}_lo"), getattr(bands, f"{ch}_hi")
+                    shown = np.isfinite(lo) & np.isfinite(hi)  # no band where no level
+                    lo, hi = np.where(shown, lo, np.nan), np.where(shown, hi, np.nan)
                     right.fill_between(
                         x,
                         lo,

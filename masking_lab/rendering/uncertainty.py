@@ -228,7 +228,8 @@ def perceived_intervals(
     sd = np.array([spread.a_sd_db, spread.b_sd, spread.c_sd_db, spread.d_sd])
     if r.pair is None:
         sd = np.zeros(4)  # nothing masks a single channel
-    draws = base + rng.standard_normal((n_draws, 4)) * sd
+    with np.errstate(over="ignore", invalid="ignore"):
+        draws = base + rng.standard_normal((n_draws, 4)) * sd
     draws[:, [1, 3]] = np.maximum(draws[:, [1, 3]], 0.0)
     mi, ei = r.mv_input_db_sl, r.ev_input_db_sl
     mt, et = r.mv_target_db_sl, r.ev_target_db_sl
