@@ -163,3 +163,40 @@ def test_gamut_for_targets_lowers_the_floor_to_the_lowest_target():
     mm = MutualMasking(0.0, 0.5, 0.0, 0.5)
     g = gamut_for_targets(mm, 30.0, 30.0, [-7.0, 3.0, -np.inf], [np.nan, 2.0])
     assert g.mv_box_db_sl == (-7.0, 30.0) and g.ev_box_db_sl == (0.0, 30.0)
+
+
+def test_gamut_command_prints_the_vertices_and_writes_json_and_figure(tmp_path, capsys):
+    import json
+
+    from masking_lab.commands.cli import main
+    from masking_lab.formats.masking_params import read_masking_params
+    from masking_lab.rendering.solver import pair_from_params
+    from test_render import write_params
+
+    params = write_params(tmp_path / "p.json")
+    out = tmp_path / "g"
+    assert main(["gamut", "--params", params, "--mv", "MV180", "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    pair = pair_from_params(read_masking_params(params), mv="MV180", ev="EV270")
+    g = perceptual_gamut(pair, 30.0, 30.0)  # the reference rig's ratings
+    for m, e in g.outline:
+        assert f"({m:.6g}, {e:.6g})" in text
+    doc = json.loads((out / "gamut.json").read_text())
+    assert doc["outline"] == g.outline.tolist() and not doc["folded"]
+    assert (out / "gamut.png").read_bytes()[:4] == b"\x89PNG"
+    # Capped at the fitted masker ranges (5–25 dB SL in the test parameters).
+    args = ["gamut", "--params", params, "--mv", "MV180", "--out", str(out), "--no-figure"]
+    assert main([*args, "--fitted-range-only"]) == 0
+    assert "capped at the fitted masker ranges" in capsys.readouterr().out
+    doc = json.loads((out / "gamut.json").read_text())
+    assert doc["mv_input_box_db_sl"] == [0.0, 25.0] and doc["ev_input_box_db_sl"] == [0.0, 25.0]
+    # A folded pair is printed as its pieces; bad input is a clean error.
+    folded = write_params(tmp_path / "f.json", ramps={"MV180": ((1.0, 2.0), (-1.0, 1.0))})
+    assert main(["gamut", "--params", folded, "--out", str(out), "--no-figure"]) == 0
+    text = capsys.readouterr().out
+    assert "b·d ≥ 1, the union of these pieces" in text and "case 4:" in text
+    assert json.loads((out / "gamut.json").read_text())["outline"] is None
+    assert main(["gamut", "--params", params, "--mv", "MV999", "--out", str(out)]) == 2
+    assert "MV999" in capsys.readouterr().err
+    assert main(["gamut", "--params", params, "--out", str(out)]) == 2
+    assert "say which MV stimulus" in capsys.readouterr().err
