@@ -168,10 +168,11 @@ def test_gamut_for_targets_lowers_the_floor_to_the_lowest_target():
 def test_gamut_command_prints_the_vertices_and_writes_json_and_figure(tmp_path, capsys):
     import json
 
+    from test_render import write_params
+
     from masking_lab.commands.cli import main
     from masking_lab.formats.masking_params import read_masking_params
     from masking_lab.rendering.solver import pair_from_params
-    from test_render import write_params
 
     params = write_params(tmp_path / "p.json")
     out = tmp_path / "g"
