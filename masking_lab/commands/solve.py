@@ -117,6 +117,7 @@ def run(args: argparse.Namespace) -> int:
 
 def as_json(mm: Any, sol: Any) -> dict[str, Any]:
     """The JSON object printed by ``--json`` (equal-length arrays, one entry per target)."""
+    from masking_lab.rendering.ramp_inverse import REPRODUCE_TOL_DB
     from masking_lab.rendering.solver import REASON_TEXT, Reason
 
     n = sol.status.size
@@ -139,6 +140,8 @@ def as_json(mm: Any, sol: Any) -> dict[str, Any]:
         "c_db": mm.c_db,
         "d": mm.d,
         "bd": mm.bd,
+        "one_minus_bd": mm.one_minus_bd,
+        "reproduce_tol_db": REPRODUCE_TOL_DB,
         "units": "dB SL",
         "notes": list(mm.notes),
         "max_mv_db_sl": sol.max_mv_db_sl,

@@ -33,6 +33,7 @@ from masking_lab.rendering.mapping import (
     mapping_metrics,
     playable_inputs,
 )
+from masking_lab.rendering.ramp_inverse import REPRODUCE_TOL_DB
 from masking_lab.rendering.scene import Scene
 from masking_lab.rendering.solver import (
     REASON_TEXT,
@@ -473,7 +474,9 @@ def summarize(r: Rendering) -> dict[str, Any]:
             "c_db": r.pair.c_db,
             "d": r.pair.d,
             "bd": r.pair.bd,
+            "one_minus_bd": r.pair.one_minus_bd,
         },
+        "reproduce_tol_db": REPRODUCE_TOL_DB,
         "status_counts": sol.counts(),
         "case_counts": {str(k): int(np.count_nonzero(sol.case == k)) for k in range(1, 5)},
         "notes": [] if r.pair is None else list(r.pair.notes),
