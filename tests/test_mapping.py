@@ -137,3 +137,16 @@ def test_demo_scene_renders_within_the_ratings_and_the_summary_shows_the_trade(t
     assert rows["mapping"] == "clip" and [r[0] for r in rows["strategies"]] == list(STRATEGIES)
     none = rows["strategies"][-1]
     assert none[5] < 0.1  # played as designed, most points would need more than the rig has
+
+
+def test_compress_leaves_points_below_the_knee_and_keeps_order_along_a_ray():
+    g = perceptual_gamut(MutualMasking(0.0, 0.0, 0.0, 0.0), 30.0, 30.0)  # the box itself
+    # Along the diagonal the edge is at 30 dB SL: below 0.7 of it nothing moves.
+    levels = np.array([3.0, 10.0, 20.0, 21.0, 25.0, 30.0, 45.0, 90.0])
+    m, e, gain = map_targets(g, levels, levels, "compress")
+    assert gain == 1.0
+    assert np.allclose(m[:3], levels[:3], atol=1e-6) and np.allclose(m, e)
+    assert np.all(np.diff(m) > 0)  # order kept: the profile's contrast survives
+    assert np.all(m < 30.0) and np.all(g.contains(m, e))
+    clipped, _, _ = map_targets(g, levels, levels, "clip")
+    assert np.array_equal(clipped[-3:], [30.0, 30.0, 30.0])  # clip flattens what compress keeps
