@@ -311,9 +311,10 @@ def _render(out: Path) -> dict[str, Any]:
     rendering = render_scene(
         scene, pair, max_mv_db_sl=max_mv, max_ev_db_sl=max_ev, gamut_map="clip"
     )
-    written = write_rendering(rendering, out / "render")
+    trade = compare_strategies(scene, pair, max_mv, max_ev)
+    written = write_rendering(rendering, out / "render", strategies=trade)
     summary = summarize(rendering)
-    summary["gamut_mapping"]["strategies"] = compare_strategies(scene, pair, max_mv, max_ev)
+    summary["gamut_mapping"]["strategies"] = trade
     summary["files"] = [str(p) for p in written]
     return summary
 

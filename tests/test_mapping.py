@@ -3,6 +3,8 @@ ratings, on random parameter sets including b·d ≥ 1 and b·d within ulps of 1
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -129,6 +131,8 @@ def test_demo_scene_renders_within_the_ratings_and_the_summary_shows_the_trade(t
     (tmp_path / "analysis").mkdir()
     write_params(tmp_path / "analysis" / "masking_params.json")
     summary = demo._render(tmp_path)
+    written = json.loads((tmp_path / "render" / "summary.json").read_text())
+    assert written["gamut_mapping"]["strategies"] == summary["gamut_mapping"]["strategies"]
     gm = summary["gamut_mapping"]
     assert gm["strategy"] == "clip" and gm["as_played"]["share_within_ratings"] == 1.0
     for ch in summary["channels"].values():

@@ -357,6 +357,10 @@ def test_gamut_mapping_keeps_every_input_within_the_ratings(params, tmp_path, ca
     summary = json.loads((out / "summary.json").read_text())
     gm = summary["gamut_mapping"]
     assert gm["strategy"] == strategy and gm["points_moved"] > 0
+    # Every strategy's metrics, for the trade; this one's are those of the rendering itself.
+    assert set(gm["strategies"]) == {"clip", "scale", "compress", "none"}
+    assert gm["strategies"][strategy] == gm["as_played"]
+    assert "other mappings" in text
     assert gm["as_played"]["share_within_ratings"] == 1.0
     table = pd.read_csv(out / "points.csv")
     for ch in ("mv", "ev"):

@@ -109,8 +109,17 @@ def run(args: argparse.Namespace) -> int:
 
         spread = pair_spread(params, mv=pair.mv, ev=pair.ev)
         uncertainty = perceived_intervals(rendering, spread, n_draws=args.uncertainty_draws)
+    trade = None
+    if max_mv is not None and max_ev is not None:
+        from masking_lab.rendering.render import compare_strategies
+
+        trade = compare_strategies(scene, pair, max_mv, max_ev)
     written = write_rendering(
-        rendering, args.out, figure=not args.no_figure, uncertainty=uncertainty
+        rendering,
+        args.out,
+        figure=not args.no_figure,
+        uncertainty=uncertainty,
+        strategies=trade,
     )
     summary = summarize(rendering)
     if pair is None:
@@ -157,6 +166,14 @@ def run(args: argparse.Namespace) -> int:
         f"{_f(played['max_error_db'])} dB, {100 * (played['share_within_ratings'] or 0):.0f}% "
         "of points within the ratings"
     )
+    if trade is not None:
+        others = ", ".join(
+            f"{name} {_f(t['rms_error_db'])}/{_f(t['max_error_db'])} dB, "
+            f"{100 * (t['share_within_ratings'] or 0):.0f}% within"
+            for name, t in trade.items()
+            if name != gm["strategy"]
+        )
+        print(f"  other mappings (RMS/max error as played): {others}")
     if uncertainty is not None:
         u = uncertainty.summary()
         print(

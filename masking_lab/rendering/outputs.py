@@ -158,9 +158,12 @@ def write_rendering(
     *,
     figure: bool = True,
     uncertainty: RenderingUncertainty | None = None,
+    strategies: Mapping[str, Any] | None = None,
 ) -> list[Path]:
     """Write ``points.csv``, ``summary.json`` and (optionally) ``figure4.png`` and ``gamut.png``
-    into ``out_dir``; with ``uncertainty``, its intervals as columns, bands and a summary entry.
+    into ``out_dir``; with ``uncertainty``, its intervals as columns, bands and a summary entry;
+    with ``strategies`` (:func:`~masking_lab.rendering.render.compare_strategies`), every gamut
+    mapping's metrics under ``gamut_mapping.strategies`` in the summary.
 
     Each file is written atomically and fsynced. Returns the paths written.
     """
@@ -168,6 +171,8 @@ def write_rendering(
     out = Path(out_dir)
     summary = summarize(r)
     summary["uncertainty"] = None if uncertainty is None else uncertainty.summary()
+    if strategies is not None:
+        summary["gamut_mapping"]["strategies"] = dict(strategies)
     written = [
         write_text_atomic(out / "points.csv", points_csv(r, uncertainty)),
         write_text_atomic(
