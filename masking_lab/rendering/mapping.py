@@ -133,31 +133,52 @@ def _compress(g: Gamut, m: Arr, e: Arr) -> tuple[Arr, Arr]:
     moving = norm > 0
     if not moving.any():
         return m, e
-    verts = np.vstack([p.vertices for p in g.pieces])
-    reach = float(np.max(np.hypot(verts[:, 0] - anchor[0], verts[:, 1] - anchor[1]))) * 1.01 + 1
-    s_max = np.where(moving, reach / np.where(moving, norm, 1.0), 1.0)
-    # First exit along each ray: sample, then bisect between the last inside and first outside.
-    n = 257
-    fr = np.linspace(0.0, 1.0, n)[None, :] * s_max[:, None]
-    pm = anchor[0] + fr * d[:, 0:1]
-    pe = anchor[1] + fr * d[:, 1:2]
-    inside = g.contains(pm, pe)
-    inside[:, 0] = True
-    first_out = np.argmin(inside, axis=1)
-    first_out[np.all(inside, axis=1)] = n - 1
-    lo = fr[np.arange(len(m)), np.maximum(first_out - 1, 0)]
-    hi = fr[np.arange(len(m)), first_out]
-    for _ in range(50):
-        mid = 0.5 * (lo + hi)
-        ok = g.contains(anchor[0] + mid * d[:, 0], anchor[1] + mid * d[:, 1])
-        lo = np.where(ok, mid, lo)
-        hi = np.where(ok, hi, mid)
+    lo = _ray_exit(g, anchor, d)
     rho = np.where(moving, 1.0 / np.maximum(lo, 1e-300), 0.0)  # target's fraction of the way
     squeezed = np.where(rho > KNEE, KNEE + (1 - KNEE) * np.tanh((rho - KNEE) / (1 - KNEE)), rho)
     # Stay a hair inside the edge so the solver's answer is within the ratings.
     squeezed = np.minimum(squeezed, 1.0 - 1e-9)
     factor = np.where(rho > KNEE, squeezed / np.where(rho > 0, rho, 1.0), 1.0)
     return anchor[0] + factor * d[:, 0], anchor[1] + factor * d[:, 1]
+
+
+def _ray_exit(g: Gamut, anchor: NDArray[np.float64], d: NDArray[np.float64]) -> Arr:
+    """Where each ray ``anchor + s·d`` (s ≥ 0) first leaves the gamut, as s (exact clipping).
+
+    Each piece is convex, so a ray crosses it in one interval of s (Cyrus–Beck: one half-plane
+    per edge); the first exit is the end of the chain of intervals that starts at s = 0.
+    """
+    n = len(d)
+    s_in = np.full((len(g.pieces), n), np.inf)
+    s_out = np.full((len(g.pieces), n), -np.inf)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for k, piece in enumerate(g.pieces):
+            v = piece.vertices
+            area2 = float(np.sum(v[:, 0] * np.roll(v[:, 1], -1) - np.roll(v[:, 0], -1) * v[:, 1]))
+            if not area2 > 0.0:
+                continue  # a collapsed piece (b·d = 1) adds no interior
+            lo = np.zeros(n)
+            hi = np.full(n, np.inf)
+            for i in range(len(v)):
+                edge = v[(i + 1) % len(v)] - v[i]
+                normal = np.array([edge[1], -edge[0]])  # outward for counter-clockwise vertices
+                den = d @ normal
+                num = (v[i] - anchor) @ normal
+                # s·den ≤ num: an upper bound where den > 0, a lower bound where den < 0.
+                bound = num / den
+                hi = np.where(den > 0, np.minimum(hi, bound), hi)
+                lo = np.where(den < 0, np.maximum(lo, bound), lo)
+                empty = (den == 0) & (num < 0)
+                hi = np.where(empty, -np.inf, hi)
+            s_in[k], s_out[k] = lo, hi
+    exit_s = np.zeros(n)
+    for _ in range(len(g.pieces) + 1):
+        reach = (s_in <= exit_s + 1e-12) & (s_out > exit_s)
+        longer = np.where(reach, s_out, exit_s).max(axis=0)
+        if np.array_equal(longer, exit_s):
+            break
+        exit_s = longer
+    return exit_s
 
 
 def playable_inputs(
