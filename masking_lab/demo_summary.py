@@ -256,14 +256,19 @@ def build_summary(
 
 def _mapping(rendering: Mapping[str, Any]) -> dict[str, Any]:
     gm = rendering.get("gamut_mapping") or {}
+
+    def num(t: Mapping[str, Any], key: str) -> float:
+        v = t.get(key)
+        return math.nan if v is None else float(v)
+
     rows = tuple(
         (
             name,
-            float(t["rms_error_db"]),
-            float(t["max_error_db"]),
-            float(t.get("geometry_correlation", math.nan)),
-            float(t.get("texture_sd_db", math.nan)),
-            float(t["share_within_ratings"]),
+            num(t, "rms_error_db"),
+            num(t, "max_error_db"),
+            num(t, "geometry_correlation"),
+            num(t, "texture_sd_db"),
+            num(t, "share_within_ratings"),
         )
         for name, t in (gm.get("strategies") or {}).items()
     )

@@ -154,3 +154,13 @@ def test_compress_leaves_points_below_the_knee_and_keeps_order_along_a_ray():
     assert np.all(m < 30.0) and np.all(g.contains(m, e))
     clipped, _, _ = map_targets(g, levels, levels, "clip")
     assert np.array_equal(clipped[-3:], [30.0, 30.0, 30.0])  # clip flattens what compress keeps
+
+
+def test_metrics_stay_json_ready_for_absurd_levels():
+    x = np.linspace(0, 1, 4)
+    big = np.array([0.0, 1e300, -1e300, 5.0])
+    out = mapping_metrics(x, np.full(4, 6.0), big, np.full(4, 6.0), -big, np.ones(4, bool))
+    json.dumps(out, allow_nan=False)  # no inf or NaN reaches a summary
+    # Errors 0 (MV, 4 points) and 0, 2e300, 2e300, 10 dB (EV): no overflow in the RMS.
+    assert out["rms_error_db"] == pytest.approx(1e300, rel=1e-9)
+    assert out["max_error_db"] == 2e300

@@ -151,7 +151,7 @@ def _ray_exit(g: Gamut, anchor: NDArray[np.float64], d: NDArray[np.float64]) -> 
     n = len(d)
     s_in = np.full((len(g.pieces), n), np.inf)
     s_out = np.full((len(g.pieces), n), -np.inf)
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         for k, piece in enumerate(g.pieces):
             v = piece.vertices
             area2 = float(np.sum(v[:, 0] * np.roll(v[:, 1], -1) - np.roll(v[:, 0], -1) * v[:, 1]))
@@ -300,7 +300,7 @@ def mapping_metrics(
     allerr = np.concatenate(errs) if errs else np.zeros(0)
     finite = allerr[np.isfinite(allerr)]
     out: dict[str, Any] = {
-        "rms_error_db": _num(np.sqrt(np.mean(finite**2))) if finite.size else None,
+        "rms_error_db": _rms(finite) if finite.size else None,
         "max_error_db": _num(finite.max()) if finite.size else None,
         "points_without_a_level": int(np.count_nonzero(~np.isfinite(allerr))),
         "share_within_ratings": _num(np.mean(within_ratings)) if within_ratings.size else None,
@@ -309,8 +309,9 @@ def mapping_metrics(
     ev_ok = np.isfinite(ev_intended_db_sl) & np.isfinite(ev_perceived_db_sl)
     if ev_ok.sum() > 2 and np.ptp(ev_intended_db_sl[ev_ok]) > 0:
         want, got = ev_intended_db_sl[ev_ok], ev_perceived_db_sl[ev_ok]
-        out["geometry_correlation"] = _num(np.corrcoef(want, got)[0, 1]) if np.ptp(got) > 0 else 0.0
-        out["geometry_contrast_ratio"] = _num(np.ptp(got) / np.ptp(want))
+        out["geometry_correlation"] = _correlation(want, got)
+        with np.errstate(over="ignore"):
+            out["geometry_contrast_ratio"] = _num(np.ptp(got) / np.ptp(want))
     mv_ok = np.isfinite(mv_intended_db_sl) & np.isfinite(mv_perceived_db_sl)
     if mv_ok.any():
         out["texture_sd_db"] = _num(np.std(mv_perceived_db_sl[mv_ok]))
@@ -321,6 +322,22 @@ def mapping_metrics(
     return out
 
 
-def _num(v: float) -> float:
+def _rms(x: Arr) -> float | None:
+    """Root mean square, scaled by the largest value so that squaring cannot overflow."""
+    top = float(np.max(np.abs(x)))
+    return _num(top * np.sqrt(np.mean(np.square(x / top)))) if top > 0 else 0.0
+
+
+def _correlation(a: Arr, b: Arr) -> float:
+    """Pearson r of two profiles; 0 when either is flat (or its spread is not finite)."""
+    with np.errstate(all="ignore"):
+        da, db = a - a.mean(), b - b.mean()
+        den = float(np.sqrt(np.sum(da * da) * np.sum(db * db)))
+        r = float(np.sum(da * db)) / den if den > 0 and np.isfinite(den) else 0.0
+    return round(max(-1.0, min(1.0, r)), 9) if np.isfinite(r) else 0.0
+
+
+def _num(v: float) -> float | None:
+    # JSON-ready: a metric that overflowed is unknown (None), never inf or NaN in a summary.
     x = float(v)
-    return round(x, 9) if math.isfinite(x) else x
+    return round(x, 9) if math.isfinite(x) else None
