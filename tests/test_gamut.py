@@ -157,6 +157,9 @@ def test_bounds_must_be_finite_and_ordered():
         perceptual_gamut(mm, math.inf, 30.0)
     with pytest.raises(SolverError, match=r"floor .* is above the rated maximum"):
         perceptual_gamut(mm, 30.0, 30.0, floor_ev_db_sl=40.0)
+    # Was possible through --max-mv-db-sl 1e308: vertices of inf, then a JSON traceback.
+    with pytest.raises(SolverError, match="beyond the solver's range"):
+        perceptual_gamut(mm, 1e308, 30.0)
 
 
 def test_gamut_for_targets_lowers_the_floor_to_the_lowest_target():

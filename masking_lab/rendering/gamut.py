@@ -36,6 +36,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from masking_lab.core.errors import SolverError
 from masking_lab.rendering.pair import MutualMasking
+from masking_lab.rendering.ramp_inverse import MAX_TARGET_DB_SL
 
 __all__ = ["Gamut", "GamutPiece", "fitted_caps", "gamut_for_targets", "perceptual_gamut"]
 
@@ -300,6 +301,11 @@ def perceptual_gamut(
     for name, value in bounds.items():
         if not isinstance(value, int | float) or not math.isfinite(value):
             raise SolverError(f"gamut: {name} must be a finite level in dB SL, got {value!r}")
+        if abs(value) > MAX_TARGET_DB_SL:
+            raise SolverError(
+                f"gamut: {name} is {value:g} dB SL, beyond the solver's range of "
+                f"±{MAX_TARGET_DB_SL:g} dB SL; give the rig's real rating"
+            )
     if floor_mv_db_sl > max_mv_db_sl or floor_ev_db_sl > max_ev_db_sl:
         raise SolverError(
             f"gamut: the input floor ({floor_mv_db_sl:g}, {floor_ev_db_sl:g} dB SL) is above the "
