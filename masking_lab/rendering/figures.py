@@ -140,7 +140,7 @@ def figure4_png(r: Rendering, *, dpi: int = 100, bands: Any = None) -> bytes:
                         lw=0,
                         label=f"{name} {100 * bands.level:.0f} % interval (masking fits)",
                     )
-                mapped = row == 2 and r.gamut_map != "none"
+                mapped = r.gamut_map != "none"
                 right.plot(
                     x,
                     target,
@@ -151,7 +151,7 @@ def figure4_png(r: Rendering, *, dpi: int = 100, bands: Any = None) -> bytes:
                     if mapped
                     else f"{name} intended",
                 )
-                if mapped:
+                if mapped and row == 2:
                     right.plot(
                         x,
                         intended(r)[k],
