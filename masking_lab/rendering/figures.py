@@ -5,8 +5,10 @@ and two columns: input intensities with the masked ALs they cause (left), percei
 against the intended ones (right). Grey shading marks where a channel falls below its masked AL
 and is not felt. In row (c), hatching marks the points whose compensated input is above the
 rig's rated maximum (the rig cannot play them), and dotted lines show what would be perceived
-there if the input were clipped at that maximum. Drawn in the package's legible style (fonts
-≥ 8 pt at the saved size, constrained layout).
+there if the input were clipped at that maximum. With a gamut mapping, the dashed lines are the
+mapped targets and row (c) adds the scene's own intended levels (dotted); with uncertainty,
+shaded bands show the per-point intervals of what is felt. Drawn in the package's legible style
+(fonts ≥ 8 pt at the saved size, constrained layout).
 """
 
 from __future__ import annotations

@@ -6,6 +6,10 @@ compensated inputs and on the targets played as they are (no compensation, paper
 give the masked ALs and the perceived intensities of both. :func:`summarize` condenses a
 :class:`Rendering` into a JSON-ready summary.
 
+With rated maxima, ``render_scene`` also computes the perceptual gamut
+(:mod:`masking_lab.rendering.gamut`) and, with ``gamut_map``, first brings the targets into it
+(:mod:`masking_lab.rendering.mapping`); :func:`compare_strategies` scores every mapping.
+
 Model only what a scene needs (:func:`needed_pairs`): a single-channel scene has nothing to mask
 it and passes straight through without parameters; a two-channel scene needs exactly the two
 masking functions of its (MV, EV) stimulus pair.
