@@ -291,7 +291,12 @@ def _render(out: Path) -> dict[str, Any]:
     from masking_lab.device.rig_limits import max_level_db_sl
     from masking_lab.formats.masking_params import read_masking_params
     from masking_lab.rendering.outputs import write_rendering
-    from masking_lab.rendering.render import needed_pairs, render_scene, summarize
+    from masking_lab.rendering.render import (
+        compare_strategies,
+        needed_pairs,
+        render_scene,
+        summarize,
+    )
     from masking_lab.rendering.scene import load_scene
     from masking_lab.rendering.solver import pair_from_params
 
@@ -301,11 +306,15 @@ def _render(out: Path) -> dict[str, Any]:
     ((mv, ev),) = needed_pairs(scene)
     pair = pair_from_params(params, mv=mv, ev=ev, source=str(params_path))
     limits = max_level_db_sl(None)
+    max_mv, max_ev = limits["MV"], limits["EV"]
+    # Mapped into the rig's gamut (clip), so every input is within the ratings.
     rendering = render_scene(
-        scene, pair, max_mv_db_sl=limits.get("MV"), max_ev_db_sl=limits.get("EV")
+        scene, pair, max_mv_db_sl=max_mv, max_ev_db_sl=max_ev, gamut_map="clip"
     )
-    written = write_rendering(rendering, out / "render")
+    trade = compare_strategies(scene, pair, max_mv, max_ev)
+    written = write_rendering(rendering, out / "render", strategies=trade)
     summary = summarize(rendering)
+    summary["gamut_mapping"]["strategies"] = trade
     summary["files"] = [str(p) for p in written]
     return summary
 

@@ -163,6 +163,10 @@ class DemoSummary:
         Per channel of the scene.
     n_warnings : int
         Analysis notes in the report.
+    mapping : str
+        The gamut mapping the scene was rendered with.
+    strategies : tuple of (name, rms dB, max dB, geometry r, texture sd dB, share within)
+        Each gamut mapping's result as played (the trade between them).
     """
 
     out: Path
@@ -177,6 +181,8 @@ class DemoSummary:
     scene: tuple[str, str, str, float] | None
     channels: tuple[ChannelRow, ...]
     n_warnings: int
+    mapping: str = "none"
+    strategies: tuple[tuple[str, float, float, float, float, float], ...] = ()
 
 
 def build_summary(
@@ -244,7 +250,29 @@ def build_summary(
         scene=(rendering["scene"], mm["mv"], mm["ev"], float(mm["bd"])) if mm else None,
         channels=channels if mm else (),
         n_warnings=len(warnings),
+        **_mapping(rendering),
     )
+
+
+def _mapping(rendering: Mapping[str, Any]) -> dict[str, Any]:
+    gm = rendering.get("gamut_mapping") or {}
+
+    def num(t: Mapping[str, Any], key: str) -> float:
+        v = t.get(key)
+        return math.nan if v is None else float(v)
+
+    rows = tuple(
+        (
+            name,
+            num(t, "rms_error_db"),
+            num(t, "max_error_db"),
+            num(t, "geometry_correlation"),
+            num(t, "texture_sd_db"),
+            num(t, "share_within_ratings"),
+        )
+        for name, t in (gm.get("strategies") or {}).items()
+    )
+    return {"mapping": gm.get("strategy", "none"), "strategies": rows}
 
 
 def summary_text(m: DemoSummary) -> str:
@@ -309,6 +337,16 @@ def summary_text(m: DemoSummary) -> str:
                     f"{ch.max_rated_db_sl:g} dB SL (flagged, not clipped)"
                 )
             lines.append(text)
+        if m.strategies:
+            lines += [
+                f"  gamut mapping (rendered with {m.mapping}), as the rig plays it:",
+                f"    {'strategy':<9} {'RMS dB':>7} {'max dB':>7} {'geometry r':>10} "
+                f"{'texture sd dB':>13} {'within ratings':>15}",
+            ]
+            lines += [
+                f"    {n:<9} {rms:>7.2f} {mx:>7.2f} {r:>10.3f} {sd:>13.2f} {100 * w:>14.0f}%"
+                for n, rms, mx, r, sd, w in m.strategies
+            ]
     if m.n_warnings:
         lines += ["", f"Analysis notes ({m.n_warnings}): see {out / 'analysis' / 'report.txt'}"]
     return "\n".join(lines)

@@ -70,6 +70,10 @@ def test_summary_puts_fits_beside_truth(demo_run):
     summary = json.loads((out / "render" / "summary.json").read_text())
     assert summary["scene"] == "bump_rough"
     assert summary["masking"]["mv"].startswith("MV")
+    # The demo's scene is mapped into the rig's gamut: every input within the ratings.
+    gm = summary["gamut_mapping"]
+    assert gm["strategy"] == "clip" and gm["as_played"]["share_within_ratings"] == 1.0
+    assert set(gm["strategies"]) == {"clip", "scale", "compress", "none"}
 
 
 def test_demo_refuses_a_folder_with_logs(demo_run):

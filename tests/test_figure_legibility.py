@@ -120,16 +120,31 @@ def test_figure4_marks_what_the_rig_cannot_play(saved, tmp_path):
     params = write_params(tmp_path / "masking_params.json")
     scene = ROOT / "protocols" / "scenes" / "bump_rough.yaml"
     out = tmp_path / "render"
-    assert main(["render", str(scene), "--params", params, "--out", str(out)]) == 0
-    (fig,) = saved
+    args = ["render", str(scene), "--params", params, "--out", str(out), "--gamut-map", "none"]
+    assert main(args) == 0
+    fig, gamut = saved  # figure 4, then the gamut (Figure 6)
     _assert_legible(saved)
     assert "masked by" in fig["titles"][0]
+    assert any("outside the gamut" in t for t in gamut["legend_labels"])
     summary = json.loads((out / "summary.json").read_text())
     over = sum(ch["points_above_rating"] > 0 for ch in summary["channels"].values())
     assert over, "the shipped bump_rough scene needs more than the rig's rating somewhere"
     unplayable = [t for t in fig["legend_labels"] if t.startswith("rig cannot play")]
     assert len(unplayable) == 1 and f"of {summary['n_points']} points" in unplayable[0]
     assert any(t.endswith("perceived if clipped") for t in fig["legend_labels"])
+
+
+def test_mapped_figure4_shows_bands_and_the_intended_levels(saved, tmp_path):
+    params = write_params(tmp_path / "masking_params.json")
+    scene = ROOT / "protocols" / "scenes" / "bump_rough.yaml"
+    assert main(["render", str(scene), "--params", params, "--out", str(tmp_path / "r")]) == 0
+    fig, gamut = saved
+    _assert_legible(saved)
+    assert "gamut mapping: clip" in fig["titles"][0]
+    labels = fig["legend_labels"]
+    assert any("95 % interval (masking fits)" in t for t in labels)
+    assert any("intended by the scene" in t for t in labels)
+    assert any("after gamut mapping" in t for t in gamut["legend_labels"])
 
 
 def test_figure8a_says_n_draws_chance_and_no_zero_sd_bars(saved, tmp_path):

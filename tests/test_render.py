@@ -59,7 +59,9 @@ def test_render_writes_outputs_for_every_shipped_scene(scene_file, params, tmp_p
     assert main(["render", str(scene_file), "--params", params, "--out", str(out)]) == 0
     assert "wrote" in capsys.readouterr().out
     table = pd.read_csv(out / "points.csv")
-    assert tuple(table.columns) == POINT_COLUMNS
+    # The fixed columns, then the uncertainty intervals and flags (test_uncertainty.py).
+    assert tuple(table.columns)[: len(POINT_COLUMNS)] == POINT_COLUMNS
+    assert "compensation_not_better" in table.columns
     scene = load_scene(scene_file)
     assert len(table) == scene.path.n_points
     (a, b), (c, d) = RAMPS[scene.texture.stimulus]
@@ -83,7 +85,8 @@ def test_render_writes_outputs_for_every_shipped_scene(scene_file, params, tmp_p
 def test_bump_rough_needs_more_than_the_reference_rig_rates(params, tmp_path, capsys):
     out = tmp_path / "br"
     scene = str(ROOT / "protocols" / "scenes" / "bump_rough.yaml")
-    assert main(["render", scene, "--params", params, "--out", str(out), "--no-figure"]) == 0
+    args = ["render", scene, "--params", params, "--out", str(out), "--no-figure"]
+    assert main([*args, "--gamut-map", "none"]) == 0
     text = capsys.readouterr().out
     summary = json.loads((out / "summary.json").read_text())
     mv = summary["channels"]["MV"]
@@ -106,6 +109,7 @@ def test_bump_rough_needs_more_than_the_reference_rig_rates(params, tmp_path, ca
         < mv["uncompensated"]["max_abs_error_db"]
     )
     assert mv["compensated"]["points_not_felt"] == 0
+    assert summary["gamut_mapping"]["as_played"]["share_within_ratings"] < 0.2
     out2 = tmp_path / "br2"
     args = ["render", scene, "--params", params, "--out", str(out2), "--no-figure"]
     assert main([*args, "--max-mv-db-sl", "100", "--max-ev-db-sl", "100"]) == 0
@@ -296,3 +300,83 @@ def test_measurement_protocol_needs_something_to_measure():
         }
     ]
     assert math.isclose(doc["timing"]["stimulus_s"], 1.8)
+
+
+def test_bd_one_ulp_below_one_is_ill_conditioned_and_exits_1(tmp_path, capsys):
+    # Was (issue 21): "unique" inputs of ~1e17 dB SL, 52 dB off through the model, exit 0.
+    doc = json.loads(Path(write_params(tmp_path / "p.json")).read_text())
+    for f in doc["functions"]:
+        if (f["target"], f["masker"]) == ("MV180", "EV270"):
+            f["intercept_db"], f["slope"] = 1.39, 1.0
+        if (f["target"], f["masker"]) == ("EV270", "MV180"):
+            f["intercept_db"], f["slope"] = -6.22, 1.0 - 2.0**-53
+    (tmp_path / "p.json").write_text(json.dumps(doc))
+    scene = str(ROOT / "protocols" / "scenes" / "bump_rough.yaml")
+    out = tmp_path / "o"
+    args = ["render", scene, "--params", str(tmp_path / "p.json"), "--out", str(out)]
+    code = main([*args, "--gamut-map", "none"])
+    text = capsys.readouterr().out
+    assert code == 1
+    assert "ill-conditioned" in text and "b·d ≥ 1" not in text and "b·d=1 − 1.11e-16" in text
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["status_counts"]["unique"] == 0
+    (reason,) = summary["no_answer_reasons"]
+    assert reason.startswith("ill-conditioned")
+    table = pd.read_csv(out / "points.csv")
+    assert table["mv_input_db_sl"].isna().all() and (table["status"] == "none").all()
+    # Mapped into the gamut (the default), every point gets inputs within the ratings, found on
+    # the gamut's edge where the solver cannot answer; the exit status still says so.
+    assert main([*args, "--no-figure"]) == 1
+    capsys.readouterr()
+    table = pd.read_csv(out / "points.csv")
+    for ch in ("mv", "ev"):
+        assert table[f"{ch}_input_db_sl"].between(0.0, 30.0).all()
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["gamut_mapping"]["points_from_gamut_edge"] > 0
+
+
+def test_the_output_guard_refuses_a_non_finite_number_and_names_the_point(tmp_path):
+    scene = Scene("bump", PathSpec(n_points=5), GeometrySpec("bump"), None, source="s.yaml")
+    r = render_scene(scene, None)
+    ev = r.ev_input_db_sl.copy()
+    ev[2] = np.inf  # as if a defect upstream let an infinite level through
+    with pytest.raises(SolverError, match=r"s\.yaml: ev_input_db_sl is inf .* x = 45\.9 mm"):
+        write_rendering(r.with_inputs(r.mv_input_db_sl, ev), tmp_path / "o", figure=False)
+    assert not (tmp_path / "o").exists()
+    write_rendering(r, tmp_path / "o", figure=False)  # −inf for the silent MV is fine
+
+
+@pytest.mark.parametrize("strategy", ["clip", "scale", "compress"])
+def test_gamut_mapping_keeps_every_input_within_the_ratings(params, tmp_path, capsys, strategy):
+    out = tmp_path / strategy
+    scene = str(ROOT / "protocols" / "scenes" / "bump_rough.yaml")
+    args = ["render", scene, "--params", params, "--out", str(out), "--gamut-map", strategy]
+    assert main(args) == 0
+    text = capsys.readouterr().out
+    assert f"gamut mapping {strategy}" in text
+    summary = json.loads((out / "summary.json").read_text())
+    gm = summary["gamut_mapping"]
+    assert gm["strategy"] == strategy and gm["points_moved"] > 0
+    # Every strategy's metrics, for the trade; this one's are those of the rendering itself.
+    assert set(gm["strategies"]) == {"clip", "scale", "compress", "none"}
+    assert gm["strategies"][strategy] == gm["as_played"]
+    assert "other mappings" in text
+    assert gm["as_played"]["share_within_ratings"] == 1.0
+    table = pd.read_csv(out / "points.csv")
+    for ch in ("mv", "ev"):
+        assert table[f"{ch}_input_db_sl"].notna().all()
+        assert (table[f"{ch}_input_db_sl"] <= 30.0).all()
+        assert (table[f"{ch}_exceeds_rating"] == 0).all()
+        # What is felt is the mapped target, which the intended column keeps apart.
+        assert np.allclose(table[f"{ch}_perceived_db_sl"], table[f"{ch}_target_db_sl"], atol=1e-6)
+    assert (table["ev_intended_db_sl"] != table["ev_target_db_sl"]).any()
+    if strategy == "scale":
+        assert 0 < gm["gain"] < 1
+        ratio = (
+            table["ev_target_db_sl"][table["ev_intended_db_sl"] > 0]
+            / table["ev_intended_db_sl"][table["ev_intended_db_sl"] > 0]
+        )
+        assert np.allclose(ratio, gm["gain"])
+        assert gm["as_played"]["geometry_correlation"] == pytest.approx(1.0)
+        assert gm["as_played"]["texture_sd_db"] == pytest.approx(0.0, abs=1e-9)
+    assert (out / "gamut.png").exists() and summary["gamut"]["outline"]

@@ -257,3 +257,16 @@ def test_cli_entry_point_prints_no_traceback():
     )
     assert res.returncode == 2 and "no masking functions" in res.stderr
     assert "Traceback" not in res.stderr
+
+
+def test_solve_one_ulp_below_bd_1_is_ill_conditioned_and_exits_1(capsys):
+    # Was (issue 21): "unique" answers of ~1e17 dB SL, 52 dB off through the model, exit 0.
+    args = ["solve", "--mv-masked-by-ev", "1.39,1.0", "--ev-masked-by-mv=-6.22,0.9999999999999999"]
+    assert main([*args, "--mv-target", "12", "--ev-target", "0,5,10", "--json"]) == 1
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["status"] == ["none"] * 3 and doc["mv_input_db"] == [None] * 3
+    assert all(r.startswith("ill-conditioned") for r in doc["reason"])
+    assert doc["one_minus_bd"] == 2.0**-53 and doc["reproduce_tol_db"] == 1e-6
+    assert main([*args, "--mv-target", "12", "--ev-target", "5"]) == 1
+    text = capsys.readouterr().out
+    assert "b·d = 1 − 1.11e-16" in text and "ill-conditioned" in text

@@ -7,7 +7,8 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 from scipy.optimize import brentq
 
-from masking_lab.rendering.solver import MutualMasking, Status, forward, solve
+from masking_lab.rendering.ramp_inverse import REPRODUCE_TOL_DB
+from masking_lab.rendering.solver import MutualMasking, Reason, Status, forward, solve
 
 intercepts = st.floats(-30.0, 30.0, allow_nan=False)
 slopes = st.floats(0.0, 3.0, allow_nan=False)
@@ -80,10 +81,13 @@ def test_bd_just_below_one_is_accurate_relative_to_the_answer(a, b, c, log_gap, 
     mm = MutualMasking(a, b, c, d)
     assume(mm.bd_side < 0)
     p = mm.solve_point(m_p, e_p)
-    assert p.status == Status.UNIQUE
+    # Unique only when the answer gives the target back (issue 21); else ill-conditioned.
+    if p.status != Status.UNIQUE:
+        assert p.reason == Reason.ILL_CONDITIONED
+        return
     size = abs(p.mv_input_db_sl) + abs(p.ev_input_db_sl) + abs(m_p) + abs(e_p) + abs(a) + abs(c)
     error = forward_error(mm, p.mv_input_db_sl, p.ev_input_db_sl, m_p, e_p)
-    assert error <= 1e-9 + 256 * EPS * size
+    assert error <= min(REPRODUCE_TOL_DB, 1e-9 + 256 * EPS * size)
 
 
 @settings(max_examples=150, deadline=None)

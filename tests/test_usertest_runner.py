@@ -432,6 +432,67 @@ def test_allow_clipping_plays_at_the_limit_and_logs_it_per_trial(lab, tmp_path):
     assert any("clipped" in t for t in trials(recs))
 
 
+def test_gamut_mapped_scenes_play_within_the_limits_and_the_report_names_it(lab, tmp_path):
+    # The same session that is refused unmapped (MV180 needs 58.5 dB SL) runs when each object
+    # is mapped into the gamut of its stimuli's limits: nothing clipped, the strategy logged.
+    data = tmp_path / "data"
+    write_calibration(data, "S01", CAL)
+    result = run_usertest(options(lab, data, gamut_map="clip"), stream=io.StringIO())
+    assert result.exit_code == 0
+    recs = records(result.log_path)
+    header = recs[0]
+    assert header["usertest"]["gamut_map"] == "clip"
+    assert header["usertest"]["clipped_objects"] == []
+    limit_ev = 20 * math.log10(5.0) + 14.0  # dB SL: 5 V at the calibrated EV AL
+    for t in trials(recs):
+        assert "clipped" not in t
+        assert t["played"]["EV"]["max_db_sl"] <= limit_ev + 1e-6
+        assert t["played"]["MV"]["max_db_sl"] <= 30.0 + 1e-6
+    assert main(["usertest-report", str(data), "--out", str(tmp_path / "rep")]) == 0
+    report = (tmp_path / "rep" / "report.txt").read_text()
+    assert "mapped into the rig's gamut (clip)" in report
+
+
+def test_a_gamut_mapped_session_resumes_with_the_same_mapping(lab, tmp_path):
+    from masking_lab.usertest.runner import default_responder
+
+    data = tmp_path / "data"
+    write_calibration(data, "S01", CAL)
+    write_calibration(tmp_path / "ref", "S01", CAL)
+    ref = run_usertest(options(lab, tmp_path / "ref", gamut_map="compress"), stream=io.StringIO())
+
+    class Interrupting:
+        name = "sim"
+
+        def __init__(self, inner):
+            self.inner, self.n = inner, 0
+
+        def start_session(self, info):
+            self.inner.start_session(info)
+
+        def trial(self, presentation, play):
+            self.n += 1
+            if self.n == 4:
+                raise KeyboardInterrupt
+            return self.inner.trial(presentation, play)
+
+        def close(self):
+            self.inner.close()
+
+    stopped = run_usertest(
+        options(lab, data, gamut_map="compress"),
+        make_responder=lambda n, c: Interrupting(default_responder(n, c)),
+        stream=io.StringIO(),
+    )
+    assert stopped.exit_code == 130
+    resumed = resume_usertest(stopped.log_path, stream=io.StringIO())
+    assert resumed.exit_code == 0
+    recs = records(stopped.log_path)
+    assert recs[0]["usertest"]["gamut_map"] == "compress"
+    played = [t["played"] for t in trials(recs)]
+    assert played == [t["played"] for t in trials(records(ref.log_path))][: len(played)]
+
+
 def _clipped_keys(header):
     return [(c["object"], c["condition"]) for c in header["usertest"]["clipped_objects"]]
 

@@ -26,6 +26,7 @@ COMMANDS = (
     "usertest-report",
     "solve",
     "render",
+    "gamut",
     "plan",
     "study",
     "demo",

@@ -27,7 +27,29 @@ def register(sub: argparse._SubParsersAction) -> None:
         "rig config whose channels.<EV|MV>.max_level_db_sl are the rated maxima unless "
         "--max-* say otherwise (default: the reference rig, protocols/devices/default.yaml)",
     )
-    p.add_argument("--no-figure", action="store_true", help="skip figure4.png")
+    p.add_argument(
+        "--gamut-map",
+        choices=("clip", "scale", "compress", "none"),
+        default="clip",
+        help="bring targets the rig cannot render into its gamut: clip (nearest renderable "
+        "pair, the default), scale (one gain on the whole scene), compress (soft knee that "
+        "keeps the profile), none (flag the points above a rating, play nothing different)",
+    )
+    p.add_argument(
+        "--fitted-range-only",
+        action="store_true",
+        help="restrict the gamut to the masker levels the ramps were fitted on: each channel's "
+        "maximum is capped at the top of the fitted range of the ramp it drives",
+    )
+    p.add_argument(
+        "--uncertainty-draws",
+        type=int,
+        default=200,
+        metavar="N",
+        help="parameter draws carrying the masking fits' uncertainty to per-point intervals of "
+        "what is felt (default 200; 0: none)",
+    )
+    p.add_argument("--no-figure", action="store_true", help="skip figure4.png and gamut.png")
     p.set_defaults(handler=run)
 
 
@@ -70,15 +92,42 @@ def run(args: argparse.Namespace) -> int:
                 "participants' baseline, analyse them together with the rest of the study, and "
                 "render again"
             ) from exc
-    rendering = render_scene(scene, pair, max_mv_db_sl=max_mv, max_ev_db_sl=max_ev)
-    written = write_rendering(rendering, args.out, figure=not args.no_figure)
+    if args.fitted_range_only and pair is not None and max_mv is not None and max_ev is not None:
+        from masking_lab.rendering.gamut import fitted_caps
+
+        max_mv, max_ev = fitted_caps(pair, max_mv, max_ev)
+    gamut_map = args.gamut_map
+    if gamut_map != "none" and (max_mv is None or max_ev is None):
+        # Nothing is rated on some channel: there is no gamut to map into.
+        gamut_map = "none"
+    rendering = render_scene(
+        scene, pair, max_mv_db_sl=max_mv, max_ev_db_sl=max_ev, gamut_map=gamut_map
+    )
+    uncertainty = None
+    if pair is not None and args.uncertainty_draws:
+        from masking_lab.rendering.uncertainty import pair_spread, perceived_intervals
+
+        spread = pair_spread(params, mv=pair.mv, ev=pair.ev)
+        uncertainty = perceived_intervals(rendering, spread, n_draws=args.uncertainty_draws)
+    trade = None
+    if max_mv is not None and max_ev is not None:
+        from masking_lab.rendering.render import compare_strategies
+
+        trade = compare_strategies(scene, pair, max_mv, max_ev)
+    written = write_rendering(
+        rendering,
+        args.out,
+        figure=not args.no_figure,
+        uncertainty=uncertainty,
+        strategies=trade,
+    )
     summary = summarize(rendering)
     if pair is None:
         print(f"{scene.name}: single-channel scene, targets passed straight through")
     else:
         print(
             f"{scene.name}: {pair.mv} with {pair.ev} (a={pair.a_db:g}, b={pair.b:g}, "
-            f"c={pair.c_db:g}, d={pair.d:g}, b·d={pair.bd:.3g}); "
+            f"c={pair.c_db:g}, d={pair.d:g}, b·d={pair.bd_text}); "
             + ", ".join(f"{k} {v}" for k, v in summary["status_counts"].items() if v)
         )
     for name, ch in summary["channels"].items():
@@ -102,15 +151,53 @@ def run(args: argparse.Namespace) -> int:
             f"{unc['points_not_felt']} points not felt"
         )
         print(line)
+    gm = summary["gamut_mapping"]
+    played = gm["as_played"]
+    print(
+        f"  gamut mapping {gm['strategy']}: {gm['points_moved']} of {summary['n_points']} targets "
+        f"moved into the gamut"
+        + (f" (gain {gm['gain']:.3g})" if gm["strategy"] == "scale" else "")
+        + (
+            f", {gm['points_from_gamut_edge']} with inputs found on the gamut's edge"
+            if gm["points_from_gamut_edge"]
+            else ""
+        )
+        + f"; as played: RMS error {_f(played['rms_error_db'])} dB, max "
+        f"{_f(played['max_error_db'])} dB, {100 * (played['share_within_ratings'] or 0):.0f}% "
+        "of points within the ratings"
+    )
+    if trade is not None:
+        others = ", ".join(
+            f"{name} {_f(t['rms_error_db'])}/{_f(t['max_error_db'])} dB, "
+            f"{100 * (t['share_within_ratings'] or 0):.0f}% within"
+            for name, t in trade.items()
+            if name != gm["strategy"]
+        )
+        print(f"  other mappings (RMS/max error as played): {others}")
+    if uncertainty is not None:
+        u = uncertainty.summary()
+        print(
+            f"  uncertainty ({u['n_draws']} parametric draws of the fits, "
+            f"{100 * u['level']:.0f} % intervals): compensation not better than none at "
+            f"{u['points_compensation_not_better']} points; {u['points_beyond_fitted_range']} "
+            "points rely on a ramp beyond its fitted masker range"
+        )
     for note in summary["notes"]:
         print(f"  note: {note}")
     for path in written:
         print(f"  wrote {path}")
     unsolved = summary["status_counts"]["none"] + summary["status_counts"]["multiple"]
     if unsolved:
+        # Name each real cause: a NaN target or an ill-conditioned pair is not a b·d ≥ 1 fold.
+        why = [f"{n} {text}" for text, n in summary["no_answer_reasons"].items()]
+        if summary["status_counts"]["multiple"]:
+            why.append(
+                f"{summary['status_counts']['multiple']} with several answers (b·d ≥ 1: the "
+                "masking folds)"
+            )
         print(
             f"  {unsolved} points have no unique compensated input (see the status column of "
-            "points.csv); with b·d ≥ 1 this pair cannot be compensated everywhere"
+            "points.csv): " + "; ".join(why)
         )
         return 1
     return 0

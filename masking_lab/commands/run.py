@@ -66,6 +66,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="play inputs above the rig's limits clipped to them (logged per trial) instead of "
         "refusing the session",
     )
+    usertest.add_argument(
+        "--gamut-map",
+        choices=("none", "clip", "scale", "compress"),
+        default="none",
+        help="map each scene into the rig's gamut before rendering (see `masking-lab render`); "
+        "the report names the strategy",
+    )
     session_options(
         p,
         device_config_help="rig config: drive limits, serial settings, display (default: "

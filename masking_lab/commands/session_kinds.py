@@ -104,6 +104,7 @@ def _start_usertest(args: argparse.Namespace) -> Any:
         UserTestOptions(
             params=Path(args.params) if args.params else None,
             allow_clipping=args.allow_clipping,
+            gamut_map=args.gamut_map,
             **_common(args),
         )
     )

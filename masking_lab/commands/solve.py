@@ -117,6 +117,7 @@ def run(args: argparse.Namespace) -> int:
 
 def as_json(mm: Any, sol: Any) -> dict[str, Any]:
     """The JSON object printed by ``--json`` (equal-length arrays, one entry per target)."""
+    from masking_lab.rendering.ramp_inverse import REPRODUCE_TOL_DB
     from masking_lab.rendering.solver import REASON_TEXT, Reason
 
     n = sol.status.size
@@ -139,6 +140,8 @@ def as_json(mm: Any, sol: Any) -> dict[str, Any]:
         "c_db": mm.c_db,
         "d": mm.d,
         "bd": mm.bd,
+        "one_minus_bd": mm.one_minus_bd,
+        "reproduce_tol_db": REPRODUCE_TOL_DB,
         "units": "dB SL",
         "notes": list(mm.notes),
         "max_mv_db_sl": sol.max_mv_db_sl,
@@ -163,7 +166,7 @@ def as_table(mm: Any, sol: Any) -> str:
 
     head = (
         f"{mm.mv} masked by {mm.ev}: max(0, {mm.a_db:g} + {mm.b:g}·e_i);  "
-        f"{mm.ev} masked by {mm.mv}: max(0, {mm.c_db:g} + {mm.d:g}·m_i);  b·d = {mm.bd:.6g}"
+        f"{mm.ev} masked by {mm.mv}: max(0, {mm.c_db:g} + {mm.d:g}·m_i);  b·d = {mm.bd_text}"
     )
     lines = [head, *(f"note: {n}" for n in mm.notes), ""]
     lines.append(f"{'m_p':>9} {'e_p':>9} {'m_i':>10} {'e_i':>10} case  status    notes")

@@ -5,17 +5,21 @@ and two columns: input intensities with the masked ALs they cause (left), percei
 against the intended ones (right). Grey shading marks where a channel falls below its masked AL
 and is not felt. In row (c), hatching marks the points whose compensated input is above the
 rig's rated maximum (the rig cannot play them), and dotted lines show what would be perceived
-there if the input were clipped at that maximum. Drawn in the package's legible style (fonts
-≥ 8 pt at the saved size, constrained layout).
+there if the input were clipped at that maximum. With a gamut mapping, the dashed lines are the
+mapped targets and row (c) adds the scene's own intended levels (dotted); with uncertainty,
+shaded bands show the per-point intervals of what is felt. Drawn in the package's legible style
+(fonts ≥ 8 pt at the saved size, constrained layout).
 """
 
 from __future__ import annotations
+
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from masking_lab.formats.png_figure import legible, png_bytes
-from masking_lab.rendering.render import Rendering
+from masking_lab.rendering.render import Rendering, intended
 from masking_lab.rendering.solver import forward
 
 __all__ = ["clipped_perceived", "figure4_png"]
@@ -58,7 +62,7 @@ def clipped_perceived(
     return mv_p, ev_p, over
 
 
-def figure4_png(r: Rendering, *, dpi: int = 100) -> bytes:
+def figure4_png(r: Rendering, *, dpi: int = 100, bands: Any = None) -> bytes:
     """The Figure-4-like panel for ``r`` as PNG bytes.
 
     Parameters
@@ -67,6 +71,9 @@ def figure4_png(r: Rendering, *, dpi: int = 100) -> bytes:
         A rendered scene.
     dpi : int
         Resolution, dots per inch (font sizes are in points, the same at any dpi).
+    bands : RenderingUncertainty, optional
+        Per-point intervals of the perceived intensities, drawn as shaded bands in rows (b)
+        and (c) (:mod:`masking_lab.rendering.uncertainty`).
 
     Returns
     -------
@@ -121,7 +128,40 @@ def figure4_png(r: Rendering, *, dpi: int = 100) -> bytes:
                         x, masked[k], "--", color=other, label=f"masked AL of {name} (by {by})"
                     )
                 right.plot(x, perceived[k], color=colour, label=f"{name} perceived")
-                right.plot(x, target, "--", color=colour, alpha=0.6, label=f"{name} intended")
+                if bands is not None and row > 0:
+                    ch = ("mv", "ev")[k] + ("" if row == 2 else "_uncomp")
+                    lo, hi = getattr(bands, f"{ch}_lo"), getattr(bands, f"{ch}_hi")
+                    shown = np.isfinite(lo) & np.isfinite(hi)  # no band where no level
+                    lo, hi = np.where(shown, lo, np.nan), np.where(shown, hi, np.nan)
+                    right.fill_between(
+                        x,
+                        lo,
+                        hi,
+                        color=colour,
+                        alpha=0.2,
+                        lw=0,
+                        label=f"{name} {100 * bands.level:.0f} % interval (masking fits)",
+                    )
+                mapped = r.gamut_map != "none"
+                right.plot(
+                    x,
+                    target,
+                    "--",
+                    color=colour,
+                    alpha=0.6,
+                    label=f"{name} target after {r.gamut_map} mapping"
+                    if mapped
+                    else f"{name} intended",
+                )
+                if mapped and row == 2:
+                    right.plot(
+                        x,
+                        intended(r)[k],
+                        ":",
+                        color="0.3",
+                        lw=1.0,
+                        label=f"{name} intended by the scene",
+                    )
                 # Grey where this channel is below its masked AL: not felt.
                 right.fill_between(
                     x,
@@ -188,10 +228,11 @@ def _mark_unplayable(
 
 
 def _suptitle(r: Rendering) -> str:
+    mapping = "" if r.gamut_map == "none" else f"; gamut mapping: {r.gamut_map}"
     if r.pair is None:
-        return f"scene {r.scene.name}: one channel, no mutual masking"
+        return f"scene {r.scene.name}: one channel, no mutual masking{mapping}"
     p = r.pair
     return (
         f"scene {r.scene.name}: {p.mv} masked by {p.ev} (f: a = {p.a_db:.3g} dB, b = {p.b:.3g}) "
-        f"and {p.ev} masked by {p.mv} (g: c = {p.c_db:.3g} dB, d = {p.d:.3g})"
+        f"and {p.ev} masked by {p.mv} (g: c = {p.c_db:.3g} dB, d = {p.d:.3g}){mapping}"
     )

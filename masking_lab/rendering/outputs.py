@@ -20,6 +20,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import yaml
 
 from masking_lab.core.errors import SolverError
@@ -27,12 +28,14 @@ from masking_lab.formats.fileio import write_bytes_atomic, write_text_atomic
 from masking_lab.formats.protocol import parse_protocol
 from masking_lab.formats.resources import shipped
 from masking_lab.rendering.figures import figure4_png
-from masking_lab.rendering.render import Rendering, summarize
+from masking_lab.rendering.render import Rendering, intended, summarize
 from masking_lab.rendering.solver import PairProblem
+from masking_lab.rendering.uncertainty import RenderingUncertainty
 
 __all__ = [
     "MEASURE_LEVELS_DB_SL",
     "POINT_COLUMNS",
+    "check_outputs_finite",
     "measurement_protocol",
     "measurement_protocols",
     "points_csv",
@@ -62,14 +65,61 @@ POINT_COLUMNS = (
     "ev_masked_al_uncomp_db_sl",
     "mv_perceived_uncomp_db_sl",
     "ev_perceived_uncomp_db_sl",
+    "mv_intended_db_sl",
+    "ev_intended_db_sl",
 )
 
 
-def points_csv(r: Rendering) -> str:
+def check_outputs_finite(r: Rendering) -> None:
+    """The output guard: every number render writes is finite where it should be.
+
+    Empty fields are allowed in exactly two places: a channel the scene does not play (its
+    target is −inf) and the compensated columns of a point without a unique answer (its status
+    says why). Anything else non-finite is a defect of the inputs or of the model, refused here
+    before a file is written.
+
+    Raises
+    ------
+    SolverError
+        Naming the scene file, the column, the point (position, mm) and its targets.
+
+    Examples
+    --------
+    >>> check_outputs_finite(render_scene(scene, pair))  # doctest: +SKIP
+    """
+    sol = r.solution
+    unique = np.asarray(sol.status == 1)
+    for name in POINT_COLUMNS:
+        if name in ("case", "status") or name.endswith(("exceeds_rating", "intended_db_sl")):
+            continue
+        values = np.asarray(getattr(r, name), dtype=float)
+        ch = "mv" if name.startswith("mv") else ("ev" if name.startswith("ev") else "")
+        absent = getattr(r, f"{ch}_target_db_sl") == -np.inf if ch else np.zeros_like(unique)
+        allowed = np.isfinite(values)
+        if ch:
+            # A silent channel is −inf (its masked AL is 0); NaN for no unique answer.
+            allowed |= absent & (values == -np.inf)
+            compensated = "target" not in name and not name.endswith("_uncomp_db_sl")
+            if compensated:
+                allowed |= ~unique & np.isnan(values)
+        bad = np.flatnonzero(~allowed)
+        if bad.size:
+            i = int(bad[0])
+            where = f"x = {float(r.x_mm[i]):g} mm"
+            targets = f"MV {float(r.mv_target_db_sl[i])!r}, EV {float(r.ev_target_db_sl[i])!r}"
+            raise SolverError(
+                f"{r.scene.source}: {name} is {float(values[i])!r} at {bad.size} point(s), "
+                f"first at {where} (targets {targets} dB SL); nothing was written. Check the "
+                "scene's levels and the masking parameters"
+            )
+
+
+def points_csv(r: Rendering, uncertainty: RenderingUncertainty | None = None) -> str:
     """The per-point table as CSV text (floats round-trip exactly).
 
     No non-finite number reaches the file: a silent channel (−inf dB SL) and a point without a
-    unique answer (NaN) are empty fields; ``status`` tells them apart.
+    unique answer (NaN) are empty fields; ``status`` tells them apart. With ``uncertainty``,
+    its interval columns and flags (0/1) follow :data:`POINT_COLUMNS`.
     """
     sol = r.solution
     cols: list[Sequence[Any]] = []
@@ -80,9 +130,19 @@ def points_csv(r: Rendering) -> str:
             cols.append(sol.status_names())
         elif name.endswith("exceeds_rating"):
             cols.append(["1" if v else "0" for v in getattr(sol, name)])
+        elif name.endswith("intended_db_sl"):
+            cols.append([_number(v) for v in intended(r)[0 if name[:2] == "mv" else 1]])
         else:
             cols.append([_number(v) for v in getattr(r, name)])
-    lines = [",".join(POINT_COLUMNS)]
+    names = list(POINT_COLUMNS)
+    if uncertainty is not None:
+        for name, values in uncertainty.columns().items():
+            names.append(name)
+            if values.dtype == bool:
+                cols.append(["1" if v else "0" for v in values])
+            else:
+                cols.append([_number(v) for v in values])
+    lines = [",".join(names)]
     lines += [",".join(row) for row in zip(*cols, strict=True)]
     return "\n".join(lines) + "\n"
 
@@ -92,20 +152,42 @@ def _number(v: float) -> str:
     return repr(x) if math.isfinite(x) else ""
 
 
-def write_rendering(r: Rendering, out_dir: str | Path, *, figure: bool = True) -> list[Path]:
-    """Write ``points.csv``, ``summary.json`` and (optionally) ``figure4.png`` into ``out_dir``.
+def write_rendering(
+    r: Rendering,
+    out_dir: str | Path,
+    *,
+    figure: bool = True,
+    uncertainty: RenderingUncertainty | None = None,
+    strategies: Mapping[str, Any] | None = None,
+) -> list[Path]:
+    """Write ``points.csv``, ``summary.json`` and (optionally) ``figure4.png`` and ``gamut.png``
+    into ``out_dir``; with ``uncertainty``, its intervals as columns, bands and a summary entry;
+    with ``strategies`` (:func:`~masking_lab.rendering.render.compare_strategies`), every gamut
+    mapping's metrics under ``gamut_mapping.strategies`` in the summary.
 
     Each file is written atomically and fsynced. Returns the paths written.
     """
+    check_outputs_finite(r)
     out = Path(out_dir)
+    summary = summarize(r)
+    summary["uncertainty"] = None if uncertainty is None else uncertainty.summary()
+    if strategies is not None:
+        summary["gamut_mapping"]["strategies"] = dict(strategies)
     written = [
-        write_text_atomic(out / "points.csv", points_csv(r)),
+        write_text_atomic(out / "points.csv", points_csv(r, uncertainty)),
         write_text_atomic(
-            out / "summary.json", json.dumps(summarize(r), indent=2, allow_nan=False) + "\n"
+            out / "summary.json", json.dumps(summary, indent=2, allow_nan=False) + "\n"
         ),
     ]
     if figure:
-        written.append(write_bytes_atomic(out / "figure4.png", figure4_png(r)))
+        written.append(write_bytes_atomic(out / "figure4.png", figure4_png(r, bands=uncertainty)))
+        if r.gamut is not None and r.pair is not None:
+            from masking_lab.rendering.gamut_figure import gamut_png
+
+            want_m, want_e = intended(r)
+            mapped = None if r.gamut_map == "none" else (r.mv_target_db_sl, r.ev_target_db_sl)
+            png = gamut_png(r.gamut, mv_target_db_sl=want_m, ev_target_db_sl=want_e, mapped=mapped)
+            written.append(write_bytes_atomic(out / "gamut.png", png))
     return written
 
 

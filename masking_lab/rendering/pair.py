@@ -135,6 +135,22 @@ class MutualMasking:
         """Product of the two slopes b·d (dimensionless); < 1 means every target is reachable."""
         return self.b * self.d
 
+    @property
+    def bd_text(self) -> str:
+        """b·d for messages; within 1e-6 of 1 written as ``1 ∓ gap`` so the side of 1 shows.
+
+        Examples
+        --------
+        >>> MutualMasking(0.0, 1.0, 0.0, 1.0 - 2.0**-53).bd_text
+        '1 − 1.11e-16'
+        >>> MutualMasking(0.0, 1.09, 0.0, 0.66).bd_text
+        '0.7194'
+        """
+        gap = self.one_minus_bd
+        if gap != 0 and abs(gap) < 1e-6:
+            return f"1 {'−' if gap > 0 else '+'} {abs(gap):.3g}"
+        return f"{self.bd:.6g}"
+
     # ----------------------------------------------------------------------------- forward
 
     def mv_masking_db(self, ev_input_db_sl: float) -> float:

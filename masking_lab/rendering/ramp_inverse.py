@@ -72,6 +72,8 @@ __all__ = [
     "Status",
     "folded_cases",
     "point_answer",
+    "reproduces",
+    "reproduces_array",
     "tiled_cases",
 ]
 
@@ -81,6 +83,9 @@ MAX_SLOPE = 100.0
 MAX_INTERCEPT_DB = 1000.0
 #: Largest finite target magnitude solved, dB SL (a touch screen presents at most ~40 dB SL).
 MAX_TARGET_DB_SL = 1e6
+#: An answer counts only if the forward model, in float64, gives back each target within this
+#: many dB (a millionth of the ~1 dB a participant can tell apart).
+REPRODUCE_TOL_DB = 1e-6
 
 
 class Status(IntEnum):
@@ -99,6 +104,7 @@ class Reason(IntEnum):
     INFINITE_TARGET = 2
     UNREACHABLE = 3
     OVERFLOW = 4
+    ILL_CONDITIONED = 5
 
 
 STATUS_NAMES = {Status.NONE: "none", Status.UNIQUE: "unique", Status.MULTIPLE: "multiple"}
@@ -110,6 +116,9 @@ REASON_TEXT = {
     "region)",
     Reason.OVERFLOW: "outside the solver's range: a target beyond ±1e6 dB SL, or a required "
     "input beyond the float range",
+    Reason.ILL_CONDITIONED: "ill-conditioned: the float64 answer does not give the target back "
+    f"through the masking model within {REPRODUCE_TOL_DB:g} dB (b·d too close to 1, or levels "
+    "too far apart in magnitude)",
 }
 
 _EPS = np.finfo(float).eps
@@ -195,13 +204,13 @@ def point_answer(mm: RampPair, m_p: float, e_p: float) -> PointSolution:
     v = mm.c_db + d * m_p if d else mm.c_db
     if mm.bd_side < 0:
         if u <= 0.0 and v <= 0.0:
-            return _unique(m_p, e_p, 1)
+            return _unique(mm, m_p, e_p, m_p, e_p, 1)
         if v > 0.0 and u + b * v <= 0.0:
-            return _unique(m_p, e_p + v, 2)
+            return _unique(mm, m_p, e_p, m_p, e_p + v, 2)
         if u > 0.0 and v + d * u <= 0.0:
-            return _unique(m_p + u, e_p, 3)
+            return _unique(mm, m_p, e_p, m_p + u, e_p, 3)
         den = mm.one_minus_bd
-        return _unique(m_p + (u + b * v) / den, e_p + (v + d * u) / den, 4)
+        return _unique(mm, m_p, e_p, m_p + (u + b * v) / den, e_p + (v + d * u) / den, 4)
     return _point_folded(mm, m_p, e_p, u, v)
 
 
@@ -237,6 +246,8 @@ def _point_folded(mm: RampPair, m_p: float, e_p: float, u: float, v: float) -> P
     sols = tuple((m_p + f, e_p + g, case) for f, g, case in distinct)
     if any(not (s[0] < math.inf and s[1] < math.inf) for s in sols):
         return _NO_OVERFLOW
+    if not all(reproduces(mm, m_p, e_p, s[0], s[1]) for s in sols):
+        return _NO_ILL
     if not sols:
         return PointSolution(math.nan, math.nan, 0, Status.NONE, (), False, Reason.UNREACHABLE)
     if len(sols) == 1 and not continuum:
@@ -244,10 +255,102 @@ def _point_folded(mm: RampPair, m_p: float, e_p: float, u: float, v: float) -> P
     return PointSolution(math.nan, math.nan, 0, Status.MULTIPLE, sols, continuum)
 
 
-def _unique(m_i: float, e_i: float, case: int) -> PointSolution:
-    if m_i < math.inf and e_i < math.inf:
-        return PointSolution(m_i, e_i, case, Status.UNIQUE, ((m_i, e_i, case),))
-    return _NO_OVERFLOW
+def _unique(
+    mm: RampPair, m_p: float, e_p: float, m_i: float, e_i: float, case: int
+) -> PointSolution:
+    if not (m_i < math.inf and e_i < math.inf):
+        return _NO_OVERFLOW
+    if not reproduces(mm, m_p, e_p, m_i, e_i):
+        return _NO_ILL
+    return PointSolution(m_i, e_i, case, Status.UNIQUE, ((m_i, e_i, case),))
+
+
+def reproduces(mm: RampPair, m_p: float, e_p: float, m_i: float, e_i: float) -> bool:
+    """Whether inputs (m_i, e_i) are perceived as (m_p, e_p) within :data:`REPRODUCE_TOL_DB`.
+
+    The forward model of paper Eq. (3)–(4) in float64, with the same operations as
+    :func:`reproduces_array`, so the scalar and the vector solver agree bit for bit.
+
+    Parameters
+    ----------
+    mm : RampPair
+        The two ramps.
+    m_p, e_p : float
+        Targets, dB SL (``-inf``: channel off).
+    m_i, e_i : float
+        Candidate inputs, dB SL.
+
+    Returns
+    -------
+    bool
+        True when both targets come back within the tolerance (a ``-inf`` target exactly).
+
+    Examples
+    --------
+    With b·d one ulp below 1 the closed form's answer is ~1e17 dB SL and gives a target back
+    tens of dB off; a paper-like pair gives it back to rounding:
+
+    >>> from masking_lab.rendering.pair import MutualMasking
+    >>> mm = MutualMasking(1.39, 1.09, -6.22, 0.66)
+    >>> p = mm.solve_point(12.0, 5.0)
+    >>> reproduces(mm, 12.0, 5.0, p.mv_input_db_sl, p.ev_input_db_sl)
+    True
+    >>> reproduces(mm, 12.0, 5.0, p.mv_input_db_sl + 0.01, p.ev_input_db_sl)
+    False
+    """
+    fm = m_i - _ramp_value(mm.a_db, mm.b, e_i)
+    fe = e_i - _ramp_value(mm.c_db, mm.d, m_i)
+    return (fm == m_p or abs(fm - m_p) <= REPRODUCE_TOL_DB) and (
+        fe == e_p or abs(fe - e_p) <= REPRODUCE_TOL_DB
+    )
+
+
+def _ramp_value(intercept: float, slope: float, x: float) -> float:
+    # max(0, intercept + slope·x); a flat ramp ignores its masker (0·±inf would be NaN).
+    y = intercept + slope * x if slope else intercept
+    return y if y > 0.0 else 0.0
+
+
+def reproduces_array(
+    mm: RampPair,
+    m_p: np.ndarray,
+    e_p: np.ndarray,
+    m_i: np.ndarray,
+    e_i: np.ndarray,
+) -> np.ndarray:
+    """:func:`reproduces` on arrays (broadcast); NaN inputs never reproduce.
+
+    Parameters
+    ----------
+    mm : RampPair
+        The two ramps.
+    m_p, e_p, m_i, e_i : ndarray of float
+        Targets and candidate inputs, dB SL.
+
+    Returns
+    -------
+    ndarray of bool
+        Per element, as :func:`reproduces`.
+
+    Examples
+    --------
+    >>> from masking_lab.rendering.pair import MutualMasking
+    >>> mm = MutualMasking(0.0, 0.5, 0.0, 0.5)
+    >>> reproduces_array(mm, np.array([2.0]), np.array([2.0]), np.array([4.0, 5.0]),
+    ...                  np.array([4.0, 4.0])).tolist()
+    [True, False]
+    """
+    with np.errstate(invalid="ignore", over="ignore"):
+        fm = m_i - _ramp_array(mm.a_db, mm.b, e_i)
+        fe = e_i - _ramp_array(mm.c_db, mm.d, m_i)
+        ok_m = (fm == m_p) | (np.abs(fm - m_p) <= REPRODUCE_TOL_DB)
+        ok_e = (fe == e_p) | (np.abs(fe - e_p) <= REPRODUCE_TOL_DB)
+    return ok_m & ok_e
+
+
+def _ramp_array(intercept: float, slope: float, x: np.ndarray) -> np.ndarray:
+    y = intercept + slope * x if slope else np.full(np.shape(x), intercept)
+    return np.where(y > 0.0, y, 0.0)
 
 
 def _fold_tolerance(mm: RampPair, m_p: float, e_p: float) -> float:
@@ -270,6 +373,7 @@ def _same(f1: float, g1: float, f2: float, g2: float, u: float, v: float) -> boo
 _NO_NAN = PointSolution(math.nan, math.nan, 0, Status.NONE, (), False, Reason.NAN_TARGET)
 _NO_INF = PointSolution(math.nan, math.nan, 0, Status.NONE, (), False, Reason.INFINITE_TARGET)
 _NO_OVERFLOW = PointSolution(math.nan, math.nan, 0, Status.NONE, (), False, Reason.OVERFLOW)
+_NO_ILL = PointSolution(math.nan, math.nan, 0, Status.NONE, (), False, Reason.ILL_CONDITIONED)
 
 
 # --------------------------------------------------------------------------------------------

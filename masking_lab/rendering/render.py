@@ -6,6 +6,10 @@ compensated inputs and on the targets played as they are (no compensation, paper
 give the masked ALs and the perceived intensities of both. :func:`summarize` condenses a
 :class:`Rendering` into a JSON-ready summary.
 
+With rated maxima, ``render_scene`` also computes the perceptual gamut
+(:mod:`masking_lab.rendering.gamut`) and, with ``gamut_map``, first brings the targets into it
+(:mod:`masking_lab.rendering.mapping`); :func:`compare_strategies` scores every mapping.
+
 Model only what a scene needs (:func:`needed_pairs`): a single-channel scene has nothing to mask
 it and passes straight through without parameters; a two-channel scene needs exactly the two
 masking functions of its (MV, EV) stimulus pair.
@@ -26,18 +30,38 @@ from numpy.typing import NDArray
 from masking_lab import __version__
 from masking_lab.core.errors import SolverError
 from masking_lab.formats.records import json_number
+from masking_lab.rendering.gamut import gamut_for_targets
+from masking_lab.rendering.mapping import (
+    STRATEGIES,
+    map_targets,
+    mapping_metrics,
+    playable_inputs,
+)
+from masking_lab.rendering.ramp_inverse import REPRODUCE_TOL_DB
 from masking_lab.rendering.scene import Scene
 from masking_lab.rendering.solver import (
     REASON_TEXT,
     MutualMasking,
     Reason,
     Solution,
+    Status,
     ev_masked_al_db_sl,
+    forward,
     mv_masked_al_db_sl,
     solve,
 )
 
-__all__ = ["NO_MASKING", "Rendering", "needed_pairs", "render_scene", "runs_mm", "summarize"]
+__all__ = [
+    "NO_MASKING",
+    "Rendering",
+    "compare_strategies",
+    "intended",
+    "needed_pairs",
+    "played_metrics",
+    "render_scene",
+    "runs_mm",
+    "summarize",
+]
 
 # Nothing masks a channel that plays alone: the ramps are identically 0.
 NO_MASKING = MutualMasking(0.0, 0.0, 0.0, 0.0, mv="none", ev="none")
@@ -84,6 +108,17 @@ class Rendering:
         Masked ALs when the targets are played as inputs, dB SL.
     mv_perceived_uncomp_db_sl, ev_perceived_uncomp_db_sl : ndarray
         Perceived intensities when the targets are played as inputs, dB SL.
+    gamut_map : str
+        Gamut mapping applied to the scene's targets (``"none"``: targets as designed).
+    gamut : Gamut or None
+        What the rig can render (:mod:`masking_lab.rendering.gamut`), when ratings were given.
+    mv_intended_db_sl, ev_intended_db_sl : ndarray or None
+        The scene's own targets, dB SL, when a mapping changed them (the ``*_target_*`` arrays
+        then hold the mapped targets).
+    gain : float
+        The common gain of the ``scale`` mapping (1.0 otherwise).
+    from_gamut_edge : ndarray of bool or None
+        Points whose inputs were found on the gamut's edge rather than by the solver.
     """
 
     scene: Scene
@@ -95,6 +130,12 @@ class Rendering:
     ev_masked_al_db_sl: NDArray[np.float64]
     mv_masked_al_uncomp_db_sl: NDArray[np.float64]
     ev_masked_al_uncomp_db_sl: NDArray[np.float64]
+    gamut_map: str = "none"
+    gamut: Any = None
+    mv_intended_db_sl: NDArray[np.float64] | None = None
+    ev_intended_db_sl: NDArray[np.float64] | None = None
+    gain: float = 1.0
+    from_gamut_edge: NDArray[np.bool_] | None = None
 
     # Targets and inputs live in the solution only, and what is felt is derived from them, so
     # a rendering cannot disagree with itself (see :meth:`with_inputs`).
@@ -184,6 +225,7 @@ def render_scene(
     *,
     max_mv_db_sl: float | None = None,
     max_ev_db_sl: float | None = None,
+    gamut_map: str = "none",
 ) -> Rendering:
     """Targets, compensated inputs and perceived intensities at every point of ``scene``.
 
@@ -194,7 +236,11 @@ def render_scene(
     pair : MutualMasking or None
         Masking functions of the scene's (MV, EV) pair; None for a single-channel scene.
     max_mv_db_sl, max_ev_db_sl : float, optional
-        Rated maximum input per channel, dB SL; points needing more are flagged, not clipped.
+        Rated maximum input per channel, dB SL. With ``gamut_map="none"`` points needing more
+        are flagged, not clipped.
+    gamut_map : {"none", "clip", "scale", "compress"}
+        How targets outside the gamut are brought in (:mod:`masking_lab.rendering.mapping`);
+        any strategy but ``"none"`` needs both maxima and keeps every input within them.
 
     Returns
     -------
@@ -242,7 +288,52 @@ def render_scene(
         pair = None
         model = NO_MASKING
     x, mv_t, ev_t = scene.targets()
-    sol = solve(model, mv_t, ev_t, max_mv_db_sl=max_mv_db_sl, max_ev_db_sl=max_ev_db_sl)
+    if not np.all(np.isfinite(mv_t) | (mv_t == -np.inf)) or not np.all(
+        np.isfinite(ev_t) | (ev_t == -np.inf)
+    ):
+        raise SolverError(
+            f"{scene.source}: scene {scene.name!r} gives non-finite perceived targets (its levels "
+            "or shape overflow float arithmetic); use levels within the scene schema's bounds"
+        )
+    gamut = None
+    if max_mv_db_sl is not None and max_ev_db_sl is not None:
+        gamut = gamut_for_targets(model, max_mv_db_sl, max_ev_db_sl, mv_t, ev_t)
+    extra: dict[str, Any] = {"gamut": gamut}
+    if gamut_map != "none":
+        if gamut is None:
+            raise SolverError(
+                f"gamut mapping {gamut_map!r} needs both channels' rated maxima (--max-mv-db-sl, "
+                "--max-ev-db-sl or a rig config with channels.<MV|EV>.max_level_db_sl)"
+            )
+        mapped_m, mapped_e, gain = map_targets(gamut, mv_t, ev_t, gamut_map)
+        sol = solve(model, mapped_m, mapped_e)
+        mi, ei, edge = playable_inputs(
+            gamut,
+            mapped_m,
+            mapped_e,
+            sol.mv_input_db_sl,
+            sol.ev_input_db_sl,
+            several=sol.status == Status.MULTIPLE,
+        )
+        sol = replace(
+            sol,
+            mv_input_db_sl=mi,
+            ev_input_db_sl=ei,
+            mv_exceeds_rating=mi > max_mv_db_sl,
+            ev_exceeds_rating=ei > max_ev_db_sl,
+            max_mv_db_sl=max_mv_db_sl,
+            max_ev_db_sl=max_ev_db_sl,
+        )
+        extra.update(
+            gamut_map=gamut_map,
+            mv_intended_db_sl=mv_t,
+            ev_intended_db_sl=ev_t,
+            gain=gain,
+            from_gamut_edge=edge,
+        )
+        mv_t, ev_t = mapped_m, mapped_e
+    else:
+        sol = solve(model, mv_t, ev_t, max_mv_db_sl=max_mv_db_sl, max_ev_db_sl=max_ev_db_sl)
     return Rendering(
         scene=scene,
         pair=pair,
@@ -253,7 +344,61 @@ def render_scene(
         ev_masked_al_db_sl=ev_masked_al_db_sl(model, sol.mv_input_db_sl),
         mv_masked_al_uncomp_db_sl=mv_masked_al_db_sl(model, ev_t),
         ev_masked_al_uncomp_db_sl=ev_masked_al_db_sl(model, mv_t),
+        **extra,
     )
+
+
+def intended(r: Rendering) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The scene's own targets (before any gamut mapping), dB SL."""
+    if r.mv_intended_db_sl is None or r.ev_intended_db_sl is None:
+        return r.mv_target_db_sl, r.ev_target_db_sl
+    return r.mv_intended_db_sl, r.ev_intended_db_sl
+
+
+def played_metrics(r: Rendering) -> dict[str, Any]:
+    """:func:`~masking_lab.rendering.mapping.mapping_metrics` of what the rig would play.
+
+    Inputs above a rating are played at the rating (the rig cannot do more); a point without
+    an input is counted without a level.
+    """
+    sol = r.solution
+    mi, ei = r.mv_input_db_sl, r.ev_input_db_sl
+    within = ~(np.asarray(sol.mv_exceeds_rating) | np.asarray(sol.ev_exceeds_rating))
+    within &= ~(np.isnan(mi) | np.isnan(ei))
+    if sol.max_mv_db_sl is not None:
+        mi = np.minimum(mi, sol.max_mv_db_sl)
+    if sol.max_ev_db_sl is not None:
+        ei = np.minimum(ei, sol.max_ev_db_sl)
+    model = r.pair if r.pair is not None else NO_MASKING
+    with np.errstate(invalid="ignore"):
+        mp, ep = forward(model, mi, ei)
+    want_m, want_e = intended(r)
+    return mapping_metrics(r.x_mm, want_m, want_e, mp, ep, within)
+
+
+def compare_strategies(
+    scene: Scene, pair: MutualMasking | None, max_mv_db_sl: float, max_ev_db_sl: float
+) -> dict[str, dict[str, Any]]:
+    """Each gamut mapping's :func:`played_metrics` on one scene (the trade between them).
+
+    Examples
+    --------
+    >>> from masking_lab.rendering.scene import GeometrySpec, PathSpec, Scene, TextureSpec
+    >>> scene = Scene("bump_rough", PathSpec(), GeometrySpec("bump"),
+    ...               TextureSpec("rough", "MV180", 12.0))
+    >>> pair = MutualMasking(1.304, 1.062, -5.927, 0.658, mv="MV180", ev="EV270")
+    >>> trade = compare_strategies(scene, pair, 30.0, 30.0)
+    >>> [round(trade[s]["share_within_ratings"], 2) for s in STRATEGIES]
+    [1.0, 1.0, 1.0, 0.07]
+    """
+    return {
+        s: played_metrics(
+            render_scene(
+                scene, pair, max_mv_db_sl=max_mv_db_sl, max_ev_db_sl=max_ev_db_sl, gamut_map=s
+            )
+        )
+        for s in STRATEGIES
+    }
 
 
 # --------------------------------------------------------------------------------------------
@@ -333,7 +478,9 @@ def summarize(r: Rendering) -> dict[str, Any]:
             "c_db": r.pair.c_db,
             "d": r.pair.d,
             "bd": r.pair.bd,
+            "one_minus_bd": r.pair.one_minus_bd,
         },
+        "reproduce_tol_db": REPRODUCE_TOL_DB,
         "status_counts": sol.counts(),
         "case_counts": {str(k): int(np.count_nonzero(sol.case == k)) for k in range(1, 5)},
         "notes": [] if r.pair is None else list(r.pair.notes),
@@ -342,6 +489,23 @@ def summarize(r: Rendering) -> dict[str, Any]:
             for k in range(1, len(Reason))
             if np.any(sol.reason == k)
         },
+    }
+    out["gamut"] = None if r.gamut is None else r.gamut.as_dict()
+    out["gamut_mapping"] = {
+        "strategy": r.gamut_map,
+        "gain": r.gain,
+        "points_moved": 0
+        if r.mv_intended_db_sl is None
+        else int(
+            np.count_nonzero(
+                (r.mv_intended_db_sl != r.mv_target_db_sl)
+                | (r.ev_intended_db_sl != r.ev_target_db_sl)
+            )
+        ),
+        "points_from_gamut_edge": 0
+        if r.from_gamut_edge is None
+        else int(np.count_nonzero(r.from_gamut_edge)),
+        "as_played": played_metrics(r),
     }
     channels: dict[str, Any] = {}
     for ch, name in (("mv", "MV"), ("ev", "EV")):

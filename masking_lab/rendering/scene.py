@@ -374,9 +374,11 @@ def _describe(err: Any) -> str:
             f"{excerpt(inst)} is not a stimulus name: write <EV|MV><carrier Hz>[am<envelope Hz>], "
             "e.g. EV270, MV180, MV120am40"
         )
-    if v in ("minimum", "exclusiveMinimum"):
-        op = "≥" if v == "minimum" else ">"
-        return f"must be {op} {err.validator_value}, got {excerpt(inst)}"
+    if v in ("minimum", "exclusiveMinimum", "maximum", "exclusiveMaximum"):
+        op = {"minimum": "≥", "exclusiveMinimum": ">", "maximum": "≤", "exclusiveMaximum": "<"}[v]
+        # The bounds keep every accepted scene inside float arithmetic (docs/scenes.md).
+        bound = f" (the maximum of {err.validator_value:g})" if "Max" in v or v == "maximum" else ""
+        return f"must be {op} {err.validator_value:g}{bound}, got {excerpt(inst)}"
     if v == "type":
         return f"must be of type {err.validator_value}, got {type(inst).__name__} {excerpt(inst)}"
     return excerpt(err.message, 160)

@@ -36,6 +36,7 @@ from masking_lab.rendering.ramp_inverse import (
     Reason,
     Status,
     folded_cases,
+    reproduces_array,
     tiled_cases,
 )
 
@@ -208,6 +209,12 @@ def solve(
             m_i[not_unique] = np.nan
             e_i[not_unique] = np.nan
             case[not_unique] = 0
+        _refuse_irreproducible(mm, m_p, e_p, out=(m_i, e_i, case, status, reason, continuum))
+        if cand_ok is not None:
+            assert cand_m is not None and cand_e is not None
+            _refuse_irreproducible_candidates(
+                mm, m_p, e_p, cand_m, cand_e, cand_ok, (m_i, e_i, case, status, reason, continuum)
+            )
         mv_over = _exceeds(m_i, max_mv_db_sl)
         ev_over = _exceeds(e_i, max_ev_db_sl)
     return Solution(
@@ -227,6 +234,46 @@ def solve(
         max_mv_db_sl=max_mv_db_sl,
         max_ev_db_sl=max_ev_db_sl,
     )
+
+
+def _refuse_irreproducible(mm: MutualMasking, m_p, e_p, out) -> None:  # type: ignore[no-untyped-def]
+    """A unique answer that the forward model does not turn back into its target is refused.
+
+    Near b·d = 1 the closed form divides by 1 − b·d and float64 cannot carry the result; such a
+    point gets status none, reason ILL_CONDITIONED (in place on ``out``).
+    """
+    m_i, e_i, status = out[0], out[1], out[3]
+    unique = status == Status.UNIQUE
+    if not unique.any():
+        return
+    bad = unique & ~reproduces_array(mm, m_p, e_p, m_i, e_i)
+    if bad.any():
+        _mark_ill(bad, out)
+
+
+def _refuse_irreproducible_candidates(  # type: ignore[no-untyped-def]
+    mm: MutualMasking, m_p, e_p, cand_m, cand_e, cand_ok, out
+) -> None:
+    """b·d ≥ 1: a point any of whose listed answers fails the forward check is ill-conditioned."""
+    if not cand_ok.any():
+        return
+    good = reproduces_array(mm, m_p[..., None], e_p[..., None], cand_m, cand_e)
+    bad = (cand_ok & ~good).any(axis=-1)
+    if bad.any():
+        cand_ok[bad] = False
+        cand_m[bad] = np.nan
+        cand_e[bad] = np.nan
+        _mark_ill(bad, out)
+
+
+def _mark_ill(bad, out) -> None:  # type: ignore[no-untyped-def]
+    m_i, e_i, case, status, reason, continuum = out
+    status[bad] = Status.NONE
+    reason[bad] = Reason.ILL_CONDITIONED
+    continuum[bad] = False
+    m_i[bad] = np.nan
+    e_i[bad] = np.nan
+    case[bad] = 0
 
 
 def _lin(intercept: float, slope: float, x: NDArray[np.float64]) -> NDArray[np.float64]:

@@ -37,6 +37,7 @@ def render_objects(
     *,
     max_mv_db_sl: float | None = None,
     max_ev_db_sl: float | None = None,
+    gamut_map: str = "none",
 ) -> dict[tuple[str, str], Rendering]:
     """Render every object: targets, compensated inputs, perceived intensities.
 
@@ -49,6 +50,9 @@ def render_objects(
         .stimulus_pairs`); extra pairs are ignored.
     max_mv_db_sl, max_ev_db_sl : float, optional
         Rated maximum inputs, dB SL; flagged per point in each rendering.
+    gamut_map : str
+        Gamut mapping of each scene's targets (:mod:`masking_lab.rendering.mapping`); any
+        but ``"none"`` needs both maxima.
 
     Raises
     ------
@@ -98,8 +102,11 @@ def render_objects(
             pairs[needs[0]] if needs else None,
             max_mv_db_sl=max_mv_db_sl,
             max_ev_db_sl=max_ev_db_sl,
+            gamut_map=gamut_map,
         )
         bad = r.solution.status != Status.UNIQUE
+        if r.from_gamut_edge is not None:
+            bad &= ~r.from_gamut_edge  # inputs found on the gamut's edge are playable
         if np.any(bad):
             at = r.x_mm[np.flatnonzero(bad)[0]]
             raise SolverError(

@@ -231,6 +231,7 @@ def header_record(
     rig_max: Mapping[str, float],
     limits: Mapping[str, StimulusLimit],
     over: Sequence[Exceedance],
+    gamut_map: str = "none",
 ) -> dict[str, Any]:
     protocol_text = _text_with_hash(Path(design.path), design.sha256)
     scenes = []
@@ -275,6 +276,7 @@ def header_record(
             "n_trials": design.n_trials,
             "stream": stream_settings,
             "allow_clipping": bool(allow_clipping),
+            "gamut_map": gamut_map,
             "rig_max_level_db_sl": {k: float(v) for k, v in sorted(rig_max.items())},
             "max_level_db_sl": {k: round(v.max_db_sl, 6) for k, v in sorted(limits.items())},
             "clipped_objects": [e.as_record() for e in over],

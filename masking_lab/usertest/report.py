@@ -146,6 +146,9 @@ def collect_usertest(data_dir: str | Path) -> UserTestData:
             )
         for problem in log.problems:
             notes.append(f"{rel}: {problem}")
+        mapped = (h.get("usertest") or {}).get("gamut_map", "none")
+        if mapped != "none":
+            notes.append(f"{rel}: scenes mapped into the rig's gamut ({mapped}) before rendering")
         records.extend(trials)
     if keys is None:
         what = f"{len(paths)} log(s), none of them a user test" if paths else "no session logs"

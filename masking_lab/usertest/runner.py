@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Unpack
 
@@ -110,6 +110,9 @@ class UserTestOptions:
         Session seed (drawn and logged when None); it fixes the trial order.
     allow_clipping : bool
         Play inputs above the rig's rating clipped to it (logged per trial) instead of refusing.
+    gamut_map : str
+        Map each scene into the rig's gamut first (``clip``, ``scale``, ``compress``; see
+        :mod:`masking_lab.rendering.mapping`), or ``none``.
     real_time, ground_truth, device_config, progress, participant_tty
         As in :class:`masking_lab.session.runner.RunOptions`.
     update_hz : float
@@ -126,6 +129,7 @@ class UserTestOptions:
     params: Path | None = None
     seed: int | None = None
     allow_clipping: bool = False
+    gamut_map: str = "none"
     real_time: bool = False
     ground_truth: Path | None = None
     device_config: Path | None = None
@@ -252,14 +256,16 @@ class UserTestKind:
         data_dir = Path(options.data_dir)
         calibration = require_calibration(design, data_dir, participant)
         pairs, params_record = masking_pairs(design, options.params, data_dir)
+        rig_max = max_level_db_sl(options.device_config)
         return _UserTestPlan(
             participant=participant,
             design=design,
-            objects=render_objects(design, pairs),
+            objects=_objects(design, pairs, rig_max, options.gamut_map),
             pairs=pairs,
             params_record=params_record,
             calibration=calibration,
-            rig_max=max_level_db_sl(options.device_config),
+            rig_max=rig_max,
+            gamut_map=options.gamut_map,
             update_hz=options.update_hz,
             deadband_db=options.deadband_db,
             allow_clipping=options.allow_clipping,
@@ -285,14 +291,16 @@ class UserTestKind:
         rig_max = {k: float(v) for k, v in (ut.get("rig_max_level_db_sl") or {}).items()}
         if options.device_config is not None:
             rig_max = max_level_db_sl(options.device_config)
+        gamut_map = str(ut.get("gamut_map", "none"))
         return _UserTestPlan(
             participant=str(header["participant"]),
             design=design,
-            objects=render_objects(design, pairs),
+            objects=_objects(design, pairs, rig_max, gamut_map),
             pairs=pairs,
             params_record=None,
             calibration={k: float(v) for k, v in header["calibration"].items()},
             rig_max=rig_max,
+            gamut_map=gamut_map,
             update_hz=float(settings.get("update_hz", UPDATE_HZ)),
             deadband_db=float(settings.get("deadband_db", DEADBAND_DB)),
             allow_clipping=bool(ut.get("allow_clipping", False)),
@@ -317,6 +325,7 @@ class _UserTestPlan(frame.PlanDefaults):
     allow_clipping: bool
     logged: list[Mapping[str, Any]]
     trials: Sequence[UserTrial]
+    gamut_map: str = "none"
     limits: Mapping[str, StimulusLimit] = field(default_factory=dict)
     over: Sequence[Exceedance] = ()
 
@@ -344,6 +353,13 @@ class _UserTestPlan(frame.PlanDefaults):
             self.rig_max,
             device.identity.limits.max_drive_v,
         )
+        if self.gamut_map != "none":
+            # Map into what this participant may be played (rig rating or drive limit, the
+            # lower), now that the device's drive limit is known. In place: the responder's
+            # context already holds this mapping.
+            mapped = _objects(self.design, self.pairs, self.limits, self.gamut_map)
+            self.objects.clear()  # type: ignore[attr-defined]
+            self.objects.update(mapped)  # type: ignore[attr-defined]
         self.over = exceedances(self.design, self.objects, self.limits)
         refuse_or_warn(self.over, self.allow_clipping, self.participant, out)
 
@@ -361,6 +377,7 @@ class _UserTestPlan(frame.PlanDefaults):
                 "refresh_s": REFRESH_S,
             },
             allow_clipping=self.allow_clipping,
+            gamut_map=self.gamut_map,
             rig_max=self.rig_max,
             limits=self.limits,
             over=self.over,
@@ -386,6 +403,27 @@ class _UserTestPlan(frame.PlanDefaults):
 
 
 USERTEST = UserTestKind()
+
+
+def _objects(design, pairs, limits, gamut_map):  # type: ignore[no-untyped-def]
+    """The objects rendered; unless ``gamut_map`` is ``none``, each object mapped into the gamut
+    of its own stimuli's limits (``limits``: channel or stimulus name → dB SL or StimulusLimit).
+    """
+    if gamut_map == "none":
+        return render_objects(design, pairs)
+    out = {}
+    for key, scene in design.scenes.items():
+        one = replace(design, scenes={key: scene})
+        levels = []
+        for spec, channel in ((scene.texture, "MV"), (scene.geometry, "EV")):
+            lim = limits.get(spec.stimulus if spec is not None else "", limits.get(channel))
+            levels.append(getattr(lim, "max_db_sl", lim))
+        out.update(
+            render_objects(
+                one, pairs, max_mv_db_sl=levels[0], max_ev_db_sl=levels[1], gamut_map=gamut_map
+            )
+        )
+    return out
 
 
 def default_responder(name: str, context: UserTestContext) -> UserTestResponder:

@@ -1,0 +1,291 @@
+"""Uncertainty carried to the finger: how sure the rendering is of what is felt (issue 19.3).
+
+``masking_params.json`` stores, per masking function, the fitted intercept and slope with their
+standard errors and confidence intervals (``uncertainty``: ``bootstrap`` or ``asymptotic``),
+but not the bootstrap draws themselves. So the draws here are *parametric*: each of a, b, c, d
+is drawn from a normal with its standard error (or, without one, the interval's half-width over
+the normal quantile), slopes kept ≥ 0. The file does not store the intercept–slope covariance,
+so the draws are independent; since a fitted intercept and slope are negatively correlated, this
+overstates the spread in the middle of the fitted range (the intervals are conservative).
+
+For every draw the played inputs are pushed through the drawn model (paper Eq. 3–4), with and
+without compensation, giving per-point percentile intervals of the perceived intensities. Two
+per-point flags:
+
+- *compensation not better*: over the draws, the paired gain |error without| − |error with|
+  (dB, both channels summed) is not above 0 at the interval's lower percentile;
+- *beyond the fitted range*: a compensated input masks the other channel at a level above the
+  top of the masker range its ramp was fitted on (an extrapolated ramp).
+
+Pure: the random generator is seeded by the caller.
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Mapping
+from dataclasses import dataclass
+from statistics import NormalDist
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from masking_lab.core.errors import SolverError
+from masking_lab.rendering.render import NO_MASKING, Rendering
+
+__all__ = ["PairSpread", "RenderingUncertainty", "pair_spread", "perceived_intervals"]
+
+METHOD = (
+    "parametric draws (independent normals with the exported standard errors; "
+    "masking_params.json stores no bootstrap draws and no intercept-slope covariance, so the "
+    "intervals are conservative)"
+)
+
+
+@dataclass(frozen=True)
+class PairSpread:
+    """Standard errors of the four ramp parameters (a, c in dB; b, d in dB/dB).
+
+    Attributes
+    ----------
+    a_sd_db, b_sd, c_sd_db, d_sd : float
+        Standard error of each parameter (0: known exactly).
+    source : str
+        Where they came from (``"bootstrap"``/``"asymptotic"`` per direction).
+    """
+
+    a_sd_db: float
+    b_sd: float
+    c_sd_db: float
+    d_sd: float
+    source: str = ""
+
+
+def pair_spread(
+    params: Mapping[str, Any], *, mv: str, ev: str, level_default: float = 0.95
+) -> PairSpread:
+    """Read the standard errors of one pair's two masking functions from masking_params.json.
+
+    A missing standard error is taken from the interval (half-width / z of its level); with
+    neither, the parameter counts as exact (0) and ``source`` says so.
+
+    Examples
+    --------
+    >>> doc = {"functions": [
+    ...     {"target": "MV180", "masker": "EV270", "intercept_se_db": 0.4, "slope_se": 0.02,
+    ...      "uncertainty": "bootstrap"},
+    ...     {"target": "EV270", "masker": "MV180", "intercept_se_db": None, "slope_se": None,
+    ...      "intercept_ci_db": [-7.0, -5.04], "slope_ci": [0.6, 0.7], "ci_level": 0.95}]}
+    >>> s = pair_spread(doc, mv="MV180", ev="EV270")
+    >>> round(s.a_sd_db, 3), round(s.c_sd_db, 3), round(s.d_sd, 4)
+    (0.4, 0.5, 0.0255)
+    """
+    out: list[float] = []
+    sources = []
+    for target, masker in ((mv, ev), (ev, mv)):
+        entry = next(
+            (
+                f
+                for f in params.get("functions", [])
+                if isinstance(f, Mapping) and (f.get("target"), f.get("masker")) == (target, masker)
+            ),
+            None,
+        )
+        if entry is None:
+            raise SolverError(f"no masking function for {target} masked by {masker}")
+        z = NormalDist().inv_cdf(0.5 + float(entry.get("ci_level") or level_default) / 2)
+        for se_key, ci_key in (("intercept_se_db", "intercept_ci_db"), ("slope_se", "slope_ci")):
+            se, ci = entry.get(se_key), entry.get(ci_key)
+            if isinstance(se, int | float) and np.isfinite(se) and se >= 0:
+                out.append(float(se))
+            elif ci and all(isinstance(v, int | float) for v in ci) and np.isfinite(ci).all():
+                out.append(abs(float(ci[1]) - float(ci[0])) / (2 * z))
+            else:
+                out.append(0.0)
+        sources.append(f"{target} by {masker}: {entry.get('uncertainty', 'unknown')}")
+    return PairSpread(out[0], out[1], out[2], out[3], "; ".join(sources))
+
+
+@dataclass(frozen=True)
+class RenderingUncertainty:
+    """Per-point intervals of the perceived intensities (dB SL) and the two flags.
+
+    Attributes
+    ----------
+    level : float
+        Interval level (e.g. 0.95).
+    n_draws : int
+        Parameter draws.
+    mv_lo, mv_hi, ev_lo, ev_hi : ndarray
+        Interval of the perceived intensity with compensation, dB SL.
+    mv_uncomp_lo, mv_uncomp_hi, ev_uncomp_lo, ev_uncomp_hi : ndarray
+        The same without compensation, dB SL.
+    not_better : ndarray of bool
+        Compensation is not better than none within the interval.
+    beyond_fitted : ndarray of bool
+        The compensation relies on a ramp beyond its fitted masker range.
+    method : str
+        How the draws were made.
+    """
+
+    level: float
+    n_draws: int
+    mv_lo: NDArray[np.float64]
+    mv_hi: NDArray[np.float64]
+    ev_lo: NDArray[np.float64]
+    ev_hi: NDArray[np.float64]
+    mv_uncomp_lo: NDArray[np.float64]
+    mv_uncomp_hi: NDArray[np.float64]
+    ev_uncomp_lo: NDArray[np.float64]
+    ev_uncomp_hi: NDArray[np.float64]
+    not_better: NDArray[np.bool_]
+    beyond_fitted: NDArray[np.bool_]
+    method: str = METHOD
+
+    def columns(self) -> dict[str, NDArray[Any]]:
+        """The per-point columns for points.csv (dB SL; flags as bool)."""
+        return {
+            "mv_perceived_lo_db_sl": self.mv_lo,
+            "mv_perceived_hi_db_sl": self.mv_hi,
+            "ev_perceived_lo_db_sl": self.ev_lo,
+            "ev_perceived_hi_db_sl": self.ev_hi,
+            "mv_perceived_uncomp_lo_db_sl": self.mv_uncomp_lo,
+            "mv_perceived_uncomp_hi_db_sl": self.mv_uncomp_hi,
+            "ev_perceived_uncomp_lo_db_sl": self.ev_uncomp_lo,
+            "ev_perceived_uncomp_hi_db_sl": self.ev_uncomp_hi,
+            "compensation_not_better": self.not_better,
+            "beyond_fitted_range": self.beyond_fitted,
+        }
+
+    def summary(self) -> dict[str, Any]:
+        """JSON-ready counts and band widths (dB)."""
+
+        def width(lo: NDArray[np.float64], hi: NDArray[np.float64]) -> float | None:
+            w = hi - lo
+            w = w[np.isfinite(w)]
+            return round(float(np.max(w)), 6) if w.size else None
+
+        return {
+            "method": self.method,
+            "n_draws": self.n_draws,
+            "level": self.level,
+            "max_band_width_db": {
+                "MV": width(self.mv_lo, self.mv_hi),
+                "EV": width(self.ev_lo, self.ev_hi),
+            },
+            "points_compensation_not_better": int(np.count_nonzero(self.not_better)),
+            "points_beyond_fitted_range": int(np.count_nonzero(self.beyond_fitted)),
+        }
+
+
+def perceived_intervals(
+    r: Rendering,
+    spread: PairSpread,
+    *,
+    n_draws: int = 200,
+    level: float = 0.95,
+    rng: np.random.Generator | None = None,
+) -> RenderingUncertainty:
+    """Per-point intervals of what is felt under the masking functions' uncertainty.
+
+    Parameters
+    ----------
+    r : Rendering
+        A rendered scene (its played inputs and targets, dB SL).
+    spread : PairSpread
+        Standard errors of a, b, c, d.
+    n_draws : int
+        Parameter draws (≥ 20).
+    level : float
+        Interval level, 0–1.
+    rng : numpy.random.Generator, optional
+        Seeded generator (default: seed 0, so a rendering is reproducible).
+
+    Returns
+    -------
+    RenderingUncertainty
+
+    Examples
+    --------
+    >>> from masking_lab.rendering.pair import MutualMasking
+    >>> from masking_lab.rendering.render import render_scene
+    >>> from masking_lab.rendering.scene import GeometrySpec, PathSpec, Scene, TextureSpec
+    >>> scene = Scene("bump_rough", PathSpec(n_points=91), GeometrySpec("bump"),
+    ...               TextureSpec("rough", "MV180", 6.0))
+    >>> pair = MutualMasking(1.304, 1.062, -5.927, 0.658, mv="MV180", ev="EV270")
+    >>> u = perceived_intervals(render_scene(scene, pair), PairSpread(0.4, 0.03, 0.5, 0.02))
+    >>> bool((u.mv_lo <= 6.0 + 1e-9).all() and (u.mv_hi >= 6.0 - 1e-9).all())
+    True
+    """
+    if n_draws < 20:
+        raise SolverError(f"uncertainty: give at least 20 draws, got {n_draws}")
+    if not 0 < level < 1:
+        raise SolverError(f"uncertainty: the interval level must be in (0, 1), got {level}")
+    rng = rng if rng is not None else np.random.default_rng(0)
+    pair = r.pair if r.pair is not None else NO_MASKING
+    base = np.array([pair.a_db, pair.b, pair.c_db, pair.d])
+    sd = np.array([spread.a_sd_db, spread.b_sd, spread.c_sd_db, spread.d_sd])
+    if r.pair is None:
+        sd = np.zeros(4)  # nothing masks a single channel
+    with np.errstate(over="ignore", invalid="ignore"):
+        draws = base + rng.standard_normal((n_draws, 4)) * sd
+    draws[:, [1, 3]] = np.maximum(draws[:, [1, 3]], 0.0)
+    mi, ei = r.mv_input_db_sl, r.ev_input_db_sl
+    mt, et = r.mv_target_db_sl, r.ev_target_db_sl
+    comp = np.empty((2, n_draws, mi.size))
+    unc = np.empty((2, n_draws, mi.size))
+    q = [50 * (1 - level), 50 * (1 + level)]
+    with np.errstate(invalid="ignore"), warnings.catch_warnings():
+        # A point without inputs (no unique answer) has no interval: NaN, written empty.
+        warnings.simplefilter("ignore", RuntimeWarning)
+        for k, (a, b, c, d) in enumerate(draws):
+            comp[0, k], comp[1, k] = _forward(a, b, c, d, mi, ei)
+            unc[0, k], unc[1, k] = _forward(a, b, c, d, mt, et)
+        lo_c, hi_c = np.nanpercentile(comp, q, axis=1)
+        lo_u, hi_u = np.nanpercentile(unc, q, axis=1)
+        # Both against the targets the rendering aims at (the mapped ones, if mapped).
+        gain = _error(unc, mt, et) - _error(comp, mt, et)
+        gain_lo = np.nanpercentile(gain, q[0], axis=0)
+    not_better = ~(gain_lo > 0)
+    beyond = np.zeros(mi.shape, dtype=bool)
+    if r.pair is not None:
+        g_rng, f_rng = r.pair.g_fitted_range_db_sl, r.pair.f_fitted_range_db_sl
+        if g_rng:
+            beyond |= mi > g_rng[1]
+        if f_rng:
+            beyond |= ei > f_rng[1]
+    return RenderingUncertainty(
+        level=level,
+        n_draws=n_draws,
+        mv_lo=lo_c[0],
+        mv_hi=hi_c[0],
+        ev_lo=lo_c[1],
+        ev_hi=hi_c[1],
+        mv_uncomp_lo=lo_u[0],
+        mv_uncomp_hi=hi_u[0],
+        ev_uncomp_lo=lo_u[1],
+        ev_uncomp_hi=hi_u[1],
+        not_better=np.asarray(not_better),
+        beyond_fitted=beyond,
+    )
+
+
+def _forward(
+    a: float, b: float, c: float, d: float, mi: NDArray[np.float64], ei: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    f = np.maximum(0.0, a + b * np.where(np.isfinite(ei), ei, -np.inf)) if b else max(0.0, a)
+    g = np.maximum(0.0, c + d * np.where(np.isfinite(mi), mi, -np.inf)) if d else max(0.0, c)
+    return mi - f, ei - g
+
+
+def _error(
+    perceived: NDArray[np.float64], want_m: NDArray[np.float64], want_e: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """|perceived − wanted| summed over the channels that play, per draw and point (dB)."""
+    total = np.zeros(perceived.shape[1:])
+    for k, want in enumerate((want_m, want_e)):
+        if np.all(want == -np.inf):
+            continue
+        total = total + np.abs(perceived[k] - want)
+    return total
