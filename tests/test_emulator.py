@@ -17,6 +17,14 @@ from firmware_support import Link
 
 from masking_lab.device import protocol as proto
 from masking_lab.device.config import load_device_config
+from masking_lab.device.emulator_checks import Converter
+
+DAC = Converter(12, 10_000_000)  # the emulator's default converter: 12 bits over ±10 V
+
+
+def played(code: int) -> float:
+    """V a code amplitude plays with no attenuation (1 LSB = 4.8828125 mV), to the µV."""
+    return DAC.played_uv(code, 0) / 1e6
 from masking_lab.device.emulator import FirmwareEmulator
 from masking_lab.formats.resources import shipped
 
@@ -106,7 +114,7 @@ def test_over_limit_raw_frame_is_refused_and_zeroes_both_outputs(emulator_factor
     emu, link = emulator_factory()
     assert link.reply(link.send("SETUP", ch="MV", car=120.0, env=0.0, amp=1.0)).ok
     assert link.reply(link.send("SETUP", ch="EV", car=270.0, env=0.0, amp=0.5)).ok
-    assert dict(emu.outputs().amplitude_v) == {"EV": 0.5, "MV": 1.0}
+    assert dict(emu.outputs().amplitude_v) == {"EV": played(102), "MV": played(205)}
     # 3 V on EV is within the host's idea of nothing here: the frame bypasses any host check
     refused = link.reply(link.send("AMP", ch="EV", amp=3.0))
     assert not refused.ok and refused.code == "LIMIT"
@@ -160,7 +168,7 @@ def test_pings_keep_the_watchdog_fed_and_an_idle_device_never_trips(emulator_fac
     for _ in range(8):  # 0.4 s of pings every 50 ms, longer than the 0.3 s period
         assert link.reply(link.send("PING")).ok
         time.sleep(0.05)
-    assert emu.outputs().amplitude_v["EV"] == 1.0
+    assert emu.outputs().amplitude_v["EV"] == played(205)  # 1 V quantised
     assert link.reply(link.send("STOP")).ok
     assert link.quiet_for(0.45) == b""  # outputs at 0 V: nothing to guard, no WATCHDOG
     assert not any("WATCHDOG" in line for line in emu.log_lines())
@@ -223,7 +231,8 @@ def test_virtual_time_play_reports_planned_onsets_plus_small_seeded_lateness(rig
     onsets = done.numbers("on")
     assert all(0 <= a - p < 0.002 for a, p in zip(onsets, planned, strict=True))
     assert done.number("end") == pytest.approx(5.0 + 0.02 + 3 * 0.03 + 2 * 0.02)
-    assert (done.number("tamp"), done.number("mamp")) == (0.5, 0.3)
+    # played after quantisation: 12 bits over ±10 V, 1 LSB = 4.8828125 mV
+    assert (done.number("tamp"), done.number("mamp")) == (played(102), played(61))
     assert done.numbers("on") == _done_line(1, rig).numbers("on")  # same seed, same lateness
     assert done.numbers("on") != _done_line(2, rig).numbers("on")
 
@@ -251,7 +260,7 @@ def test_stop_aborts_a_trial_in_progress(emulator_factory):
     now = link.reply(link.send("TIME")).number("t")
     seq = link.send("PLAY", at=now, **dict(PLAY, stim=2.0, lead=0.0))
     assert link.reply(seq).ok
-    assert wait_until(lambda: emu.outputs().amplitude_v["MV"] == 0.3, 1.0)
+    assert wait_until(lambda: emu.outputs().amplitude_v["MV"] == played(61), 1.0)
     stop = link.send("STOP")
     frames = link.frames_until(lambda f: f.kind == "reply" and f.seq == stop)
     aborted = [f for f in frames if f.kind == "event" and f.name == "ABORTED"]

@@ -256,7 +256,7 @@ static void cmd_setup(fw_t *fw, const command_t *cmd)
     tone_init_stream(&s->tone, car, env, fw->cfg.fs_hz, fw->cfg.ramp_us);
     s->t0_us = fw_now_us(fw);
     s->active = true;
-    fw->amp_uv[ch] = amp;
+    fw->amp_uv[ch] = played;
     ok_begin(fw, cmd->seq);
     fw_send_frame(fw);
 }
@@ -288,7 +288,7 @@ static void cmd_amp(fw_t *fw, const command_t *cmd)
         return;
     }
     fw->stream[ch].code_amp = code;
-    fw->amp_uv[ch] = amp;
+    fw->amp_uv[ch] = played;
     ok_begin(fw, cmd->seq);
     fw_send_frame(fw);
 }

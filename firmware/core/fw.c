@@ -158,10 +158,10 @@ static void step_trial(fw_t *fw, int64_t now)
         int k = t->step / 2;
         if (t->step % 2 == 0) {
             if (k + 1 == t->ti) {
-                fw->amp_uv[t->target.ch] += t->target.amp_uv;
+                fw->amp_uv[t->target.ch] += t->target.played_uv;
             }
             if (t->masker.ch >= 0) {
-                fw->amp_uv[t->masker.ch] += t->masker.amp_uv;
+                fw->amp_uv[t->masker.ch] += t->masker.played_uv;
             }
             if (!t->onset_seen[k]) {
                 t->actual_us[k] = now; /* no output stage rendered it (yet): when noticed */

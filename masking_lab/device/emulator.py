@@ -38,21 +38,29 @@ from typing import Any
 from masking_lab.core import waveforms
 from masking_lab.core.stimulus import CHANNELS
 from masking_lab.device import protocol as proto
+from masking_lab.device.base import TrialPlan
 from masking_lab.device.config import DeviceConfig, default_device_config
+from masking_lab.device.emulator_checks import (
+    ONE,
+    CheckedPlay,
+    Checker,
+    Converter,
+    LimitError,
+)
 from masking_lab.device.emulator_state import (
     INTERLOCK_TEXT,
     OnsetLateness,
     OutputSnapshot,
     PlayState,
-    channel,
-    check_frequency,
+    build_hash,
     interlock_text,
-    plan_from,
+    plan_of,
     to_us,
     virtual_play,
 )
 
-FIRMWARE_VERSION = "emu-1.0.0"
+FIRMWARE_VERSION = "fw-2.0.0"  # the firmware release whose behaviour this emulates
+PROTOCOL_VERSION = 2
 HARD_MAX_DRIVE_V = 10.0  # the DAC's range: no config can raise a limit above it
 BOOT_BANNER = b"\r\nML bootloader v0.3 ... starting application\r\n"
 __all__ = ["FirmwareEmulator", "OutputSnapshot"]
@@ -84,6 +92,15 @@ class FirmwareEmulator:
         Also append the emulator's event log to this file (fsynced per line).
     interlock_open : bool
         Start with the interlock input open (HV enable off, E-stop pressed or wristband off).
+    bits : int
+        Converter resolution of both channels, bits (HELLO ``bits_ev``/``bits_mv``).
+    fsv_v : float
+        Converter full scale of both channels at the amplifier input, V peak.
+    att_db : tuple of int
+        Attenuator steps the board switches, dB, ascending, first 0 (HELLO ``att``).
+    overdrive : float
+        Fault injection for tests: scale every rendered sample by this factor after the level
+        checks, so the per-sample limit check (``FAULT code=LIMIT``) can be exercised.
     """
 
     def __init__(
@@ -97,6 +114,10 @@ class FirmwareEmulator:
         render_buffers: bool | None = None,
         log_path: str | Path | None = None,
         interlock_open: bool = False,
+        bits: int = 12,
+        fsv_v: float = 10.0,
+        att_db: tuple[int, ...] = (0, 20, 40),
+        overdrive: float = 1.0,
     ) -> None:
         self.config = config or default_device_config()
         self.virtual_time = bool(virtual_time)
@@ -106,6 +127,14 @@ class FirmwareEmulator:
         self.limits = {
             ch: min(HARD_MAX_DRIVE_V, self.config.limits.max_drive_v[ch]) for ch in CHANNELS
         }
+        self.checker = Checker(
+            {ch: round(v * ONE) for ch, v in self.limits.items()},
+            {ch: Converter(int(bits), round(fsv_v * ONE)) for ch in CHANNELS},
+            att_db,
+            round(self.config.waveform.sample_rate_hz),
+        )
+        self.overdrive = float(overdrive)
+        self.build = build_hash()
         self._lateness = OnsetLateness(seed, round(self.config.emulator.onset_jitter_s * 1e6))
         self._interlock_open = bool(interlock_open)
         self._lock = threading.Lock()
@@ -332,7 +361,7 @@ class FirmwareEmulator:
                 self._booting_until = None
                 self._rx.clear()
                 self._out += BOOT_BANNER
-                self._send_event("BOOT", {"fw": FIRMWARE_VERSION})
+                self._send_event("BOOT", {"fw": FIRMWARE_VERSION, "rst": "power"})
                 self._note("BOOT done")
             self._advance_play(now)
             if self._armed() and self.watchdog_s > 0 and now - self._last_rx > self.watchdog_s:
@@ -363,6 +392,9 @@ class FirmwareEmulator:
             return
         try:
             handler(frame)
+        except LimitError as exc:
+            self._note(f"LIMIT #{frame.seq} {exc}: refused")
+            self._err(frame.seq, "LIMIT", str(exc))
         except (proto.FrameError, ValueError) as exc:
             self._err(frame.seq, "ARGS", f"{frame.name}: {exc}")
 
@@ -370,11 +402,16 @@ class FirmwareEmulator:
         self._zero("HELLO (new host session)")
         emu = self.config.emulator
         self._note(f"HELLO from host #{frame.seq}")
-        fields = {"proto": proto.PROTOCOL_VERSION, "fw": FIRMWARE_VERSION}
+        fields: dict[str, Any] = {"proto": PROTOCOL_VERSION, "fw": FIRMWARE_VERSION}
         fields.update(model=emu.model.replace(" ", "_"), sn=emu.serial_number.replace(" ", "_"))
         fields.update(max_ev=self.limits["EV"], max_mv=self.limits["MV"])
         fields.update(wd_ms=round(self.watchdog_s * 1000), fs=self.config.waveform.sample_rate_hz)
         fields.update(vt=int(self.virtual_time), il=interlock_text(self._interlock_open))
+        fields.update(build=self.build, clk="host", rst="power")
+        cv = self.checker.converters
+        fields.update(bits_ev=cv["EV"].bits, bits_mv=cv["MV"].bits)
+        fields.update(fsv_ev=cv["EV"].fsv_uv / ONE, fsv_mv=cv["MV"].fsv_uv / ONE)
+        fields.update(att=list(self.checker.att_db))
         self._ok(frame.seq, fields)
 
     def _cmd_time(self, frame: proto.Frame) -> None:
@@ -403,32 +440,27 @@ class FirmwareEmulator:
     def _cmd_setup(self, frame: proto.Frame) -> None:
         if self._interlocked(frame):
             return
-        ch = channel(frame, "ch")
-        carrier, env, amp = frame.number("car"), frame.number("env"), frame.number("amp")
-        check_frequency(carrier, env, self.config.waveform.sample_rate_hz)
+        ch, car, env, amp_uv = self.checker.stream(frame.fields, setup=True)
         if self._play is not None:
             self._err(frame.seq, "BUSY", "SETUP while a trial is playing")
             return
-        if not self._within_limit(frame.seq, ch, amp):
-            return
-        self._stream[ch] = (carrier, env or None)
-        self._amp[ch] = amp
+        _, played_uv = self.checker.level(ch, amp_uv, 0)
+        self._stream[ch] = (car / ONE, env / ONE or None)
+        self._amp[ch] = played_uv / ONE
         self._ok(frame.seq)
 
     def _cmd_amp(self, frame: proto.Frame) -> None:
         if self._interlocked(frame):
             return
-        ch = channel(frame, "ch")
-        amp = frame.number("amp")
+        ch, _, _, amp_uv = self.checker.stream(frame.fields, setup=False)
         if self._play is not None:
             self._err(frame.seq, "BUSY", "AMP while a trial is playing")
             return
         if ch not in self._stream:
             self._err(frame.seq, "STATE", f"AMP on {ch} before SETUP of {ch}")
             return
-        if not self._within_limit(frame.seq, ch, amp):
-            return
-        self._amp[ch] = amp
+        _, played_uv = self.checker.level(ch, amp_uv, 0)
+        self._amp[ch] = played_uv / ONE
         self._ok(frame.seq)
 
     def _cmd_play(self, frame: proto.Frame) -> None:
@@ -437,20 +469,15 @@ class FirmwareEmulator:
         if self._play is not None:
             self._err(frame.seq, "BUSY", "PLAY while a trial is playing")
             return
-        plan = plan_from(frame, self.config.waveform.sample_rate_hz)
-        amps = {ch: 0.0 for ch in CHANNELS}
-        amps[plan.target.channel] += plan.target_amplitude_v
-        if plan.masker is not None:
-            amps[plan.masker.channel] += plan.masker_amplitude_v
-        for ch, amp in amps.items():
-            if not self._within_limit(frame.seq, ch, amp):
-                return
+        checked = self.checker.play(frame.fields, to_us(self._device_now()))
+        checked = self.checker.play_levels(checked)
+        plan = plan_of(checked)  # amplitudes as played (quantised)
         # PLAY owns the outputs: any streamed output stops first.
         self._stream.clear()
         self._amp = dict.fromkeys(CHANNELS, 0.0)
-        at = frame.number("at")
+        at = checked.at_us / ONE
         if self.virtual_time:  # integer µs, so the onsets match the C firmware to the digit
-            start_us = max(to_us(at), self._vt_us)
+            start_us = max(checked.at_us, self._vt_us)
             self._ok(frame.seq, {"start": start_us / 1e6})
             onsets_us, end_us = virtual_play(plan, start_us, self._lateness)
             self._vt_us = max(self._vt_us, end_us)
@@ -465,16 +492,33 @@ class FirmwareEmulator:
         start = max(at, now)
         planned = plan.planned_onsets_s(start)
         play = PlayState(frame.seq, start, plan, planned)
-        if self.render_buffers:
-            bufs = waveforms.trial_buffers(
-                plan, self.config.waveform.sample_rate_hz, ramp_s=self.config.waveform.ramp_s
-            )
-            self._last_sample = {ch: float(bufs.channel(ch)[-1]) for ch in CHANNELS}
+        if self.render_buffers and not self._render_within_limits(plan, checked):
+            return
         self._ok(frame.seq, {"start": start})
         for k, onset in enumerate(planned):
             play.steps.append((onset, "on", k))
             play.steps.append((onset + plan.stimulus_s, "off", k))
         self._play = play
+
+    def _render_within_limits(self, plan: TrialPlan, checked: CheckedPlay) -> bool:
+        """Render the trial like the output stage and check every sample against its limit.
+
+        Each tone peaks at its played (quantised) amplitude, within the limit checked at PLAY;
+        a sample over the channel's limit all the same (fault injection, ``overdrive``) is
+        ``FAULT code=LIMIT``: nothing is played. (The firmware scales each tone by its
+        closed-form peak bound instead of the sampled peak: its samples are never larger.)
+        """
+        fs, ramp = self.config.waveform.sample_rate_hz, self.config.waveform.ramp_s
+        bufs = waveforms.trial_buffers(plan, fs, ramp_s=ramp)
+        for ch in CHANNELS:
+            samples = bufs.channel(ch) * self.overdrive
+            if len(samples) and float(abs(samples).max()) > self.limits[ch] + 1e-9:
+                self._fault(
+                    "LIMIT", f"a rendered {ch} sample is over the {self.limits[ch]:g} V limit"
+                )
+                return False
+            self._last_sample[ch] = float(samples[-1]) if len(samples) else 0.0
+        return True
 
     def _advance_play(self, now_real: float) -> None:
         play = self._play
@@ -503,13 +547,6 @@ class FirmwareEmulator:
         self._send_event("DONE", fields)
 
     # ---------------------------------------------------------------- helpers (lock held)
-
-    def _within_limit(self, seq: int, ch: str, amp: float) -> bool:
-        if 0 <= amp <= self.limits[ch]:
-            return True
-        self._note(f"LIMIT #{seq} {ch} {amp:g} V > {self.limits[ch]:g} V refused")
-        self._err(seq, "LIMIT", f"{ch} amplitude {amp:g} V exceeds the {self.limits[ch]:g} V limit")
-        return False
 
     def _armed(self) -> bool:
         return self._play is not None or any(v > 0 for v in self._amp.values())

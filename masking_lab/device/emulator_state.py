@@ -1,24 +1,25 @@
 """Pieces of the firmware emulator that are not about serving a port.
 
-The output snapshot tests read, the state of a scheduled trial, the PLAY field parsing and
-checks (the same order and error codes as ``firmware/core/commands.c``), and the virtual-time
+The output snapshot tests read, the state of a scheduled trial, the plan of a checked PLAY
+(the checks themselves are in :mod:`masking_lab.device.emulator_checks`), the build id, and
+the virtual-time
 onset lateness generator, which is defined bit for bit in ``docs/device-protocol.md`` so the
 emulator and the C firmware report the same onsets for the same seed.
 """
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass, field
+from pathlib import Path
 from types import MappingProxyType
 
-from masking_lab.core.stimulus import CHANNELS, Stimulus
-from masking_lab.device import protocol as proto
+from masking_lab.core.stimulus import Stimulus
 from masking_lab.device.base import TrialPlan
+from masking_lab.device.emulator_checks import ONE, CheckedPlay, Part
 
 PRNG_SEED_MIX = 0x6D2B79F5
 _MASK32 = 0xFFFFFFFF
-MAX_INTERVALS = 9
-MAX_TRIAL_US = 60_000_000
 INTERLOCK_TEXT = "interlock open: check HV enable, E-stop and the grounding wristband"
 
 
@@ -168,45 +169,13 @@ def to_us(seconds: float) -> int:
     return round(seconds * 1_000_000)
 
 
-def channel(frame: proto.Frame, key: str) -> str:
-    """Field ``key`` as ``"EV"``/``"MV"``; ValueError otherwise.
-
-    Examples
-    --------
-    >>> channel(proto.decode(proto.encode_command(1, "AMP", {"ch": "MV"})), "ch")
-    'MV'
-    """
-    ch = frame.fields.get(key)
-    if ch not in CHANNELS:
-        raise ValueError(f"{key}={ch!r} is not EV or MV")
-    return ch
-
-
-def check_frequency(carrier: float, env: float | None, sample_rate_hz: float) -> None:
-    """ValueError unless ``0 < carrier < fs/2`` and ``0 <= env < fs/2`` (Hz).
-
-    Examples
-    --------
-    >>> check_frequency(270.0, None, 1000.0)
-    >>> check_frequency(600.0, None, 1000.0)
-    Traceback (most recent call last):
-    ...
-    ValueError: frequencies must be in (0, 500) Hz
-    """
-    nyquist = sample_rate_hz / 2
-    if not 0 < carrier < nyquist or (env is not None and not 0 <= env < nyquist):
-        raise ValueError(f"frequencies must be in (0, {nyquist:g}) Hz")
-
-
-def plan_from(frame: proto.Frame, sample_rate_hz: float) -> TrialPlan:
-    """The TrialPlan of a PLAY frame; FrameError/ValueError (→ ``ERR ARGS``) if a field is bad.
+def plan_of(play: CheckedPlay) -> TrialPlan:
+    """The TrialPlan of a checked PLAY, amplitudes as played (quantised), for rendering.
 
     Parameters
     ----------
-    frame : Frame
-        A decoded PLAY command (carriers and envelopes in Hz, amplitudes in V, times in s).
-    sample_rate_hz : float
-        The emulator's sample rate, Hz (frequencies must lie below half of it).
+    play : CheckedPlay
+        Fields in integer µs / µV / µHz that passed the firmware's checks and levels.
 
     Returns
     -------
@@ -214,37 +183,52 @@ def plan_from(frame: proto.Frame, sample_rate_hz: float) -> TrialPlan:
 
     Examples
     --------
-    >>> play = proto.decode(proto.encode_command(7, "PLAY", {
-    ...     "tch": "EV", "tcar": 270, "tenv": 0, "tamp": 0.05, "ti": 2, "n": 3, "mch": "MV",
-    ...     "mcar": 120, "menv": 0, "mamp": 0.2, "stim": 1.8, "gap": 0.6, "lead": 0.6}))
-    >>> plan = plan_from(play, 10_000.0)
-    >>> plan.target.name, plan.target_amplitude_v, plan.masker.name, plan.duration_s
-    ('EV270', 0.05, 'MV120', 7.2)
+    >>> from masking_lab.device.emulator_checks import Part
+    >>> play = CheckedPlay(Part("EV", 270_000_000, 0, 50_000, played_uv=48_828),
+    ...                    None, 2, 3, 1_800_000, 600_000, 600_000, 0)
+    >>> plan = plan_of(play)
+    >>> plan.target.name, plan.target_amplitude_v, plan.duration_s
+    ('EV270', 0.048828, 7.2)
     """
-    target = Stimulus(channel(frame, "tch"), frame.number("tcar"), frame.number("tenv") or None)
-    check_frequency(target.carrier_hz, target.envelope_hz, sample_rate_hz)
-    masker = None
-    if frame.fields.get("mch", "-") != "-":
-        masker = Stimulus(channel(frame, "mch"), frame.number("mcar"), frame.number("menv") or None)
-        check_frequency(masker.carrier_hz, masker.envelope_hz, sample_rate_hz)
-    n = int(frame.number("n"))
-    ti = int(frame.number("ti"))
-    if not 1 <= ti <= n or n > MAX_INTERVALS:
-        raise ValueError(f"ti={ti} n={n}: need 1 <= ti <= n <= {MAX_INTERVALS}")
-    plan = TrialPlan(
-        target=target,
-        target_amplitude_v=frame.number("tamp"),
-        target_interval=ti,
-        masker=masker,
-        masker_amplitude_v=frame.number("mamp") if masker is not None else 0.0,
-        stimulus_s=frame.number("stim"),
-        gap_s=frame.number("gap"),
-        lead_in_s=frame.number("lead"),
-        n_intervals=n,
+
+    def stim(part: Part) -> Stimulus:
+        env = part.envelope_uhz / ONE or None
+        return Stimulus(part.channel, part.carrier_uhz / ONE, env)
+
+    m = play.masker
+    return TrialPlan(
+        target=stim(play.target),
+        target_amplitude_v=play.target.played_uv / ONE,
+        target_interval=play.ti,
+        masker=stim(m) if m is not None else None,
+        masker_amplitude_v=m.played_uv / ONE if m is not None else 0.0,
+        stimulus_s=play.stim_us / ONE,
+        gap_s=play.gap_us / ONE,
+        lead_in_s=play.lead_us / ONE,
+        n_intervals=play.n,
     )
-    if plan.stimulus_s <= 0 or plan.gap_s < 0 or plan.lead_in_s < 0 or plan.duration_s > 60:
-        raise ValueError("durations must be stim > 0, gap >= 0, lead >= 0, trial <= 60 s")
-    return plan
+
+
+def build_hash(root: Path | None = None) -> str:
+    """The firmware build id HELLO reports: 12 hex digits of SHA-256 over firmware/core.
+
+    The same recipe as the Makefile's ``FW_BUILD``: the bytes of ``firmware/core/*.c`` and
+    ``*.h`` in sorted name order, concatenated. ``000000000000`` when the sources are not
+    found (an installed package without the firmware tree).
+
+    Examples
+    --------
+    >>> len(build_hash()), build_hash(Path("/nonexistent"))
+    (12, '000000000000')
+    """
+    core = (root or Path(__file__).resolve().parents[2]) / "firmware" / "core"
+    files = sorted(p for p in core.glob("*") if p.suffix in (".c", ".h")) if core.is_dir() else []
+    if not files:
+        return "000000000000"
+    digest = hashlib.sha256()
+    for path in files:
+        digest.update(path.read_bytes())
+    return digest.hexdigest()[:12]
 
 
 def virtual_play(plan: TrialPlan, start_us: int, lateness: OnsetLateness) -> tuple[list[int], int]:

@@ -24,7 +24,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Literal
 
-PROTOCOL_VERSION = 1
+PROTOCOL_VERSION = 2
 SEQ_MODULO = 65536
 MAX_FRAME_BYTES = 256  # longest line either side accepts, terminator included
 
