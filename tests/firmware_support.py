@@ -24,6 +24,7 @@ import serial
 from masking_lab.device import protocol as proto
 from masking_lab.device.config import parse_device_config
 from masking_lab.device.emulator import FirmwareEmulator
+from masking_lab.device.emulator_checks import Converter
 
 REPO = Path(__file__).resolve().parents[1]
 FIRMWARE = REPO / "firmware"
@@ -48,6 +49,16 @@ emulator: {model: TEST-EMU, serial_number: T-42, onset_jitter_s: 0.00005}
 """
 HOST_ARGS = ["--wd-ms", "300", "--max-ev", "2.5", "--max-mv", "8", "--fs", "10000"]
 HOST_ARGS += ["--ramp-us", "2000", "--sn", "T-42"]
+
+
+def played(volts: float, att_db: int = 0) -> float:
+    """What a request plays on every implementation's default converter (12 bits, ±10 V), V.
+
+    The amplitude in whole LSBs (1 LSB = 4.8828125 mV at 0 dB) and back, to the µV: what
+    DONE's tamp/mamp and DIAG's ev/mv report for a request of ``volts``.
+    """
+    dac = Converter(12, 10_000_000)
+    return dac.played_uv(dac.code(round(volts * 1e6), att_db), att_db) / 1e6
 
 
 def rig_config():
