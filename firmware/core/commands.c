@@ -222,6 +222,8 @@ static void cmd_diag(fw_t *fw, const command_t *cmd)
     frame_add_micro(&fw->tx, "dac_mv", (int64_t)(dac[CH_MV] * 1e6f));
     frame_add_int(&fw->tx, "wd", fw->wd_trips);
     frame_add_micro(&fw->tx, "t", fw_now_us(fw));
+    frame_add_micro(&fw->tx, "pk_ev", fw->peak_uv[CH_EV]);
+    frame_add_micro(&fw->tx, "pk_mv", fw->peak_uv[CH_MV]);
     fw_send_frame(fw);
 }
 
@@ -375,6 +377,28 @@ static bool plan_levels(fw_t *fw, uint16_t seq, trial_t *t)
     return true;
 }
 
+/* Virtual time with vt_render: push every sample of the trial through the output stage's
+ * checks (host build only: this is the long work a real board does in its DMA refill). */
+static bool vt_render(fw_t *fw, int64_t end)
+{
+    trial_t *t = &fw->trial;
+    float out[CH_COUNT];
+    trial_prepare_tones(t, fw->cfg.fs_hz, fw->cfg.ramp_us);
+    fw->playing = true;
+    uint32_t n = us_to_samples(end - t->start_us, fw->cfg.fs_hz);
+    for (uint32_t i = 0; i <= n && !fw->limit_tripped; i++) {
+        int64_t t_us = t->start_us + (int64_t)((uint64_t)i * 1000000u / fw->cfg.fs_hz);
+        fw_render(fw, t_us, out);
+    }
+    if (fw->limit_tripped) {
+        fw_limit_fault(fw);
+        return false;
+    }
+    fw->playing = false;
+    board_outputs_zero();
+    return true;
+}
+
 static void cmd_play(fw_t *fw, const command_t *cmd)
 {
     ctx_t c = {fw, cmd, false};
@@ -408,6 +432,9 @@ static void cmd_play(fw_t *fw, const command_t *cmd)
     fw_send_frame(fw);
     int64_t end = clock_add_sat(t->start_us, trial_duration_us(t));
     if (fw->cfg.virtual_time) {
+        if (fw->cfg.vt_render && !vt_render(fw, end)) {
+            return; /* FAULT code=LIMIT sent instead of DONE */
+        }
         /* Nothing plays: report the planned onsets plus the documented lateness. */
         for (int k = 0; k < t->n; k++) {
             t->actual_us[k] = t->planned_us[k] + prng_lateness_us(&fw->prng, fw->cfg.jitter_us);

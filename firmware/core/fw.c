@@ -13,6 +13,7 @@ void fw_apply_attenuators(fw_t *fw)
 {
     for (int ch = 0; ch < CH_COUNT; ch++) {
         uint8_t att = fw->cfg.att_db[fw->att_idx[ch]];
+        fw->peak_code[ch] = 0; /* codes of another step are not comparable */
         fw->code_limit[ch] = level_code_limit(&fw->conv[ch], fw->cfg.limit_uv[ch], att);
         /* V at the amplifier input per code: 2 fsv / 2^bits / 10^(att/20) */
         float lsb = (float)fw->conv[ch].fsv_uv * 2.0f / 1e6f / (float)(1u << fw->conv[ch].bits);
@@ -177,18 +178,24 @@ static void step_trial(fw_t *fw, int64_t now)
     }
 }
 
+void fw_limit_fault(fw_t *fw)
+{
+    if (!fw->limit_tripped) {
+        return;
+    }
+    /* the output stage met a sample over its limit and already played 0 instead */
+    fw->limit_tripped = false;
+    fw->faults++;
+    fw_zero(fw, "LIMIT");
+    fw_begin_event(fw, "FAULT");
+    frame_add_str(&fw->tx, "code", "LIMIT");
+    fw_send_frame(fw);
+}
+
 void fw_poll(fw_t *fw)
 {
     board_iwdg_feed();
-    if (fw->limit_tripped) {
-        /* the output stage met a sample over its limit and already played 0 instead */
-        fw->limit_tripped = false;
-        fw->faults++;
-        fw_zero(fw, "LIMIT");
-        fw_begin_event(fw, "FAULT");
-        frame_add_str(&fw->tx, "code", "LIMIT");
-        fw_send_frame(fw);
-    }
+    fw_limit_fault(fw);
     uint64_t mono = clock_now_us();
     if (fw->playing && !fw->cfg.virtual_time) {
         step_trial(fw, fw_now_us(fw));
@@ -279,5 +286,11 @@ void fw_render(fw_t *fw, int64_t t_us, float out[CH_COUNT])
     for (int ch = 0; ch < CH_COUNT; ch++) {
         fw->out_code[ch] = c[ch];
         out[ch] = (float)c[ch] * fw->v_per_code[ch];
+        int64_t mag = c[ch] < 0 ? -(int64_t)c[ch] : c[ch];
+        if (mag > fw->peak_code[ch]) { /* exact µV only when a new largest code appears */
+            fw->peak_code[ch] = mag;
+            int64_t uv = level_played_uv(&fw->conv[ch], mag, fw->cfg.att_db[fw->att_idx[ch]]);
+            fw->peak_uv[ch] = uv > fw->peak_uv[ch] ? uv : fw->peak_uv[ch];
+        }
     }
 }

@@ -36,6 +36,8 @@ typedef struct {
     uint8_t n_att;
     const char *build;                /* 12 hex digits (FW_BUILD if NULL) */
     uint32_t test_overdrive_pct;      /* fault injection (host build tests only): 0 = off */
+    bool vt_render;                   /* virtual time: still render every trial's samples
+                                       * through fw_render (host build: corpus, tests) */
 } fw_config_t;
 
 typedef struct {
@@ -62,6 +64,8 @@ typedef struct {
     float v_per_code[CH_COUNT];  /* V at the amplifier input per code at att_idx */
     int32_t out_code[CH_COUNT];  /* last rendered sample, signed codes around mid-scale */
     bool limit_tripped;          /* a rendered sample was over its limit: FAULT pending */
+    int64_t peak_code[CH_COUNT]; /* largest |code| since the attenuators last changed */
+    int64_t peak_uv[CH_COUNT];   /* largest |sample| output since boot, µV (DIAG pk_ev/pk_mv) */
     int64_t vt_us;
     bool interlock_open;
     uint32_t wd_trips;

@@ -168,7 +168,7 @@ static void usage(const char *argv0)
             "usage: %s [--virtual-time] [--wd-ms N] [--max-ev V] [--max-mv V] [--fs HZ]\n"
             "          [--ramp-us N] [--jitter-us N] [--seed N] [--sn TEXT] [--model TEXT]\n"
             "          [--interlock-open] [--bits-ev N] [--bits-mv N] [--fsv-ev V]\n"
-            "          [--fsv-mv V] [--att DB,DB,..] [--iwdg-ms N]\n"
+            "          [--fsv-mv V] [--att DB,DB,..] [--iwdg-ms N] [--vt-render]\n"
             "  test-only fault injection: [--test-overdrive-pct P] [--test-stall-ms N]\n"
             "          [--clock-start-us N]\n"
             "Serves the masking-lab device protocol on a new pseudo-terminal; prints its path.\n"
@@ -237,6 +237,8 @@ int main(int argc, char **argv)
         const char *v = (i + 1 < argc) ? argv[i + 1] : NULL;
         if (strcmp(a, "--virtual-time") == 0) {
             cfg.virtual_time = true;
+        } else if (strcmp(a, "--vt-render") == 0) {
+            cfg.vt_render = true;
         } else if (strcmp(a, "--interlock-open") == 0) {
             il_open = true;
         } else if (strcmp(a, "-h") == 0 || strcmp(a, "--help") == 0) {

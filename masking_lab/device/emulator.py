@@ -42,7 +42,6 @@ from masking_lab.device.base import TrialPlan
 from masking_lab.device.config import DeviceConfig, default_device_config
 from masking_lab.device.emulator_checks import (
     ONE,
-    CheckedPlay,
     Checker,
     Converter,
     LimitError,
@@ -145,6 +144,7 @@ class FirmwareEmulator:
         self._amp = dict.fromkeys(CHANNELS, 0.0)
         self._stream: dict[str, tuple[float, float | None]] = {}
         self._last_sample = dict.fromkeys(CHANNELS, 0.0)
+        self._peak = dict.fromkeys(CHANNELS, 0.0)  # largest |rendered sample| since start, V
         self._play: PlayState | None = None
         self._faults: dict[str, int] = {}
         self._wd_trips = 0
@@ -424,6 +424,7 @@ class FirmwareEmulator:
         fields = {"ev": self._amp["EV"], "mv": self._amp["MV"], "playing": int(bool(self._play))}
         fields.update(il=interlock_text(self._interlock_open), dac_ev=self._last_sample["EV"])
         fields.update(dac_mv=self._last_sample["MV"], wd=self._wd_trips, t=self._device_now())
+        fields.update(pk_ev=round(self._peak["EV"], 6), pk_mv=round(self._peak["MV"], 6))
         self._ok(frame.seq, fields)
 
     def _interlocked(self, frame: proto.Frame) -> bool:
@@ -479,12 +480,17 @@ class FirmwareEmulator:
         if self.virtual_time:  # integer µs, so the onsets match the C firmware to the digit
             start_us = max(checked.at_us, self._vt_us)
             self._ok(frame.seq, {"start": start_us / 1e6})
+            play = PlayState(frame.seq, start_us / 1e6, plan, [], actual=[])
+            if self.render_buffers:  # like the host build's --vt-render: OK, then render
+                self._play = play
+                if not self._render_within_limits(plan):
+                    return  # ABORTED why=LIMIT + FAULT code=LIMIT sent, outputs zeroed
+                self._play = None
             onsets_us, end_us = virtual_play(plan, start_us, self._lateness)
             self._vt_us = max(self._vt_us, end_us)
             if self._take_fault("unplug_on_play"):
                 self._unplug_locked("unplug injected during PLAY")
                 return
-            play = PlayState(frame.seq, start_us / 1e6, plan, [], actual=[])
             play.actual = [t / 1e6 for t in onsets_us]
             self._send_done(play, end_us / 1e6)
             return
@@ -492,20 +498,20 @@ class FirmwareEmulator:
         start = max(at, now)
         planned = plan.planned_onsets_s(start)
         play = PlayState(frame.seq, start, plan, planned)
-        if self.render_buffers and not self._render_within_limits(plan, checked):
-            return
         self._ok(frame.seq, {"start": start})
         for k, onset in enumerate(planned):
             play.steps.append((onset, "on", k))
             play.steps.append((onset + plan.stimulus_s, "off", k))
         self._play = play
+        if self.render_buffers:
+            self._render_within_limits(plan)  # over a limit: ABORTED + FAULT, zeroed
 
-    def _render_within_limits(self, plan: TrialPlan, checked: CheckedPlay) -> bool:
+    def _render_within_limits(self, plan: TrialPlan) -> bool:
         """Render the trial like the output stage and check every sample against its limit.
 
         Each tone peaks at its played (quantised) amplitude, within the limit checked at PLAY;
         a sample over the channel's limit all the same (fault injection, ``overdrive``) is
-        ``FAULT code=LIMIT``: nothing is played. (The firmware scales each tone by its
+        ``ABORTED why=LIMIT`` and ``FAULT code=LIMIT``: nothing is played. (The firmware scales each tone by its
         closed-form peak bound instead of the sampled peak: its samples are never larger.)
         """
         fs, ramp = self.config.waveform.sample_rate_hz, self.config.waveform.ramp_s
@@ -518,6 +524,8 @@ class FirmwareEmulator:
                 )
                 return False
             self._last_sample[ch] = float(samples[-1]) if len(samples) else 0.0
+            peak = float(abs(samples).max()) if len(samples) else 0.0
+            self._peak[ch] = max(self._peak[ch], peak)
         return True
 
     def _advance_play(self, now_real: float) -> None:
