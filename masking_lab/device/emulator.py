@@ -511,8 +511,9 @@ class FirmwareEmulator:
 
         Each tone peaks at its played (quantised) amplitude, within the limit checked at PLAY;
         a sample over the channel's limit all the same (fault injection, ``overdrive``) is
-        ``ABORTED why=LIMIT`` and ``FAULT code=LIMIT``: nothing is played. (The firmware scales each tone by its
-        closed-form peak bound instead of the sampled peak: its samples are never larger.)
+        ``ABORTED why=LIMIT`` and ``FAULT code=LIMIT``: nothing is played. (The firmware
+        scales each tone by its closed-form peak bound instead of the sampled peak: its
+        samples are never larger.)
         """
         fs, ramp = self.config.waveform.sample_rate_hz, self.config.waveform.ramp_s
         bufs = waveforms.trial_buffers(plan, fs, ramp_s=ramp)
