@@ -29,6 +29,7 @@ from masking_lab.device.emulator_checks import Converter
 REPO = Path(__file__).resolve().parents[1]
 FIRMWARE = REPO / "firmware"
 HOST_FW = FIRMWARE / "build" / "host" / "masking-fw"
+HOST_ASAN_FW = FIRMWARE / "build" / "host-asan" / "masking-fw"  # ASan + UBSan
 QEMU_FW = FIRMWARE / "build" / "qemu" / "masking-fw.elf"
 TARGETS = ("emulator", "host", "qemu")
 # -icount: the guest clock follows executed instructions, so device-reported times are
@@ -73,7 +74,8 @@ def _missing(tools: list[str]) -> str | None:
 @functools.cache
 def _make(target: str) -> str | None:
     """Build one firmware target; the reason it cannot be built, or None."""
-    tools = {"host": ["make", "gcc"], "qemu": ["make", "arm-none-eabi-gcc", "qemu-system-arm"]}
+    tools = {"host": ["make", "gcc"], "host-asan": ["make", "gcc"]}
+    tools["qemu"] = ["make", "arm-none-eabi-gcc", "qemu-system-arm"]
     absent = _missing(tools[target])
     if absent:
         return f"{absent} not installed (apt-get install gcc-arm-none-eabi qemu-system-arm make)"
@@ -111,9 +113,11 @@ class Device:
 
 
 class EmulatorDevice(Device):
-    def __init__(self, *, virtual_time: bool = False, seed: int = 0) -> None:
+    def __init__(self, *, virtual_time: bool = False, seed: int = 0, **options) -> None:
         self.name, self.vt = "emulator", virtual_time
-        self.emu = FirmwareEmulator(rig_config(), virtual_time=virtual_time, seed=seed).start()
+        self.emu = FirmwareEmulator(
+            rig_config(), virtual_time=virtual_time, seed=seed, **options
+        ).start()
         self.port = self.emu.port
 
     def set_interlock(self, is_open: bool) -> None:
@@ -124,10 +128,10 @@ class EmulatorDevice(Device):
 
 
 class HostFirmware(Device):
-    def __init__(self, *args: str) -> None:
+    def __init__(self, *args: str, binary: Path = HOST_FW) -> None:
         self.name, self.vt = "host", "--virtual-time" in args
         self.proc = subprocess.Popen(
-            [str(HOST_FW), *HOST_ARGS, *args],
+            [str(binary), *HOST_ARGS, *args],
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
             text=True,
@@ -138,10 +142,11 @@ class HostFirmware(Device):
     def set_interlock(self, is_open: bool) -> None:
         self.proc.send_signal(signal.SIGUSR1 if is_open else signal.SIGUSR2)
 
-    def close(self) -> None:
+    def close(self) -> str:
+        """Stop the process; its stderr (sanitizer reports land there)."""
         if self.proc.poll() is None:
             self.proc.terminate()
-        self.proc.communicate(timeout=10)
+        return self.proc.communicate(timeout=10)[1]
 
 
 class QemuFirmware(Device):
@@ -192,16 +197,22 @@ def _wait_until_answering(port: str, timeout: float = 10.0) -> None:
         raise TimeoutError(f"QEMU firmware on {port} never answered")
 
 
-def start(target: str, **kwargs) -> Device:
-    """Start a fresh ``target`` (building it first); close it with ``.close()``."""
+def start(target: str, *, host_args: tuple[str, ...] = (), **kwargs) -> Device:
+    """Start a fresh ``target`` (building it first); close it with ``.close()``.
+
+    ``target`` is ``emulator``, ``host``, ``host-asan`` (the host build under ASan+UBSan) or
+    ``qemu``; ``host_args`` go to the host builds only, other keyword options to the
+    emulator (``virtual_time`` and ``seed`` to both).
+    """
     require_build(target)
     if target == "emulator":
         return EmulatorDevice(**kwargs)
-    if target == "host":
+    if target in ("host", "host-asan"):
         args = ["--virtual-time"] if kwargs.get("virtual_time") else []
         if "seed" in kwargs:
             args += ["--seed", str(kwargs["seed"])]
-        return HostFirmware(*args)
+        binary = HOST_FW if target == "host" else HOST_ASAN_FW
+        return HostFirmware(*args, *host_args, binary=binary)
     return QemuFirmware()
 
 

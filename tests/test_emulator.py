@@ -17,7 +17,9 @@ from firmware_support import Link
 
 from masking_lab.device import protocol as proto
 from masking_lab.device.config import load_device_config
+from masking_lab.device.emulator import FirmwareEmulator
 from masking_lab.device.emulator_checks import Converter
+from masking_lab.formats.resources import shipped
 
 DAC = Converter(12, 10_000_000)  # the emulator's default converter: 12 bits over ±10 V
 
@@ -25,8 +27,7 @@ DAC = Converter(12, 10_000_000)  # the emulator's default converter: 12 bits ove
 def played(code: int) -> float:
     """V a code amplitude plays with no attenuation (1 LSB = 4.8828125 mV), to the µV."""
     return DAC.played_uv(code, 0) / 1e6
-from masking_lab.device.emulator import FirmwareEmulator
-from masking_lab.formats.resources import shipped
+
 
 RIG = """\
 schema_version: 1
