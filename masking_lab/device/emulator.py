@@ -60,6 +60,7 @@ from masking_lab.device.emulator_state import (
 
 FIRMWARE_VERSION = "fw-2.0.0"  # the firmware release whose behaviour this emulates
 PROTOCOL_VERSION = 2
+MAX_FIELDS = 24  # FRAME_MAX_FIELDS of firmware/core/frame.h
 HARD_MAX_DRIVE_V = 10.0  # the DAC's range: no config can raise a limit above it
 BOOT_BANNER = b"\r\nML bootloader v0.3 ... starting application\r\n"
 __all__ = ["FirmwareEmulator", "OutputSnapshot"]
@@ -382,6 +383,9 @@ class FirmwareEmulator:
         if frame.kind != "command":
             self._fault("FRAME", f"expected a command, got a {frame.kind}")
             return
+        if len(frame.fields) > MAX_FIELDS:  # the firmware's command_t holds no more
+            self._fault("FRAME", f"more than {MAX_FIELDS} fields")
+            return
         if self._take_fault("mute"):
             return  # a hung firmware neither answers nor feeds its watchdog
         self._last_rx = time.perf_counter()
@@ -516,6 +520,8 @@ class FirmwareEmulator:
         samples are never larger.)
         """
         fs, ramp = self.config.waveform.sample_rate_hz, self.config.waveform.ramp_s
+        if round(plan.stimulus_s * fs) + 1 < 3:
+            return True  # under 3 samples a ramped tone is all zeros (the firmware's too)
         bufs = waveforms.trial_buffers(plan, fs, ramp_s=ramp)
         for ch in CHANNELS:
             samples = bufs.channel(ch) * self.overdrive
