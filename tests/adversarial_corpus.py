@@ -22,8 +22,11 @@ from collections import Counter
 from dataclasses import dataclass, field
 
 import serial
+from firmware_support import Link, start
 
 from masking_lab.device import protocol as proto
+from masking_lab.device.config import parse_device_config
+from masking_lab.device.emulator import FirmwareEmulator
 
 SENTINEL_SEQ = 65000  # corpus frames use 1..60000, so the batch-end PING is unmistakable
 HUGE = "999999999999.999999"
@@ -356,3 +359,75 @@ def first_mismatch(results: dict[str, Result], eps: list[list[bytes]]) -> str | 
                 frame = frames[k] if k < len(frames) else b"?"
                 return f"frame {k} {frame!r}: {names[0]} {a} / {other} {b}"
     return None
+
+
+@dataclass
+class CorpusRun:
+    """One corpus run: what was sent, each implementation's answers, the figures."""
+
+    frames: int
+    results: dict[str, Result]
+    mismatch: str | None
+    stderr: str  # of the sanitizer build
+    limits: tuple[float, float]
+    seconds: float
+
+
+def _rig(max_ev: float, max_mv: float, fs: int, wd_s: float, ramp_s: float) -> str:
+    return (
+        "schema_version: 1\n"
+        f"channels:\n  EV: {{max_drive_v: {max_ev}}}\n  MV: {{max_drive_v: {max_mv}}}\n"
+        f"serial: {{reply_timeout_s: 0.5, watchdog_s: {wd_s}}}\n"
+        f"waveform: {{sample_rate_hz: {fs}, ramp_s: {ramp_s}}}\n"
+        "emulator: {model: TEST-EMU, serial_number: T-42, onset_jitter_s: 0.00005}\n"
+    )
+
+
+def _finish(ports, eps, limits, stop) -> CorpusRun:
+    t0 = time.monotonic()
+    try:
+        results = run(ports, eps)
+    finally:
+        stderr = stop()
+    n = sum(len(e) for e in eps)
+    return CorpusRun(
+        n, results, first_mismatch(results, eps), stderr, limits, time.monotonic() - t0
+    )
+
+
+def virtual_time_run(frames: int, seed: int) -> CorpusRun:
+    """Emulator vs the sanitizer host build, virtual time, every trial rendered at 1 kHz."""
+    config = parse_device_config(_rig(2.5, 8, 1000, 0.3, 0.002), "corpus rig")
+    host = start("host-asan", virtual_time=True, host_args=("--vt-render", "--fs", "1000"))
+    emu = FirmwareEmulator(config, virtual_time=True, render_buffers=True).start()
+    eps = episodes(seed, frames, Profile(2.5, 8.0, 1000, ("0", "20", "40")))
+
+    def stop() -> str:
+        emu.close()
+        return host.close()
+
+    return _finish({"emulator": emu.port, "host-asan": host.port}, eps, (2.5, 8.0), stop)
+
+
+def real_time_run(frames: int, seed: int) -> CorpusRun:
+    """QEMU vs the sanitizer host build vs the emulator, real time, configured from QEMU."""
+    qemu = start("qemu")
+    link = Link(qemu.port)
+    hello = link.call("HELLO")
+    link.close()
+    max_ev, max_mv, fs = hello.number("max_ev"), hello.number("max_mv"), int(hello.number("fs"))
+    wd_ms, steps = int(hello.number("wd_ms")), tuple(hello.fields["att"].split(","))
+    args = ["--max-ev", hello.fields["max_ev"], "--max-mv", hello.fields["max_mv"]]
+    args += ["--fs", str(fs), "--wd-ms", str(wd_ms), "--att", hello.fields["att"]]
+    host = start("host-asan", host_args=(*args, "--ramp-us", "10000"))
+    config = parse_device_config(_rig(max_ev, max_mv, fs, wd_ms / 1000, 0.01), "qemu rig")
+    emu = FirmwareEmulator(config, att_db=tuple(map(int, steps)), render_buffers=False).start()
+    eps = episodes(seed, frames, Profile(max_ev, max_mv, fs, steps, real_time=True))
+
+    def stop() -> str:
+        emu.close()
+        qemu.close()
+        return host.close()
+
+    ports = {"qemu": qemu.port, "host-asan": host.port, "emulator": emu.port}
+    return _finish(ports, eps, (max_ev, max_mv), stop)
