@@ -46,7 +46,7 @@ def test_real_time_corpus_qemu_sanitized_host_build_and_emulator_agree():
     run = real_time_run(RT_FRAMES, seed=8)
     answers = _check(run)
     assert {"OK", "ERR ARGS", "ERR LIMIT", "FAULT FRAME"} <= set(answers)
-    assert run.results["qemu"].side_events["ABORTED"] > 500  # trials started, then STOPped
+    assert run.results["qemu"].side_events["ABORTED"] > 200  # trials started, then STOPped
 
 
 @pytest.mark.parametrize("seed", [1, 2])
