@@ -224,7 +224,13 @@ static void cmd_diag(fw_t *fw, const command_t *cmd)
     frame_add_micro(&fw->tx, "t", fw_now_us(fw));
     frame_add_micro(&fw->tx, "pk_ev", fw->peak_uv[CH_EV]);
     frame_add_micro(&fw->tx, "pk_mv", fw->peak_uv[CH_MV]);
+    /* work since the last DIAG (µs of device clock): see fw.h */
+    frame_add_int(&fw->tx, "hmax_us", (int64_t)fw->handler_max_us);
+    frame_add_int(&fw->tx, "pmax_us", (int64_t)fw->poll_max_us);
+    frame_add_int(&fw->tx, "rnd_us", (int64_t)fw->render_us);
+    frame_add_int(&fw->tx, "rnd_n", (int64_t)fw->render_samples);
     fw_send_frame(fw);
+    fw->handler_max_us = fw->poll_max_us = fw->render_us = fw->render_samples = 0;
 }
 
 static void cmd_setup(fw_t *fw, const command_t *cmd)

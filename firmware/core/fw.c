@@ -140,8 +140,11 @@ void fw_rx(fw_t *fw, const uint8_t *data, size_t len)
             if (bad) {
                 fault_frame(fw);
             } else {
-                fw->last_rx_mono_us = clock_now_us(); /* any valid command feeds the watchdog */
+                uint64_t t0 = clock_now_us();
+                fw->last_rx_mono_us = t0; /* any valid command feeds the watchdog */
                 fw_dispatch(fw, &fw->cmd);
+                uint64_t took = clock_since_us(clock_now_us(), t0);
+                fw->handler_max_us = took > fw->handler_max_us ? took : fw->handler_max_us;
             }
         }
     }
@@ -192,7 +195,17 @@ void fw_limit_fault(fw_t *fw)
     fw_send_frame(fw);
 }
 
+static void poll_work(fw_t *fw);
+
 void fw_poll(fw_t *fw)
+{
+    uint64_t t0 = clock_now_us();
+    poll_work(fw);
+    uint64_t took = clock_since_us(clock_now_us(), t0);
+    fw->poll_max_us = took > fw->poll_max_us ? took : fw->poll_max_us;
+}
+
+static void poll_work(fw_t *fw)
 {
     board_iwdg_feed();
     fw_limit_fault(fw);
@@ -248,7 +261,17 @@ void fw_link_lost(fw_t *fw)
     fw_zero(fw, NULL);
 }
 
+static void render(fw_t *fw, int64_t t_us, float out[CH_COUNT]);
+
 void fw_render(fw_t *fw, int64_t t_us, float out[CH_COUNT])
+{
+    uint64_t t0 = clock_now_us();
+    render(fw, t_us, out);
+    fw->render_us += clock_since_us(clock_now_us(), t0);
+    fw->render_samples++;
+}
+
+static void render(fw_t *fw, int64_t t_us, float out[CH_COUNT])
 {
     float code[CH_COUNT] = {0.0f, 0.0f};
     out[CH_EV] = out[CH_MV] = 0.0f;

@@ -138,8 +138,8 @@ void board_dac_last(float out[2])
 static void run_dac(void)
 {
     uint64_t now = sample_now();
-    if (now + 1 < dac_next_sample) {
-        return;
+    if (now < dac_next_sample) {
+        return; /* (an unsigned now - next here wrapped and skipped the first second) */
     }
     if (now - dac_next_sample > fw.cfg.fs_hz) { /* stalled > 1 s (debugger): skip ahead */
         dac_next_sample = now - fw.cfg.fs_hz;
