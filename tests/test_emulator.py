@@ -348,6 +348,12 @@ def test_emulate_command_prints_its_port_serves_it_and_zeroes_on_sigterm(tmp_pat
             "200",
             "--log",
             str(log),
+            "--bits",
+            "16",
+            "--fsv",
+            "5",
+            "--att",
+            "0,20",
         ],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
@@ -361,6 +367,8 @@ def test_emulate_command_prints_its_port_serves_it_and_zeroes_on_sigterm(tmp_pat
         try:
             hello = link.reply(link.send("HELLO"))
             assert hello.fields["vt"] == "1" and hello.number("wd_ms") == 200
+            f = hello.fields  # the converter and attenuator options reach HELLO
+            assert (f["bits_ev"], f["fsv_mv"], f["att"], f["fw"]) == ("16", "5", "0,20", "fw-2.0.0")
             assert link.reply(link.send("SETUP", ch="EV", car=270.0, env=0.0, amp=1.0)).ok
         finally:
             link.ser.close()
@@ -374,6 +382,20 @@ def test_emulate_command_prints_its_port_serves_it_and_zeroes_on_sigterm(tmp_pat
     assert "outputs zeroed" in err
     text = log.read_text()
     assert "CLOSE" in text
+
+
+@pytest.mark.parametrize(
+    ("option", "value"), [("--att", "0,10,5"), ("--att", "20"), ("--bits", "40"), ("--fsv", "nan")]
+)
+def test_emulate_command_refuses_a_bad_converter_option(option, value):
+    proc = subprocess.run(
+        [sys.executable, "-m", "masking_lab.commands.cli", "emulate", option, value],
+        capture_output=True,
+        text=True,
+        timeout=20,
+    )
+    assert proc.returncode == 2
+    assert option in proc.stderr and "Traceback" not in proc.stderr
 
 
 def test_emulate_command_reports_a_bad_config(tmp_path):
