@@ -35,10 +35,8 @@ from pathlib import Path
 from types import MappingProxyType
 from typing import Any
 
-from masking_lab.core import waveforms
 from masking_lab.core.stimulus import CHANNELS
 from masking_lab.device import protocol as proto
-from masking_lab.device.base import TrialPlan
 from masking_lab.device.config import DeviceConfig, default_device_config
 from masking_lab.device.emulator_checks import (
     ONE,
@@ -46,20 +44,15 @@ from masking_lab.device.emulator_checks import (
     Converter,
     LimitError,
 )
+from masking_lab.device.emulator_commands import FIRMWARE_VERSION, EmulatorCommands
 from masking_lab.device.emulator_state import (
-    INTERLOCK_TEXT,
     OnsetLateness,
     OutputSnapshot,
     PlayState,
     build_hash,
     interlock_text,
-    plan_of,
-    to_us,
-    virtual_play,
 )
 
-FIRMWARE_VERSION = "fw-2.0.0"  # the firmware release whose behaviour this emulates
-PROTOCOL_VERSION = 2
 MAX_FIELDS = 24  # FRAME_MAX_FIELDS of firmware/core/frame.h
 HARD_MAX_DRIVE_V = 10.0  # the DAC's range: no config can raise a limit above it
 BOOT_BANNER = b"\r\nML bootloader v0.3 ... starting application\r\n"
@@ -69,7 +62,7 @@ FAULT_KINDS = ("garbage", "bad_crc", "mute", "unplug_on_play")
 _OUT_CAP = 1 << 16  # bytes queued for a host that is not reading before output is dropped
 
 
-class FirmwareEmulator:
+class FirmwareEmulator(EmulatorCommands):
     """Emulated two-channel (EV, MV) firmware on a pseudo-terminal.
 
     Parameters
@@ -402,139 +395,6 @@ class FirmwareEmulator:
         except (proto.FrameError, ValueError) as exc:
             self._err(frame.seq, "ARGS", f"{frame.name}: {exc}")
 
-    def _cmd_hello(self, frame: proto.Frame) -> None:
-        self._zero("HELLO (new host session)")
-        emu = self.config.emulator
-        self._note(f"HELLO from host #{frame.seq}")
-        fields: dict[str, Any] = {"proto": PROTOCOL_VERSION, "fw": FIRMWARE_VERSION}
-        fields.update(model=emu.model.replace(" ", "_"), sn=emu.serial_number.replace(" ", "_"))
-        fields.update(max_ev=self.limits["EV"], max_mv=self.limits["MV"])
-        fields.update(wd_ms=round(self.watchdog_s * 1000), fs=self.config.waveform.sample_rate_hz)
-        fields.update(vt=int(self.virtual_time), il=interlock_text(self._interlock_open))
-        fields.update(build=self.build, clk="host", rst="power")
-        cv = self.checker.converters
-        fields.update(bits_ev=cv["EV"].bits, bits_mv=cv["MV"].bits)
-        fields.update(fsv_ev=cv["EV"].fsv_uv / ONE, fsv_mv=cv["MV"].fsv_uv / ONE)
-        fields.update(att=list(self.checker.att_db))
-        self._ok(frame.seq, fields)
-
-    def _cmd_time(self, frame: proto.Frame) -> None:
-        self._ok(frame.seq, {"t": self._device_now()})
-
-    def _cmd_ping(self, frame: proto.Frame) -> None:
-        self._ok(frame.seq, {"t": self._device_now()})
-
-    def _cmd_diag(self, frame: proto.Frame) -> None:
-        fields = {"ev": self._amp["EV"], "mv": self._amp["MV"], "playing": int(bool(self._play))}
-        fields.update(il=interlock_text(self._interlock_open), dac_ev=self._last_sample["EV"])
-        fields.update(dac_mv=self._last_sample["MV"], wd=self._wd_trips, t=self._device_now())
-        fields.update(pk_ev=round(self._peak["EV"], 6), pk_mv=round(self._peak["MV"], 6))
-        self._ok(frame.seq, fields)
-
-    def _interlocked(self, frame: proto.Frame) -> bool:
-        if not self._interlock_open:
-            return False
-        self._err(frame.seq, "INTERLOCK", INTERLOCK_TEXT)
-        return True
-
-    def _cmd_stop(self, frame: proto.Frame) -> None:
-        self._zero("STOP", aborted_why="STOP")
-        self._note(f"STOP #{frame.seq}: outputs zeroed")
-        self._ok(frame.seq)
-
-    def _cmd_setup(self, frame: proto.Frame) -> None:
-        if self._interlocked(frame):
-            return
-        ch, car, env, amp_uv = self.checker.stream(frame.fields, setup=True)
-        if self._play is not None:
-            self._err(frame.seq, "BUSY", "SETUP while a trial is playing")
-            return
-        _, played_uv = self.checker.level(ch, amp_uv, 0)
-        self._stream[ch] = (car / ONE, env / ONE or None)
-        self._amp[ch] = played_uv / ONE
-        self._ok(frame.seq)
-
-    def _cmd_amp(self, frame: proto.Frame) -> None:
-        if self._interlocked(frame):
-            return
-        ch, _, _, amp_uv = self.checker.stream(frame.fields, setup=False)
-        if self._play is not None:
-            self._err(frame.seq, "BUSY", "AMP while a trial is playing")
-            return
-        if ch not in self._stream:
-            self._err(frame.seq, "STATE", f"AMP on {ch} before SETUP of {ch}")
-            return
-        _, played_uv = self.checker.level(ch, amp_uv, 0)
-        self._amp[ch] = played_uv / ONE
-        self._ok(frame.seq)
-
-    def _cmd_play(self, frame: proto.Frame) -> None:
-        if self._interlocked(frame):
-            return
-        if self._play is not None:
-            self._err(frame.seq, "BUSY", "PLAY while a trial is playing")
-            return
-        checked = self.checker.play(frame.fields, to_us(self._device_now()))
-        checked = self.checker.play_levels(checked)
-        plan = plan_of(checked)  # amplitudes as played (quantised)
-        # PLAY owns the outputs: any streamed output stops first.
-        self._stream.clear()
-        self._amp = dict.fromkeys(CHANNELS, 0.0)
-        at = checked.at_us / ONE
-        if self.virtual_time:  # integer µs, so the onsets match the C firmware to the digit
-            start_us = max(checked.at_us, self._vt_us)
-            self._ok(frame.seq, {"start": start_us / 1e6})
-            play = PlayState(frame.seq, start_us / 1e6, plan, [], actual=[])
-            if self.render_buffers:  # like the host build's --vt-render: OK, then render
-                self._play = play
-                if not self._render_within_limits(plan):
-                    return  # ABORTED why=LIMIT + FAULT code=LIMIT sent, outputs zeroed
-                self._play = None
-            onsets_us, end_us = virtual_play(plan, start_us, self._lateness)
-            self._vt_us = max(self._vt_us, end_us)
-            if self._take_fault("unplug_on_play"):
-                self._unplug_locked("unplug injected during PLAY")
-                return
-            play.actual = [t / 1e6 for t in onsets_us]
-            self._send_done(play, end_us / 1e6)
-            return
-        now = self._device_now()
-        start = max(at, now)
-        planned = plan.planned_onsets_s(start)
-        play = PlayState(frame.seq, start, plan, planned)
-        self._ok(frame.seq, {"start": start})
-        for k, onset in enumerate(planned):
-            play.steps.append((onset, "on", k))
-            play.steps.append((onset + plan.stimulus_s, "off", k))
-        self._play = play
-        if self.render_buffers:
-            self._render_within_limits(plan)  # over a limit: ABORTED + FAULT, zeroed
-
-    def _render_within_limits(self, plan: TrialPlan) -> bool:
-        """Render the trial like the output stage and check every sample against its limit.
-
-        Each tone peaks at its played (quantised) amplitude, within the limit checked at PLAY;
-        a sample over the channel's limit all the same (fault injection, ``overdrive``) is
-        ``ABORTED why=LIMIT`` and ``FAULT code=LIMIT``: nothing is played. (The firmware
-        scales each tone by its closed-form peak bound instead of the sampled peak: its
-        samples are never larger.)
-        """
-        fs, ramp = self.config.waveform.sample_rate_hz, self.config.waveform.ramp_s
-        if round(plan.stimulus_s * fs) + 1 < 3:
-            return True  # under 3 samples a ramped tone is all zeros (the firmware's too)
-        bufs = waveforms.trial_buffers(plan, fs, ramp_s=ramp)
-        for ch in CHANNELS:
-            samples = bufs.channel(ch) * self.overdrive
-            if len(samples) and float(abs(samples).max()) > self.limits[ch] + 1e-9:
-                self._fault(
-                    "LIMIT", f"a rendered {ch} sample is over the {self.limits[ch]:g} V limit"
-                )
-                return False
-            self._last_sample[ch] = float(samples[-1]) if len(samples) else 0.0
-            peak = float(abs(samples).max()) if len(samples) else 0.0
-            self._peak[ch] = max(self._peak[ch], peak)
-        return True
-
     def _advance_play(self, now_real: float) -> None:
         play = self._play
         while play is not None and play.steps and play.steps[0][0] + self._t0 <= now_real:
@@ -554,12 +414,6 @@ class FirmwareEmulator:
             if not play.steps:
                 self._play = None
                 self._send_done(play, self._device_now())
-
-    def _send_done(self, play: PlayState, end: float) -> None:
-        plan = play.plan
-        fields = {"seq": play.seq, "on": play.actual, "end": end}
-        fields.update(tamp=plan.target_amplitude_v, mamp=plan.masker_amplitude_v)
-        self._send_event("DONE", fields)
 
     # ---------------------------------------------------------------- helpers (lock held)
 

@@ -193,6 +193,26 @@ class Checker:
         self.att_db = tuple(int(a) for a in att_db)
         self.fs_hz = int(fs_hz)
 
+    def hello_fields(self) -> dict[str, object]:
+        """HELLO's converter fields: ``bits_ev`` ``bits_mv`` ``fsv_ev`` ``fsv_mv`` ``att``.
+
+        Examples
+        --------
+        >>> c = Checker({"EV": 1, "MV": 1}, {ch: Converter(12, 10_000_000) for ch in "EM"},
+        ...             (0, 20), 1000)
+        >>> c.converters = {"EV": Converter(12, 10_000_000), "MV": Converter(16, 2_500_000)}
+        >>> c.hello_fields()
+        {'bits_ev': 12, 'bits_mv': 16, 'fsv_ev': 10.0, 'fsv_mv': 2.5, 'att': [0, 20]}
+        """
+        ev, mv = self.converters["EV"], self.converters["MV"]
+        return {
+            "bits_ev": ev.bits,
+            "bits_mv": mv.bits,
+            "fsv_ev": ev.fsv_uv / ONE,
+            "fsv_mv": mv.fsv_uv / ONE,
+            "att": list(self.att_db),
+        }
+
     # ---- fields (ERR ARGS)
 
     @staticmethod

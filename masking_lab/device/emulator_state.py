@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from types import MappingProxyType
 
+from masking_lab.core import waveforms
 from masking_lab.core.stimulus import Stimulus
 from masking_lab.device.base import TrialPlan
 from masking_lab.device.emulator_checks import ONE, CheckedPlay, Part
@@ -207,6 +208,34 @@ def plan_of(play: CheckedPlay) -> TrialPlan:
         lead_in_s=play.lead_us / ONE,
         n_intervals=play.n,
     )
+
+
+def render_trial(
+    plan: TrialPlan, sample_rate_hz: float, ramp_s: float, overdrive: float = 1.0
+) -> dict[str, tuple[float, float]]:
+    """Render a trial like the output stage: per channel (largest |sample|, last sample), V.
+
+    Each tone peaks at its played (quantised) amplitude; ``overdrive`` scales every sample
+    afterwards (fault injection for the per-sample limit check). A stimulus under 3 samples
+    is silent, as in the firmware. (The firmware scales each tone by its closed-form peak
+    bound rather than the sampled peak, so its samples are never larger than these.)
+
+    Examples
+    --------
+    >>> from masking_lab.core.stimulus import parse_stimulus
+    >>> plan = TrialPlan(parse_stimulus("EV270"), 0.5, 1, stimulus_s=0.05, n_intervals=1)
+    >>> render_trial(plan, 10_000.0, 0.002)["EV"]
+    (0.5, 0.0)
+    """
+    out = {"EV": (0.0, 0.0), "MV": (0.0, 0.0)}
+    if round(plan.stimulus_s * sample_rate_hz) + 1 < 3:
+        return out
+    bufs = waveforms.trial_buffers(plan, sample_rate_hz, ramp_s=ramp_s)
+    for ch in out:
+        samples = bufs.channel(ch) * overdrive
+        if len(samples):
+            out[ch] = (float(abs(samples).max()), float(samples[-1]))
+    return out
 
 
 def build_hash(root: Path | None = None) -> str:
