@@ -94,6 +94,20 @@ def test_duration_arithmetic_cannot_overflow_past_the_60_s_limit(target):
     assert "runtime error" not in stderr and "Sanitizer" not in stderr, stderr
 
 
+def test_phase_arithmetic_cannot_overflow_on_long_tones_at_high_rates():
+    # found while fixing issue 23: carrier x sample index overflowed int64 past 1.8e7 samples
+    # of a near-Nyquist carrier at 1 MHz (UBSan); a 20 s tone renders clean now
+    dev, link = _open("host-asan", virtual_time=True, host_args=("--vt-render", "--fs", "1000000"))
+    try:
+        tone = dict(PLAY, tcar=499999.9, tamp=1.0, mch="-", n=1, stim=20, gap=0, lead=0)
+        assert link.call("PLAY", **tone).ok
+        assert link.event("DONE", timeout=120).number("tamp") == played(1.0)
+    finally:
+        stderr = _close(dev, link)
+    assert "runtime error" not in stderr and "Sanitizer" not in stderr, stderr
+    assert "IWDG" not in stderr  # the rendering feeds the modelled watchdog as a board would
+
+
 @pytest.mark.parametrize(
     ("target", "options"),
     [("emulator", {"overdrive": 3.0}), ("host", {"host_args": ("--test-overdrive-pct", "300")})],

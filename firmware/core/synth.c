@@ -18,12 +18,24 @@ uint32_t us_to_samples(int64_t us, uint32_t fs_hz)
     return s > UINT32_MAX ? UINT32_MAX : (uint32_t)s;
 }
 
+/* (f * i) mod period without overflow: f < period < 2^40 (fs <= 1 MHz), i < 2^32. The
+ * direct product fits below 2^63 while i < 2^23 (every trial up to fs = 140 kHz); beyond
+ * that (long streams, high rates) i is split into 16-bit halves. */
+static uint64_t mulmod(uint64_t f, uint32_t i, uint64_t period)
+{
+    if (i < (1u << 23)) {
+        return f * i % period;
+    }
+    uint64_t hi = f * (i >> 16) % period;
+    return ((hi << 16) % period + f * (i & 0xFFFFu) % period) % period;
+}
+
 /* fraction of a cycle of frequency f_uhz after i samples, in [0, 1) */
 static float cycle_fraction(int64_t f_uhz, uint32_t i, uint32_t fs_hz)
 {
-    int64_t period = (int64_t)fs_hz * 1000000;
-    int64_t ph = (f_uhz % period) * (int64_t)i % period;
-    return (float)ph / (float)period;
+    uint64_t period = (uint64_t)fs_hz * 1000000u;
+    uint64_t f = (uint64_t)(f_uhz % (int64_t)period); /* f_uhz > 0: checked at the command */
+    return (float)mulmod(f, i, period) / (float)period;
 }
 
 float tone_unit(const tone_t *t, uint32_t i)
