@@ -3,9 +3,9 @@
 With ``-icount shift=0`` QEMU's virtual clock advances exactly 1 ns per guest instruction, so
 the device clock (µs) that the firmware core reads around its own work measures instructions:
 1 µs = 1000 instructions. DIAG reports, since the previous DIAG, the longest command handler
-(``hmax_us``), the longest ``fw_poll`` (``pmax_us``) and the synthesis work of the output
-stage (``rnd_us`` over ``rnd_n`` samples). Used by ``tests/test_fw_icount.py`` and
-``benchmarks/fw_icount.py``.
+(``hmax_us``), the longest ``fw_poll`` (``pmax_us``) and the longest refill of the output
+stage in one main-loop iteration (``omax_us``, over ``rnd_n`` samples rendered in all).
+Used by ``tests/test_fw_icount.py`` and ``benchmarks/fw_icount.py``.
 """
 
 from __future__ import annotations
@@ -91,9 +91,13 @@ class Qemu:
 
 
 def measure(
-    qemu: Qemu, name: str, fields: dict, *, pad: bool = False, play_s: float = 0.3
+    qemu: Qemu, name: str, fields: dict, *, pad: bool = False, device_s: float = 0.1
 ) -> dict[str, float]:
-    """Counts for one frame: handler, fw_poll and synthesis per sample, instructions."""
+    """Counts for one frame, instructions: its handler, the longest fw_poll and refill.
+
+    After the frame the output stage renders for ``device_s`` of the guest's own clock (the
+    host keeps the watchdog fed), whatever the host's speed.
+    """
     link = qemu.link
     link.call("STOP")
     link.call("DIAG")  # resets the counters
@@ -104,16 +108,15 @@ def measure(
     reply = link.reply(link.seq, timeout=10)
     assert reply.kind == "reply", reply
     handler = link.call("DIAG").number("hmax_us") * 1000  # this frame's handler alone
-    end = time.monotonic() + play_s
-    while time.monotonic() < end:  # let the output stage render, keep the watchdog fed
-        link.call("PING")
-        time.sleep(0.02)
+    start = link.call("TIME").number("t")
+    while link.call("PING").number("t") - start < device_s:
+        time.sleep(0.01)
     diag = link.call("DIAG")
     link.call("STOP")
-    n = diag.number("rnd_n")
     return {
         "ok": float(reply.ok),
         "handler": handler,
         "poll": diag.number("pmax_us") * 1000,
-        "per_sample": diag.number("rnd_us") * 1000 / n if n else 0.0,
+        "refill": diag.number("omax_us") * 1000,
+        "samples": diag.number("rnd_n"),
     }

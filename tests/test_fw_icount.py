@@ -4,7 +4,7 @@ Instruction counts on the STM32 image under QEMU ``-icount shift=0`` (determinis
 instruction is one ns of the guest clock, see ``tests/icount_support.py``), for the frames
 that used to stall the board: a paper-length masked AM trial (v1: 21-30 M instructions in the
 PLAY handler), the longest trial and a 256-byte frame. The output stage synthesises samples
-as it refills; a refill of 5 ms of samples must fit the budget too.
+as it refills; a handler, fw_poll and the longest refill together must fit the budget.
 """
 
 from __future__ import annotations
@@ -25,10 +25,9 @@ def qemu():
 )
 def test_play_handler_and_synthesis_fit_the_5_ms_budget(qemu, label):
     name, fields = FRAMES[label]
-    fs = qemu.link.call("HELLO").number("fs")
     m = measure(qemu, name, fields, pad=label == PADDED)
     assert m["ok"] == 1.0
     assert 0 < m["handler"] <= BUDGET / 10, m  # constant work: no scan of the tone
-    assert m["poll"] <= BUDGET, m
-    assert m["per_sample"] > 0, m  # the output stage did render this trial
-    assert m["per_sample"] * fs * 0.005 <= BUDGET, m  # a 5 ms refill block
+    assert m["samples"] > 1000 and m["refill"] > 0, m  # the output stage rendered the trial
+    # one main-loop iteration: this handler, then fw_poll and the longest refill seen
+    assert m["handler"] + m["poll"] + m["refill"] <= BUDGET, m

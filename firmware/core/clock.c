@@ -1,8 +1,9 @@
 /* The device clock: board_micros32() extended to 64 bits, and saturating differences.
  *
  * The 32-bit counter wraps every 2^32 µs (71.6 min); any call within that span of the last
- * one sees at most one wrap, which shows as a smaller raw value. The core polls it at least
- * every millisecond, so no wrap is ever missed. */
+ * one sees at most one wrap, which shows as a much smaller raw value (back by more than
+ * 2^31 µs). The core polls it at least every millisecond, so no wrap is missed; a small
+ * step back (a counter read glitch) holds the clock instead of moving it back. */
 #include "clock.h"
 
 #include "board.h"
@@ -14,7 +15,11 @@ uint64_t clock_now_us(void)
 {
     uint32_t raw = board_micros32();
     if (raw < last_raw) {
-        high += (uint64_t)1 << 32;
+        if (last_raw - raw > 0x80000000u) {
+            high += (uint64_t)1 << 32; /* a wrap: from near 2^32 to near 0 */
+        } else {
+            raw = last_raw; /* a counter that stepped back a little: hold, never go back */
+        }
     }
     last_raw = raw;
     return high + raw;

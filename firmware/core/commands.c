@@ -227,10 +227,10 @@ static void cmd_diag(fw_t *fw, const command_t *cmd)
     /* work since the last DIAG (µs of device clock): see fw.h */
     frame_add_int(&fw->tx, "hmax_us", (int64_t)fw->handler_max_us);
     frame_add_int(&fw->tx, "pmax_us", (int64_t)fw->poll_max_us);
-    frame_add_int(&fw->tx, "rnd_us", (int64_t)fw->render_us);
+    frame_add_int(&fw->tx, "omax_us", (int64_t)fw->refill_max_us);
     frame_add_int(&fw->tx, "rnd_n", (int64_t)fw->render_samples);
     fw_send_frame(fw);
-    fw->handler_max_us = fw->poll_max_us = fw->render_us = fw->render_samples = 0;
+    fw->handler_max_us = fw->poll_max_us = fw->refill_max_us = fw->render_samples = 0;
 }
 
 static void cmd_setup(fw_t *fw, const command_t *cmd)

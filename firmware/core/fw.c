@@ -200,6 +200,11 @@ static void poll_work(fw_t *fw);
 void fw_poll(fw_t *fw)
 {
     uint64_t t0 = clock_now_us();
+    if (fw->render_open) { /* the output stage's refill since the last poll has ended */
+        uint64_t took = clock_since_us(t0, fw->render_t0_us);
+        fw->refill_max_us = took > fw->refill_max_us ? took : fw->refill_max_us;
+        fw->render_open = false;
+    }
     poll_work(fw);
     uint64_t took = clock_since_us(clock_now_us(), t0);
     fw->poll_max_us = took > fw->poll_max_us ? took : fw->poll_max_us;
@@ -265,10 +270,12 @@ static void render(fw_t *fw, int64_t t_us, float out[CH_COUNT]);
 
 void fw_render(fw_t *fw, int64_t t_us, float out[CH_COUNT])
 {
-    uint64_t t0 = clock_now_us();
-    render(fw, t_us, out);
-    fw->render_us += clock_since_us(clock_now_us(), t0);
+    if (!fw->render_open) { /* the first sample of this main-loop iteration's refill */
+        fw->render_open = true;
+        fw->render_t0_us = clock_now_us();
+    }
     fw->render_samples++;
+    render(fw, t_us, out);
 }
 
 static void render(fw_t *fw, int64_t t_us, float out[CH_COUNT])

@@ -64,9 +64,11 @@ typedef struct {
     float v_per_code[CH_COUNT];  /* V at the amplifier input per code at att_idx */
     int32_t out_code[CH_COUNT];  /* last rendered sample, signed codes around mid-scale */
     bool limit_tripped;          /* a rendered sample was over its limit: FAULT pending */
-    /* work measured on the device clock, since the last DIAG (under QEMU -icount shift=0 one
-     * µs is 1000 instructions): longest command handler, longest fw_poll, synthesis */
-    uint64_t handler_max_us, poll_max_us, render_us, render_samples;
+    /* work measured on the device clock since the last DIAG (under QEMU -icount shift=0 one
+     * µs is 1000 instructions): longest command handler, longest fw_poll, longest refill of
+     * the output stage (first fw_render after a poll to the next poll), samples rendered */
+    uint64_t handler_max_us, poll_max_us, refill_max_us, render_samples, render_t0_us;
+    bool render_open;
     int64_t peak_code[CH_COUNT]; /* largest |code| since the attenuators last changed */
     int64_t peak_uv[CH_COUNT];   /* largest |sample| output since boot, µV (DIAG pk_ev/pk_mv) */
     int64_t vt_us;
