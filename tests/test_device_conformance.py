@@ -113,6 +113,7 @@ def test_bad_commands_get_the_same_error_codes(device, link, name, fields, code)
 
 
 def test_play_reports_onsets_on_the_device_clock(device, link):
+    fs = link.call("HELLO").number("fs")
     t = link.call("TIME").number("t")
     at = t + 0.3  # room for a loaded host to deliver PLAY before its start time
     seq = link.send("PLAY", at=at, **PLAY)
@@ -120,9 +121,12 @@ def test_play_reports_onsets_on_the_device_clock(device, link):
     done = link.event("DONE", timeout=10, keepalive=True)
     assert done.number("seq") == seq
     planned = [at + 0.02 + k * 0.08 for k in range(3)]  # at + lead + k·(stim + gap)
+    # v2: an onset is when the output stage played the interval's first sample, which sits
+    # on the sample grid: up to half a sample period before the planned time (plus 1 µs of
+    # wire resolution)
+    early = 0.5 / fs + 1e-6
     for actual, plan in zip(done.numbers("on"), planned, strict=True):
-        # times travel at 1 µs resolution: an on-time onset may print 1 µs early
-        assert -1e-6 <= actual - plan < LATE_S[device.name], (done.numbers("on"), planned)
+        assert -early <= actual - plan < LATE_S[device.name], (done.numbers("on"), planned)
     assert done.number("end") >= at + 0.02 + 3 * 0.05 + 2 * 0.03 - 1e-6
     assert (done.number("tamp"), done.number("mamp")) == (played(0.5), played(0.3))
     assert_zero(link)  # a trial rests on 0 V when it ends
