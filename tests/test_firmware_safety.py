@@ -49,6 +49,23 @@ def test_negative_target_on_the_masker_channel_is_refused_not_summed(target):
         _close(dev, link)
 
 
+@pytest.mark.parametrize("target", TARGETS)
+def test_an_over_long_line_split_across_reads_is_one_fault(target):
+    # found by the corpus: the emulator faulted twice when a > 256-byte line arrived in two
+    # pieces (once for the head, once for the tail); the firmware discards the tail
+    dev, link = _open(target)
+    try:
+        link.ser.write(b"7 PING pad=" + b"9" * 290)
+        link.ser.flush()
+        time.sleep(0.2)  # the head is read (and refused) before the tail arrives
+        link.ser.write(b"9" * 40 + b"*0000\n")
+        assert link.call("PING").ok
+        faults = [e for e in link.events if e.name == "FAULT"]
+        assert [f.fields["code"] for f in faults] == ["FRAME"], link.events
+    finally:
+        _close(dev, link)
+
+
 @pytest.mark.parametrize("target", ["emulator", "host"])
 def test_a_slow_envelope_over_a_long_stimulus_never_exceeds_the_request(target):
     # issue 23: the peak was scanned over the first 2 s only; a 0.05 Hz envelope peaks at

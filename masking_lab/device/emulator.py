@@ -145,6 +145,7 @@ class FirmwareEmulator(EmulatorCommands):
         self._event_no = 0
         self.commands_received = 0  # valid commands handled (tests: "nothing was sent")
         self._rx = bytearray()
+        self._rx_discard = False  # skipping the tail of an over-long line
         self._out = bytearray()
         self._last_rx = time.perf_counter()
         self._booting_until: float | None = None
@@ -318,6 +319,7 @@ class FirmwareEmulator(EmulatorCommands):
                 elif what == "reset":
                     self._zero("reset")
                     self._rx.clear()
+                    self._rx_discard = False
                     self._booting_until = time.perf_counter() + self.boot_delay_s
                     self._note("RESET board reset: outputs zeroed, booting")
             self._done_requests.notify_all()
@@ -337,9 +339,18 @@ class FirmwareEmulator(EmulatorCommands):
             self._rx += data
             while True:
                 i = self._rx.find(b"\n")
-                if i < 0:
-                    if len(self._rx) > proto.MAX_FRAME_BYTES:
+                if self._rx_discard:  # the rest of a line already reported as too long
+                    if i < 0:
                         self._rx.clear()
+                        break
+                    del self._rx[: i + 1]
+                    self._rx_discard = False
+                    continue
+                if i < 0:
+                    # like the firmware: the 256th byte without a newline is garbage, once
+                    if len(self._rx) >= proto.MAX_FRAME_BYTES:
+                        self._rx.clear()
+                        self._rx_discard = True
                         self._fault("FRAME", "line too long without a newline")
                     break
                 line = bytes(self._rx[: i + 1])
@@ -354,6 +365,7 @@ class FirmwareEmulator(EmulatorCommands):
             if self._booting_until is not None and now >= self._booting_until:
                 self._booting_until = None
                 self._rx.clear()
+                self._rx_discard = False
                 self._out += BOOT_BANNER
                 self._send_event("BOOT", {"fw": FIRMWARE_VERSION, "rst": "power"})
                 self._note("BOOT done")
