@@ -120,6 +120,15 @@ class EmulatorDevice(Device):
         ).start()
         self.port = self.emu.port
 
+    @classmethod
+    def from_config(cls, config, **options) -> EmulatorDevice:
+        """An emulator with another device config than the shared rig's."""
+        dev = cls.__new__(cls)
+        dev.name, dev.vt = "emulator", bool(options.get("virtual_time"))
+        dev.emu = FirmwareEmulator(config, **options).start()
+        dev.port = dev.emu.port
+        return dev
+
     def set_interlock(self, is_open: bool) -> None:
         self.emu.set_interlock(is_open)
 

@@ -13,9 +13,11 @@ import re
 import time
 
 import pytest
-from firmware_support import TARGETS, Link, played, start
+from firmware_support import RIG as RIG_TEXT
+from firmware_support import TARGETS, EmulatorDevice, Link, played, start
 
 from masking_lab.device import protocol as proto
+from masking_lab.device.config import parse_device_config
 from masking_lab.device.emulator import FirmwareEmulator
 from masking_lab.device.emulator_state import build_hash
 
@@ -169,6 +171,26 @@ def test_levels_are_quantised_and_attenuators_checked(target):
         assert link.call("PLAY", **dict(PLAY, tatt=40)).code == "LIMIT"
         # the EV limit, 2.5 V, is exactly 512 LSB: playable, and reported as such
         assert link.call("SETUP", ch="EV", car=270, env=0, amp=2.5).ok
+        assert link.call("DIAG").number("ev") == 2.5
+    finally:
+        _close(dev, link)
+
+
+@pytest.mark.parametrize("target", ["emulator", "host"])
+def test_a_request_within_the_limit_that_quantises_over_it_is_refused(target):
+    # EV limit 2.503 V is 512.6 LSB: 2.503 V rounds to 513 LSB = 2.504883 V, over the limit
+    if target == "host":
+        dev = start("host", host_args=("--max-ev", "2.503"))
+    else:
+        rig = RIG_TEXT.replace("max_drive_v: 2.5}", "max_drive_v: 2.503}")
+        dev = EmulatorDevice.from_config(parse_device_config(rig, "quantising rig"))
+    link = Link(dev.port)
+    try:
+        assert link.call("HELLO").number("max_ev") == 2.503
+        refused = link.call("SETUP", ch="EV", car=270, env=0, amp=2.503)
+        assert refused.code == "LIMIT" and "quantised" in refused.text
+        assert link.call("PLAY", **dict(PLAY, tamp=2.503)).code == "LIMIT"
+        assert link.call("SETUP", ch="EV", car=270, env=0, amp=2.502).ok  # 512 LSB = 2.5 V
         assert link.call("DIAG").number("ev") == 2.5
     finally:
         _close(dev, link)
