@@ -276,6 +276,23 @@ def test_the_device_clock_runs_on_across_the_32_bit_timer_wrap():
         _close(dev, link)
 
 
+def test_a_counter_that_steps_back_holds_the_clock_instead_of_tripping_the_watchdog():
+    # issue 23: the device clock stepped back ~1 ms, `mono - last_rx` wrapped and the
+    # watchdog tripped. Fault injection: every other 250 ms the 32-bit counter reads 20 ms low.
+    dev, link = _open("host", host_args=("--test-clock-stepback-us", "20000"))
+    try:
+        assert link.call("SETUP", ch="EV", car=270, env=0, amp=0.2).ok
+        times = []
+        for _ in range(24):  # 1.2 s of pings every 50 ms: four step-backs
+            times.append(link.call("PING").number("t"))
+            time.sleep(0.05)
+        assert times == sorted(times) and times[-1] < 60, times  # no step back, no 2^32 jump
+        assert not [e for e in link.events if e.name == "WATCHDOG"]
+        assert link.call("DIAG").number("ev") == played(0.2)
+    finally:
+        _close(dev, link)
+
+
 def test_boot_event_carries_the_reset_cause():
     frame = proto.encode_event(1, "BOOT", {"fw": "fw-2.0.0", "rst": "power"})
     assert re.fullmatch(rb"!1 BOOT fw=fw-2\.0\.0 rst=power\*[0-9A-F]{4}\n", frame)

@@ -49,6 +49,7 @@ static uint32_t iwdg_ms = 100;
 static uint64_t iwdg_fed_cpu_us;
 static uint32_t test_stall_ms; /* fault injection: burn this much CPU once a trial starts */
 static uint64_t micros_offset; /* --clock-start-us: start the 32-bit counter near its wrap */
+static uint32_t stepback_us;   /* --test-clock-stepback-us: a counter that glitches back */
 
 uint32_t board_micros32(void)
 {
@@ -56,6 +57,9 @@ uint32_t board_micros32(void)
     clock_gettime(CLOCK_MONOTONIC, &ts);
     uint64_t us = (uint64_t)(ts.tv_sec - t_boot.tv_sec) * 1000000u +
                   (uint64_t)((ts.tv_nsec - t_boot.tv_nsec) / 1000);
+    if (stepback_us && (us / 250000u) % 2u == 1u) {
+        us -= stepback_us; /* fault injection: every other 250 ms the read is late-latched */
+    }
     return (uint32_t)(us + micros_offset); /* wraps like a 32-bit timer */
 }
 
@@ -170,7 +174,7 @@ static void usage(const char *argv0)
             "          [--interlock-open] [--bits-ev N] [--bits-mv N] [--fsv-ev V]\n"
             "          [--fsv-mv V] [--att DB,DB,..] [--iwdg-ms N] [--vt-render]\n"
             "  test-only fault injection: [--test-overdrive-pct P] [--test-stall-ms N]\n"
-            "          [--clock-start-us N]\n"
+            "          [--clock-start-us N] [--test-clock-stepback-us N]\n"
             "Serves the masking-lab device protocol on a new pseudo-terminal; prints its path.\n"
             "SIGUSR1 opens the interlock, SIGUSR2 closes it; SIGTERM zeroes and exits.\n",
             argv0);
@@ -282,6 +286,8 @@ int main(int argc, char **argv)
                 cfg.test_overdrive_pct = (uint32_t)(parse_micro(a, v) / 1000000);
             } else if (strcmp(a, "--test-stall-ms") == 0) {
                 test_stall_ms = (uint32_t)(parse_micro(a, v) / 1000000);
+            } else if (strcmp(a, "--test-clock-stepback-us") == 0) {
+                stepback_us = (uint32_t)(parse_micro(a, v) / 1000000);
             } else if (strcmp(a, "--clock-start-us") == 0) {
                 micros_offset = (uint64_t)(parse_micro(a, v) / 1000000);
             } else if (strcmp(a, "--sn") == 0) {
