@@ -24,10 +24,12 @@ import serial
 from masking_lab.device import protocol as proto
 from masking_lab.device.config import parse_device_config
 from masking_lab.device.emulator import FirmwareEmulator
+from masking_lab.device.emulator_checks import Converter
 
 REPO = Path(__file__).resolve().parents[1]
 FIRMWARE = REPO / "firmware"
 HOST_FW = FIRMWARE / "build" / "host" / "masking-fw"
+HOST_ASAN_FW = FIRMWARE / "build" / "host-asan" / "masking-fw"  # ASan + UBSan
 QEMU_FW = FIRMWARE / "build" / "qemu" / "masking-fw.elf"
 TARGETS = ("emulator", "host", "qemu")
 # -icount: the guest clock follows executed instructions, so device-reported times are
@@ -50,6 +52,16 @@ HOST_ARGS = ["--wd-ms", "300", "--max-ev", "2.5", "--max-mv", "8", "--fs", "1000
 HOST_ARGS += ["--ramp-us", "2000", "--sn", "T-42"]
 
 
+def played(volts: float, att_db: int = 0) -> float:
+    """What a request plays on every implementation's default converter (12 bits, ±10 V), V.
+
+    The amplitude in whole LSBs (1 LSB = 4.8828125 mV at 0 dB) and back, to the µV: what
+    DONE's tamp/mamp and DIAG's ev/mv report for a request of ``volts``.
+    """
+    dac = Converter(12, 10_000_000)
+    return dac.played_uv(dac.code(round(volts * 1e6), att_db), att_db) / 1e6
+
+
 def rig_config():
     return parse_device_config(RIG, "conformance rig")
 
@@ -62,7 +74,8 @@ def _missing(tools: list[str]) -> str | None:
 @functools.cache
 def _make(target: str) -> str | None:
     """Build one firmware target; the reason it cannot be built, or None."""
-    tools = {"host": ["make", "gcc"], "qemu": ["make", "arm-none-eabi-gcc", "qemu-system-arm"]}
+    tools = {"host": ["make", "gcc"], "host-asan": ["make", "gcc"]}
+    tools["qemu"] = ["make", "arm-none-eabi-gcc", "qemu-system-arm"]
     absent = _missing(tools[target])
     if absent:
         return f"{absent} not installed (apt-get install gcc-arm-none-eabi qemu-system-arm make)"
@@ -100,10 +113,21 @@ class Device:
 
 
 class EmulatorDevice(Device):
-    def __init__(self, *, virtual_time: bool = False, seed: int = 0) -> None:
+    def __init__(self, *, virtual_time: bool = False, seed: int = 0, **options) -> None:
         self.name, self.vt = "emulator", virtual_time
-        self.emu = FirmwareEmulator(rig_config(), virtual_time=virtual_time, seed=seed).start()
+        self.emu = FirmwareEmulator(
+            rig_config(), virtual_time=virtual_time, seed=seed, **options
+        ).start()
         self.port = self.emu.port
+
+    @classmethod
+    def from_config(cls, config, **options) -> EmulatorDevice:
+        """An emulator with another device config than the shared rig's."""
+        dev = cls.__new__(cls)
+        dev.name, dev.vt = "emulator", bool(options.get("virtual_time"))
+        dev.emu = FirmwareEmulator(config, **options).start()
+        dev.port = dev.emu.port
+        return dev
 
     def set_interlock(self, is_open: bool) -> None:
         self.emu.set_interlock(is_open)
@@ -113,10 +137,10 @@ class EmulatorDevice(Device):
 
 
 class HostFirmware(Device):
-    def __init__(self, *args: str) -> None:
+    def __init__(self, *args: str, binary: Path = HOST_FW) -> None:
         self.name, self.vt = "host", "--virtual-time" in args
         self.proc = subprocess.Popen(
-            [str(HOST_FW), *HOST_ARGS, *args],
+            [str(binary), *HOST_ARGS, *args],
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
             text=True,
@@ -127,10 +151,11 @@ class HostFirmware(Device):
     def set_interlock(self, is_open: bool) -> None:
         self.proc.send_signal(signal.SIGUSR1 if is_open else signal.SIGUSR2)
 
-    def close(self) -> None:
+    def close(self) -> str:
+        """Stop the process; its stderr (sanitizer reports land there)."""
         if self.proc.poll() is None:
             self.proc.terminate()
-        self.proc.communicate(timeout=10)
+        return self.proc.communicate(timeout=10)[1]
 
 
 class QemuFirmware(Device):
@@ -181,16 +206,22 @@ def _wait_until_answering(port: str, timeout: float = 10.0) -> None:
         raise TimeoutError(f"QEMU firmware on {port} never answered")
 
 
-def start(target: str, **kwargs) -> Device:
-    """Start a fresh ``target`` (building it first); close it with ``.close()``."""
+def start(target: str, *, host_args: tuple[str, ...] = (), **kwargs) -> Device:
+    """Start a fresh ``target`` (building it first); close it with ``.close()``.
+
+    ``target`` is ``emulator``, ``host``, ``host-asan`` (the host build under ASan+UBSan) or
+    ``qemu``; ``host_args`` go to the host builds only, other keyword options to the
+    emulator (``virtual_time`` and ``seed`` to both).
+    """
     require_build(target)
     if target == "emulator":
         return EmulatorDevice(**kwargs)
-    if target == "host":
+    if target in ("host", "host-asan"):
         args = ["--virtual-time"] if kwargs.get("virtual_time") else []
         if "seed" in kwargs:
             args += ["--seed", str(kwargs["seed"])]
-        return HostFirmware(*args)
+        binary = HOST_FW if target == "host" else HOST_ASAN_FW
+        return HostFirmware(*args, *host_args, binary=binary)
     return QemuFirmware()
 
 

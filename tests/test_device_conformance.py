@@ -7,10 +7,11 @@ Timing is checked on device-reported times, never host wall time (QEMU runs on `
 
 from __future__ import annotations
 
+import re
 import time
 
 import pytest
-from firmware_support import TARGETS, Link, rig_config, start
+from firmware_support import TARGETS, Link, played, rig_config, start
 
 from masking_lab.core.clock import RealClock
 from masking_lab.core.errors import DeviceFaultError, SafetyLimitError
@@ -65,7 +66,14 @@ def test_handshake_reports_identity_limits_and_modes(device, link):
     assert hello.ok
     f = hello.fields
     assert set(f) >= {"proto", "fw", "model", "sn", "max_ev", "max_mv", "wd_ms", "fs", "vt", "il"}
-    assert f["proto"] == "1" and f["vt"] == "0" and f["il"] == "closed"
+    assert f["proto"] == "2" and f["vt"] == "0" and f["il"] == "closed"
+    # v2: firmware release, build id, clock, reset cause, converters and attenuator steps
+    assert f["fw"].startswith("fw-2.0.0") and re.fullmatch(r"[0-9a-f]{12}", f["build"])
+    assert f["clk"] in ("hse", "hsi", "host")
+    assert f["rst"] in ("pin", "watchdog", "brownout", "software", "power", "unknown")
+    assert (hello.number("bits_ev"), hello.number("bits_mv")) == (12, 12)
+    assert (hello.number("fsv_ev"), hello.number("fsv_mv")) == (10, 10)
+    assert hello.numbers("att")[0] == 0 and hello.numbers("att") == sorted(hello.numbers("att"))
     assert hello.number("max_ev") > 0 and hello.number("max_mv") > 0
     assert hello.number("wd_ms") > 0 and hello.number("fs") >= 1000
     assert link.call("TIME").number("t") >= 0
@@ -83,7 +91,7 @@ def test_device_refuses_over_limit_and_zeroes(device, link):
     half = max_mv / 2 + 0.1
     err = link.call("PLAY", at=0, **dict(PLAY, tch="MV", tamp=half, mamp=half))
     assert err.code == "LIMIT"
-    assert link.call("PLAY", at=0, **dict(PLAY, tamp=-0.1)).code == "LIMIT"
+    assert link.call("PLAY", at=0, **dict(PLAY, tamp=-0.1)).code == "ARGS"
     assert_zero(link)
 
 
@@ -105,6 +113,7 @@ def test_bad_commands_get_the_same_error_codes(device, link, name, fields, code)
 
 
 def test_play_reports_onsets_on_the_device_clock(device, link):
+    fs = link.call("HELLO").number("fs")
     t = link.call("TIME").number("t")
     at = t + 0.3  # room for a loaded host to deliver PLAY before its start time
     seq = link.send("PLAY", at=at, **PLAY)
@@ -112,11 +121,14 @@ def test_play_reports_onsets_on_the_device_clock(device, link):
     done = link.event("DONE", timeout=10, keepalive=True)
     assert done.number("seq") == seq
     planned = [at + 0.02 + k * 0.08 for k in range(3)]  # at + lead + k·(stim + gap)
+    # v2: an onset is when the output stage played the interval's first sample, which sits
+    # on the sample grid: up to half a sample period before the planned time (plus 1 µs of
+    # wire resolution)
+    early = 0.5 / fs + 1e-6
     for actual, plan in zip(done.numbers("on"), planned, strict=True):
-        # times travel at 1 µs resolution: an on-time onset may print 1 µs early
-        assert -1e-6 <= actual - plan < LATE_S[device.name], (done.numbers("on"), planned)
+        assert -early <= actual - plan < LATE_S[device.name], (done.numbers("on"), planned)
     assert done.number("end") >= at + 0.02 + 3 * 0.05 + 2 * 0.03 - 1e-6
-    assert (done.number("tamp"), done.number("mamp")) == (0.5, 0.3)
+    assert (done.number("tamp"), done.number("mamp")) == (played(0.5), played(0.3))
     assert_zero(link)  # a trial rests on 0 V when it ends
 
 
@@ -125,7 +137,7 @@ def test_stop_mid_trial_aborts_and_zeroes(device, link):
     seq = link.send("PLAY", at=t, **dict(PLAY, stim=3.0, lead=0.0))
     assert link.reply(seq).ok
     for _ in range(2000):  # DIAG round trips until the masker plays in interval 1
-        if link.call("DIAG").number("mv") == 0.3:
+        if link.call("DIAG").number("mv") == played(0.3):
             break
     else:
         pytest.fail("the masker never started playing")
@@ -138,7 +150,7 @@ def test_stop_mid_trial_aborts_and_zeroes(device, link):
 @pytest.mark.parametrize("garbage", [b"noise\n", b"1 PING*0000\n", b"x" * 300 + b"\n"])
 def test_garbage_and_bad_checksums_fault_and_zero(device, link, garbage):
     assert link.call("SETUP", ch="EV", car=270.0, env=0.0, amp=0.4).ok
-    assert link.call("DIAG").number("ev") == 0.4
+    assert link.call("DIAG").number("ev") == played(0.4)
     link.ser.write(garbage)
     assert link.event("FAULT").fields["code"] == "FRAME"
     assert_zero(link)
@@ -148,7 +160,7 @@ def test_streaming_setup_then_amp(device, link):
     assert link.call("SETUP", ch="MV", car=120.0, env=0.0, amp=0.25).ok
     assert link.call("AMP", ch="MV", amp=0.5).ok
     diag = link.call("DIAG")
-    assert (diag.number("ev"), diag.number("mv")) == (0, 0.5)
+    assert (diag.number("ev"), diag.number("mv")) == (0, played(0.5))
     assert link.call("STOP").ok
     assert_zero(link)
 

@@ -18,7 +18,16 @@ from firmware_support import Link
 from masking_lab.device import protocol as proto
 from masking_lab.device.config import load_device_config
 from masking_lab.device.emulator import FirmwareEmulator
+from masking_lab.device.emulator_checks import Converter
 from masking_lab.formats.resources import shipped
+
+DAC = Converter(12, 10_000_000)  # the emulator's default converter: 12 bits over ±10 V
+
+
+def played(code: int) -> float:
+    """V a code amplitude plays with no attenuation (1 LSB = 4.8828125 mV), to the µV."""
+    return DAC.played_uv(code, 0) / 1e6
+
 
 RIG = """\
 schema_version: 1
@@ -106,7 +115,7 @@ def test_over_limit_raw_frame_is_refused_and_zeroes_both_outputs(emulator_factor
     emu, link = emulator_factory()
     assert link.reply(link.send("SETUP", ch="MV", car=120.0, env=0.0, amp=1.0)).ok
     assert link.reply(link.send("SETUP", ch="EV", car=270.0, env=0.0, amp=0.5)).ok
-    assert dict(emu.outputs().amplitude_v) == {"EV": 0.5, "MV": 1.0}
+    assert dict(emu.outputs().amplitude_v) == {"EV": played(102), "MV": played(205)}
     # 3 V on EV is within the host's idea of nothing here: the frame bypasses any host check
     refused = link.reply(link.send("AMP", ch="EV", amp=3.0))
     assert not refused.ok and refused.code == "LIMIT"
@@ -142,6 +151,8 @@ def test_corrupted_command_zeroes_outputs_and_reports_a_fault(emulator_factory, 
     assert (fault.name, fault.fields["code"]) == ("FAULT", "FRAME")
     assert emu.outputs().zero
     assert any("FAULT FRAME" in line for line in emu.log_lines())
+    if not raw.endswith(b"\n"):
+        link.ser.write(b"\n")  # like the firmware, the rest of an over-long line is skipped
     assert link.reply(link.send("PING")).ok  # the firmware keeps serving
 
 
@@ -160,7 +171,7 @@ def test_pings_keep_the_watchdog_fed_and_an_idle_device_never_trips(emulator_fac
     for _ in range(8):  # 0.4 s of pings every 50 ms, longer than the 0.3 s period
         assert link.reply(link.send("PING")).ok
         time.sleep(0.05)
-    assert emu.outputs().amplitude_v["EV"] == 1.0
+    assert emu.outputs().amplitude_v["EV"] == played(205)  # 1 V quantised
     assert link.reply(link.send("STOP")).ok
     assert link.quiet_for(0.45) == b""  # outputs at 0 V: nothing to guard, no WATCHDOG
     assert not any("WATCHDOG" in line for line in emu.log_lines())
@@ -223,7 +234,8 @@ def test_virtual_time_play_reports_planned_onsets_plus_small_seeded_lateness(rig
     onsets = done.numbers("on")
     assert all(0 <= a - p < 0.002 for a, p in zip(onsets, planned, strict=True))
     assert done.number("end") == pytest.approx(5.0 + 0.02 + 3 * 0.03 + 2 * 0.02)
-    assert (done.number("tamp"), done.number("mamp")) == (0.5, 0.3)
+    # played after quantisation: 12 bits over ±10 V, 1 LSB = 4.8828125 mV
+    assert (done.number("tamp"), done.number("mamp")) == (played(102), played(61))
     assert done.numbers("on") == _done_line(1, rig).numbers("on")  # same seed, same lateness
     assert done.numbers("on") != _done_line(2, rig).numbers("on")
 
@@ -251,7 +263,7 @@ def test_stop_aborts_a_trial_in_progress(emulator_factory):
     now = link.reply(link.send("TIME")).number("t")
     seq = link.send("PLAY", at=now, **dict(PLAY, stim=2.0, lead=0.0))
     assert link.reply(seq).ok
-    assert wait_until(lambda: emu.outputs().amplitude_v["MV"] == 0.3, 1.0)
+    assert wait_until(lambda: emu.outputs().amplitude_v["MV"] == played(61), 1.0)
     stop = link.send("STOP")
     frames = link.frames_until(lambda f: f.kind == "reply" and f.seq == stop)
     aborted = [f for f in frames if f.kind == "event" and f.name == "ABORTED"]
@@ -338,6 +350,12 @@ def test_emulate_command_prints_its_port_serves_it_and_zeroes_on_sigterm(tmp_pat
             "200",
             "--log",
             str(log),
+            "--bits",
+            "16",
+            "--fsv",
+            "5",
+            "--att",
+            "0,20",
         ],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
@@ -351,6 +369,8 @@ def test_emulate_command_prints_its_port_serves_it_and_zeroes_on_sigterm(tmp_pat
         try:
             hello = link.reply(link.send("HELLO"))
             assert hello.fields["vt"] == "1" and hello.number("wd_ms") == 200
+            f = hello.fields  # the converter and attenuator options reach HELLO
+            assert (f["bits_ev"], f["fsv_mv"], f["att"], f["fw"]) == ("16", "5", "0,20", "fw-2.0.0")
             assert link.reply(link.send("SETUP", ch="EV", car=270.0, env=0.0, amp=1.0)).ok
         finally:
             link.ser.close()
@@ -364,6 +384,20 @@ def test_emulate_command_prints_its_port_serves_it_and_zeroes_on_sigterm(tmp_pat
     assert "outputs zeroed" in err
     text = log.read_text()
     assert "CLOSE" in text
+
+
+@pytest.mark.parametrize(
+    ("option", "value"), [("--att", "0,10,5"), ("--att", "20"), ("--bits", "40"), ("--fsv", "nan")]
+)
+def test_emulate_command_refuses_a_bad_converter_option(option, value):
+    proc = subprocess.run(
+        [sys.executable, "-m", "masking_lab.commands.cli", "emulate", option, value],
+        capture_output=True,
+        text=True,
+        timeout=20,
+    )
+    assert proc.returncode == 2
+    assert option in proc.stderr and "Traceback" not in proc.stderr
 
 
 def test_emulate_command_reports_a_bad_config(tmp_path):

@@ -78,7 +78,7 @@ def test_a_session_on_the_c_firmware_equals_the_emulator_session(tmp_path):
     require_build("host")
     fw = _session(tmp_path / "fw", _start_firmware)
     emu = _session(tmp_path / "emu", _start_emulator)
-    assert fw[0]["device"]["firmware_version"].startswith("fw-1.0.0+host")
+    assert fw[0]["device"]["firmware_version"].startswith("fw-2.0.0")
     fw_trials, emu_trials = trials(fw), trials(emu)
     assert len(fw_trials) > 20
 

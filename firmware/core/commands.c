@@ -1,12 +1,14 @@
-/* Command handlers of protocol v1 (+ DIAG). Validation order follows the Python emulator so
+/* Command handlers of protocol v2. Validation order follows the Python emulator so
  * both give the same ERR code for the same bad command: INTERLOCK, then fields (ARGS), then
  * BUSY/STATE, then limits (LIMIT). Every ERR zeroes both outputs (fw_err). */
 #include <stdarg.h>
 #include <string.h>
 
 #include "board.h"
+#include "clock.h"
 #include "fixed.h"
 #include "fw_internal.h"
+#include "level.h"
 
 typedef struct {
     fw_t *fw;
@@ -86,18 +88,77 @@ static bool interlock_ok(fw_t *fw, const command_t *cmd)
     return false;
 }
 
-static bool within_limit(fw_t *fw, uint16_t seq, int ch, int64_t amp_uv)
+static void limit_err(fw_t *fw, uint16_t seq, int ch, int64_t amp_uv, const char *what)
 {
-    if (amp_uv >= 0 && amp_uv <= fw->cfg.limit_uv[ch]) {
-        return true;
-    }
-    char a[24], l[24], text[96];
+    char a[24], l[24], text[112];
     fx_format(a, sizeof a, amp_uv);
     fx_format(l, sizeof l, fw->cfg.limit_uv[ch]);
     fw_err(fw, seq, "LIMIT",
-           join(text, sizeof text, CH_NAME[ch], " amplitude ", a, " V exceeds the ", l,
+           join(text, sizeof text, CH_NAME[ch], " amplitude ", a, " V ", what, " the ", l,
                 " V limit", (const char *)NULL));
-    return false;
+}
+
+/* Requested amp_uv (>= 0) on channel ch behind step att_idx: within the limit both as asked
+ * and as quantised, and within the converter's range? Sets *code and *played. */
+static bool level_ok(fw_t *fw, uint16_t seq, int ch, int64_t amp_uv, uint8_t att_idx,
+                     int64_t *code, int64_t *played)
+{
+    if (amp_uv > fw->cfg.limit_uv[ch]) {
+        limit_err(fw, seq, ch, amp_uv, "exceeds");
+        return false;
+    }
+    uint8_t att = fw->cfg.att_db[att_idx];
+    *code = level_code(&fw->conv[ch], amp_uv, att);
+    *played = level_played_uv(&fw->conv[ch], *code, att);
+    int64_t top = ((int64_t)1 << (fw->conv[ch].bits - 1)) - 1;
+    if (*played > fw->cfg.limit_uv[ch] || *code > top) {
+        limit_err(fw, seq, ch, amp_uv, "quantised at this attenuation exceeds");
+        return false;
+    }
+    return true;
+}
+
+/* amplitude field: a peak >= 0 V (ARGS otherwise; its limit is checked later) */
+static int64_t amplitude(ctx_t *c, const char *key)
+{
+    int64_t v = number(c, key);
+    if (!c->failed && v < 0) {
+        args_err(c, "must be >= 0 V", key);
+    }
+    return v;
+}
+
+/* duration field: 0 <= value <= 60 s (> 0 with `positive`), checked before any arithmetic */
+static int64_t duration(ctx_t *c, const char *key, bool positive)
+{
+    int64_t v = number(c, key);
+    if (!c->failed && (v < 0 || (positive && v == 0) || v > TRIAL_MAX_DURATION_US)) {
+        args_err(c, positive ? "out of range: need 0 < value <= 60 s"
+                             : "out of range: need 0 <= value <= 60 s",
+                 key);
+    }
+    return v;
+}
+
+/* optional attenuation field: one of the board's steps (index returned), default 0 dB */
+static uint8_t attenuation(ctx_t *c, const char *key)
+{
+    const char *v = command_field(c->cmd, key);
+    if (!v) {
+        return 0;
+    }
+    int64_t db = 0;
+    if (!fx_parse(v, &db)) {
+        args_err(c, "is not a plain decimal number", key);
+        return 0;
+    }
+    for (uint8_t k = 0; k < c->fw->cfg.n_att; k++) {
+        if (db == (int64_t)c->fw->cfg.att_db[k] * FX_ONE) {
+            return k;
+        }
+    }
+    args_err(c, "is not one of the board's attenuation steps (HELLO att)", key);
+    return 0;
 }
 
 static void ok_begin(fw_t *fw, uint16_t seq)
@@ -119,6 +180,18 @@ static void cmd_hello(fw_t *fw, const command_t *cmd)
     frame_add_int(&fw->tx, "fs", fw->cfg.fs_hz);
     frame_add_int(&fw->tx, "vt", fw->cfg.virtual_time ? 1 : 0);
     frame_add_str(&fw->tx, "il", fw->interlock_open ? "open" : "closed");
+    frame_add_str(&fw->tx, "build", fw->cfg.build);
+    frame_add_str(&fw->tx, "clk", board_clock_source());
+    frame_add_str(&fw->tx, "rst", board_reset_cause());
+    frame_add_int(&fw->tx, "bits_ev", fw->conv[CH_EV].bits);
+    frame_add_int(&fw->tx, "bits_mv", fw->conv[CH_MV].bits);
+    frame_add_micro(&fw->tx, "fsv_ev", fw->conv[CH_EV].fsv_uv);
+    frame_add_micro(&fw->tx, "fsv_mv", fw->conv[CH_MV].fsv_uv);
+    int64_t att[LEVEL_MAX_STEPS];
+    for (int k = 0; k < fw->cfg.n_att; k++) {
+        att[k] = (int64_t)fw->cfg.att_db[k] * FX_ONE;
+    }
+    frame_add_micro_list(&fw->tx, "att", att, fw->cfg.n_att);
     fw_send_frame(fw);
 }
 
@@ -149,7 +222,15 @@ static void cmd_diag(fw_t *fw, const command_t *cmd)
     frame_add_micro(&fw->tx, "dac_mv", (int64_t)(dac[CH_MV] * 1e6f));
     frame_add_int(&fw->tx, "wd", fw->wd_trips);
     frame_add_micro(&fw->tx, "t", fw_now_us(fw));
+    frame_add_micro(&fw->tx, "pk_ev", fw->peak_uv[CH_EV]);
+    frame_add_micro(&fw->tx, "pk_mv", fw->peak_uv[CH_MV]);
+    /* work since the last DIAG (µs of device clock): see fw.h */
+    frame_add_int(&fw->tx, "hmax_us", (int64_t)fw->handler_max_us);
+    frame_add_int(&fw->tx, "pmax_us", (int64_t)fw->poll_max_us);
+    frame_add_int(&fw->tx, "omax_us", (int64_t)fw->refill_max_us);
+    frame_add_int(&fw->tx, "rnd_n", (int64_t)fw->render_samples);
     fw_send_frame(fw);
+    fw->handler_max_us = fw->poll_max_us = fw->refill_max_us = fw->render_samples = 0;
 }
 
 static void cmd_setup(fw_t *fw, const command_t *cmd)
@@ -159,7 +240,7 @@ static void cmd_setup(fw_t *fw, const command_t *cmd)
         return;
     }
     int ch = channel(&c, "ch");
-    int64_t car = number(&c, "car"), env = number(&c, "env"), amp = number(&c, "amp");
+    int64_t car = number(&c, "car"), env = number(&c, "env"), amp = amplitude(&c, "amp");
     if (!c.failed) {
         check_frequency(&c, car, env);
     }
@@ -170,14 +251,20 @@ static void cmd_setup(fw_t *fw, const command_t *cmd)
         fw_err(fw, cmd->seq, "BUSY", "SETUP while a trial is playing");
         return;
     }
-    if (!within_limit(fw, cmd->seq, ch, amp)) {
+    int64_t code, played;
+    if (!level_ok(fw, cmd->seq, ch, amp, 0, &code, &played)) {
         return;
     }
+    if (fw->att_idx[ch] != 0) { /* streams play at the 0 dB step */
+        fw->att_idx[ch] = 0;
+        fw_apply_attenuators(fw);
+    }
     stream_t *s = &fw->stream[ch];
+    s->code_amp = code;
     tone_init_stream(&s->tone, car, env, fw->cfg.fs_hz, fw->cfg.ramp_us);
     s->t0_us = fw_now_us(fw);
     s->active = true;
-    fw->amp_uv[ch] = amp;
+    fw->amp_uv[ch] = played;
     ok_begin(fw, cmd->seq);
     fw_send_frame(fw);
 }
@@ -189,7 +276,7 @@ static void cmd_amp(fw_t *fw, const command_t *cmd)
         return;
     }
     int ch = channel(&c, "ch");
-    int64_t amp = number(&c, "amp");
+    int64_t amp = amplitude(&c, "amp");
     if (c.failed) {
         return;
     }
@@ -204,21 +291,24 @@ static void cmd_amp(fw_t *fw, const command_t *cmd)
                     (const char *)NULL));
         return;
     }
-    if (!within_limit(fw, cmd->seq, ch, amp)) {
+    int64_t code, played;
+    if (!level_ok(fw, cmd->seq, ch, amp, 0, &code, &played)) {
         return;
     }
-    fw->amp_uv[ch] = amp;
+    fw->stream[ch].code_amp = code;
+    fw->amp_uv[ch] = played;
     ok_begin(fw, cmd->seq);
     fw_send_frame(fw);
 }
 
-/* Fill fw->trial from a PLAY; false (ERR sent) if a field is bad. */
-static bool parse_plan(ctx_t *c, trial_t *t)
+/* Fill a plan from a PLAY's fields; false (ERR ARGS sent) if one is bad. Every duration is
+ * bounded (0..60 s) before it enters a sum, so no arithmetic here can overflow. */
+static bool parse_plan(ctx_t *c, trial_t *t, int64_t *at)
 {
     t->target.ch = channel(c, "tch");
     t->target.carrier_uhz = number(c, "tcar");
     t->target.envelope_uhz = number(c, "tenv");
-    t->target.amp_uv = number(c, "tamp");
+    t->target.amp_uv = amplitude(c, "tamp");
     if (!c->failed) {
         check_frequency(c, t->target.carrier_uhz, t->target.envelope_uhz);
     }
@@ -232,22 +322,90 @@ static bool parse_plan(ctx_t *c, trial_t *t)
         if (!c->failed) {
             check_frequency(c, t->masker.carrier_uhz, t->masker.envelope_uhz);
         }
-        t->masker.amp_uv = number(c, "mamp");
+        t->masker.amp_uv = amplitude(c, "mamp");
     }
     int64_t n = number(c, "n") / FX_ONE, ti = number(c, "ti") / FX_ONE; /* int() truncates */
     if (!c->failed && !(ti >= 1 && ti <= n && n <= TRIAL_MAX_INTERVALS)) {
         args_err(c, "out of range: need 1 <= ti <= n <= 9", "ti/n");
     }
-    t->n = (int)n;
-    t->ti = (int)ti;
-    t->stim_us = number(c, "stim");
-    t->gap_us = number(c, "gap");
-    t->lead_us = number(c, "lead");
-    if (!c->failed && (t->stim_us <= 0 || t->gap_us < 0 || t->lead_us < 0 ||
-                       trial_duration_us(t) > TRIAL_MAX_DURATION_US)) {
-        args_err(c, "bad: need stim > 0, gap >= 0, lead >= 0, trial <= 60 s", "durations");
+    t->n = c->failed ? 0 : (int)n;
+    t->ti = c->failed ? 0 : (int)ti;
+    t->stim_us = duration(c, "stim", true);
+    t->gap_us = duration(c, "gap", false);
+    t->lead_us = duration(c, "lead", false);
+    if (!c->failed && trial_duration_us(t) > TRIAL_MAX_DURATION_US) {
+        args_err(c, "bad: need lead + n*stim + (n-1)*gap <= 60 s", "durations");
+    }
+    *at = number(c, "at");
+    if (!c->failed && (*at < 0 || *at > clock_add_sat(fw_now_us(c->fw), TRIAL_MAX_DURATION_US))) {
+        args_err(c, "out of range: need 0 <= at <= device time + 60 s", "at");
+    }
+    t->target.att_idx = attenuation(c, "tatt");
+    t->masker.att_idx = t->masker.ch >= 0 ? attenuation(c, "matt") : 0;
+    if (!c->failed && t->masker.ch == t->target.ch && t->masker.att_idx != t->target.att_idx) {
+        args_err(c, "must equal tatt when target and masker share a channel", "matt");
     }
     return !c->failed;
+}
+
+/* Quantise both parts and check each channel's sum, asked and as played, against its limit
+ * (ERR LIMIT sent if not). */
+static bool plan_levels(fw_t *fw, uint16_t seq, trial_t *t)
+{
+    part_t *parts[2] = {&t->target, t->masker.ch >= 0 ? &t->masker : NULL};
+    int64_t asked[CH_COUNT] = {0, 0}, code[CH_COUNT] = {0, 0}, played[CH_COUNT] = {0, 0};
+    for (int k = 0; k < 2; k++) {
+        part_t *p = parts[k];
+        if (!p) {
+            continue;
+        }
+        asked[p->ch] += p->amp_uv; /* each <= 1e18 after fx_parse: the sum fits */
+        if (p->amp_uv > fw->cfg.limit_uv[p->ch]) {
+            continue; /* refused below, before any quantisation */
+        }
+        uint8_t att = fw->cfg.att_db[p->att_idx];
+        p->code_amp = level_code(&fw->conv[p->ch], p->amp_uv, att);
+        p->played_uv = level_played_uv(&fw->conv[p->ch], p->code_amp, att);
+        code[p->ch] += p->code_amp;
+        played[p->ch] += p->played_uv;
+    }
+    for (int ch = 0; ch < CH_COUNT; ch++) {
+        int64_t top = ((int64_t)1 << (fw->conv[ch].bits - 1)) - 1;
+        if (asked[ch] > fw->cfg.limit_uv[ch]) {
+            limit_err(fw, seq, ch, asked[ch], "exceeds");
+            return false;
+        }
+        if (played[ch] > fw->cfg.limit_uv[ch] || code[ch] > top) {
+            limit_err(fw, seq, ch, asked[ch], "quantised at this attenuation exceeds");
+            return false;
+        }
+    }
+    return true;
+}
+
+/* Virtual time with vt_render: push every sample of the trial through the output stage's
+ * checks (host build only: this is the long work a real board does in its DMA refill). */
+static bool vt_render(fw_t *fw, int64_t end)
+{
+    trial_t *t = &fw->trial;
+    float out[CH_COUNT];
+    trial_prepare_tones(t, fw->cfg.fs_hz, fw->cfg.ramp_us);
+    fw->playing = true;
+    uint32_t n = us_to_samples(end - t->start_us, fw->cfg.fs_hz);
+    for (uint32_t i = 0; i <= n && !fw->limit_tripped; i++) {
+        int64_t t_us = t->start_us + (int64_t)((uint64_t)i * 1000000u / fw->cfg.fs_hz);
+        fw_render(fw, t_us, out);
+        if ((i & 0x3FFu) == 0) {
+            board_iwdg_feed(); /* a board spreads this work over the trial's refills */
+        }
+    }
+    if (fw->limit_tripped) {
+        fw_limit_fault(fw);
+        return false;
+    }
+    fw->playing = false;
+    board_outputs_zero();
+    return true;
 }
 
 static void cmd_play(fw_t *fw, const command_t *cmd)
@@ -262,21 +420,8 @@ static void cmd_play(fw_t *fw, const command_t *cmd)
     }
     trial_t plan;
     memset(&plan, 0, sizeof plan);
-    if (!parse_plan(&c, &plan)) {
-        return;
-    }
-    int64_t sum[CH_COUNT] = {0, 0};
-    sum[plan.target.ch] += plan.target.amp_uv;
-    if (plan.masker.ch >= 0) {
-        sum[plan.masker.ch] += plan.masker.amp_uv;
-    }
-    for (int ch = 0; ch < CH_COUNT; ch++) {
-        if (!within_limit(fw, cmd->seq, ch, sum[ch])) {
-            return;
-        }
-    }
-    int64_t at = number(&c, "at");
-    if (c.failed) {
+    int64_t at = 0;
+    if (!parse_plan(&c, &plan, &at) || !plan_levels(fw, cmd->seq, &plan)) {
         return;
     }
     /* PLAY owns the outputs: any stream stops first. */
@@ -286,11 +431,19 @@ static void cmd_play(fw_t *fw, const command_t *cmd)
     trial_schedule(&plan, at > now ? at : now);
     fw->trial = plan;
     trial_t *t = &fw->trial;
+    fw->att_idx[t->target.ch] = t->target.att_idx;
+    if (t->masker.ch >= 0) {
+        fw->att_idx[t->masker.ch] = t->masker.att_idx;
+    }
+    fw_apply_attenuators(fw);
     ok_begin(fw, cmd->seq);
     frame_add_micro(&fw->tx, "start", t->start_us);
     fw_send_frame(fw);
-    int64_t end = t->start_us + trial_duration_us(t);
+    int64_t end = clock_add_sat(t->start_us, trial_duration_us(t));
     if (fw->cfg.virtual_time) {
+        if (fw->cfg.vt_render && !vt_render(fw, end)) {
+            return; /* FAULT code=LIMIT sent instead of DONE */
+        }
         /* Nothing plays: report the planned onsets plus the documented lateness. */
         for (int k = 0; k < t->n; k++) {
             t->actual_us[k] = t->planned_us[k] + prng_lateness_us(&fw->prng, fw->cfg.jitter_us);

@@ -8,7 +8,11 @@
  * reported as "ABORTED seq=.. why=..". Every ERR, FAULT, WATCHDOG, STOP, HELLO comes here. */
 void fw_zero(fw_t *fw, const char *aborted_why);
 
+/* Recompute code limits and switch the board's attenuators after fw->att_idx[] changed. */
+void fw_apply_attenuators(fw_t *fw);
+
 void fw_send_frame(fw_t *fw);                     /* finish fw->tx and send it */
+void fw_limit_fault(fw_t *fw); /* report a pending per-sample limit trip: FAULT code=LIMIT */
 void fw_begin_event(fw_t *fw, const char *name);  /* next event number into fw->tx */
 void fw_send_done(fw_t *fw, int64_t end_us);
 

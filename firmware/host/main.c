@@ -4,7 +4,12 @@
  * simulated DAC is fed sample by sample at the configured rate from the same render function
  * the STM32 DMA buffer uses; DIAG reports its last samples. The interlock input is a signal:
  * SIGUSR1 opens it, SIGUSR2 closes it (or --interlock-open at start). SIGTERM/SIGINT/SIGHUP
- * zero the outputs and exit 0. */
+ * zero the outputs and exit 0.
+ *
+ * The independent watchdog is modelled like the board's IWDG: the core feeds it once per
+ * main-loop iteration (fw_poll); an iteration whose work (CPU time of this process, so a
+ * loaded machine does not trip it) exceeds --iwdg-ms resets the device: outputs zeroed, the
+ * core re-initialised, "!n BOOT ... rst=watchdog" sent, as a starved board would. */
 #define _XOPEN_SOURCE 700
 #define _DEFAULT_SOURCE
 
@@ -38,12 +43,59 @@ static size_t out_len;
 
 static volatile sig_atomic_t want_exit, il_request = -1;
 
-uint64_t board_mono_us(void)
+/* modelled IWDG and reset cause */
+static const char *reset_cause = "power";
+static uint32_t iwdg_ms = 100;
+static uint64_t iwdg_fed_cpu_us;
+static uint32_t test_stall_ms; /* fault injection: burn this much CPU once a trial starts */
+static uint64_t micros_offset; /* --clock-start-us: start the 32-bit counter near its wrap */
+static uint32_t stepback_us;   /* --test-clock-stepback-us: a counter that glitches back */
+
+uint32_t board_micros32(void)
 {
     struct timespec ts;
     clock_gettime(CLOCK_MONOTONIC, &ts);
-    return (uint64_t)(ts.tv_sec - t_boot.tv_sec) * 1000000u +
-           (uint64_t)((ts.tv_nsec - t_boot.tv_nsec) / 1000);
+    uint64_t us = (uint64_t)(ts.tv_sec - t_boot.tv_sec) * 1000000u +
+                  (uint64_t)((ts.tv_nsec - t_boot.tv_nsec) / 1000);
+    if (stepback_us && (us / 250000u) % 2u == 1u) {
+        us -= stepback_us; /* fault injection: every other 250 ms the read is late-latched */
+    }
+    return (uint32_t)(us + micros_offset); /* wraps like a 32-bit timer */
+}
+
+const char *board_reset_cause(void)
+{
+    return reset_cause;
+}
+
+const char *board_clock_source(void)
+{
+    return "host";
+}
+
+void board_set_attenuator(int ch, uint8_t step_index)
+{
+    (void)ch;
+    (void)step_index; /* the simulated DAC reports volts at the amplifier input directly */
+}
+
+static uint64_t cpu_us(void)
+{
+    struct timespec ts;
+    clock_gettime(CLOCK_PROCESS_CPUTIME_ID, &ts);
+    return (uint64_t)ts.tv_sec * 1000000u + (uint64_t)ts.tv_nsec / 1000u;
+}
+
+void board_iwdg_feed(void)
+{
+    iwdg_fed_cpu_us = cpu_us();
+}
+
+static void burn_cpu_ms(uint32_t ms)
+{
+    uint64_t until = cpu_us() + (uint64_t)ms * 1000u;
+    while (cpu_us() < until) {
+    }
 }
 
 static void flush_out(void)
@@ -90,8 +142,8 @@ void board_dac_last(float out[2])
 static void run_dac(void)
 {
     uint64_t now = sample_now();
-    if (now + 1 < dac_next_sample) {
-        return;
+    if (now < dac_next_sample) {
+        return; /* (an unsigned now - next here wrapped and skipped the first second) */
     }
     if (now - dac_next_sample > fw.cfg.fs_hz) { /* stalled > 1 s (debugger): skip ahead */
         dac_next_sample = now - fw.cfg.fs_hz;
@@ -119,10 +171,40 @@ static void usage(const char *argv0)
     fprintf(stderr,
             "usage: %s [--virtual-time] [--wd-ms N] [--max-ev V] [--max-mv V] [--fs HZ]\n"
             "          [--ramp-us N] [--jitter-us N] [--seed N] [--sn TEXT] [--model TEXT]\n"
-            "          [--interlock-open]\n"
+            "          [--interlock-open] [--bits-ev N] [--bits-mv N] [--fsv-ev V]\n"
+            "          [--fsv-mv V] [--att DB,DB,..] [--iwdg-ms N] [--vt-render]\n"
+            "  test-only fault injection: [--test-overdrive-pct P] [--test-stall-ms N]\n"
+            "          [--clock-start-us N] [--test-clock-stepback-us N]\n"
             "Serves the masking-lab device protocol on a new pseudo-terminal; prints its path.\n"
             "SIGUSR1 opens the interlock, SIGUSR2 closes it; SIGTERM zeroes and exits.\n",
             argv0);
+}
+
+static int64_t parse_micro(const char *opt, const char *text);
+
+/* "0,20,40": ascending whole dB steps 0..60, the first 0 */
+static void parse_att(fw_config_t *cfg, const char *text)
+{
+    char buf[64];
+    size_t len = strlen(text);
+    if (len >= sizeof buf) {
+        len = sizeof buf - 1;
+    }
+    memcpy(buf, text, len);
+    buf[len] = '\0';
+    cfg->n_att = 0;
+    for (char *tok = strtok(buf, ","); tok; tok = strtok(NULL, ",")) {
+        int64_t v = parse_micro("--att", tok);
+        int64_t prev = cfg->n_att ? cfg->att_db[cfg->n_att - 1] : -1;
+        if (cfg->n_att == LEVEL_MAX_STEPS || v % 1000000 || v / 1000000 > LEVEL_MAX_ATT_DB ||
+            v / 1000000 <= prev || (cfg->n_att == 0 && v != 0)) {
+            fprintf(stderr, "masking-fw: --att needs up to %d ascending whole dB steps in "
+                            "0..%d starting at 0, got '%s'\n",
+                    LEVEL_MAX_STEPS, LEVEL_MAX_ATT_DB, text);
+            exit(2);
+        }
+        cfg->att_db[cfg->n_att++] = (uint8_t)(v / 1000000);
+    }
 }
 
 static int64_t parse_micro(const char *opt, const char *text)
@@ -145,7 +227,11 @@ int main(int argc, char **argv)
         .jitter_us = 50,
         .seed = 0,
         .virtual_time = false,
-        .fw_version = FW_VERSION "+host",
+        .fw_version = FW_VERSION,
+        .bits = {12, 12},
+        .fsv_uv = {10 * 1000000LL, 10 * 1000000LL},
+        .att_db = {0, 20, 40},
+        .n_att = 3,
         .model = "ML-FW-2CH",
         .serial_number = "HOST-0001",
     };
@@ -155,6 +241,8 @@ int main(int argc, char **argv)
         const char *v = (i + 1 < argc) ? argv[i + 1] : NULL;
         if (strcmp(a, "--virtual-time") == 0) {
             cfg.virtual_time = true;
+        } else if (strcmp(a, "--vt-render") == 0) {
+            cfg.vt_render = true;
         } else if (strcmp(a, "--interlock-open") == 0) {
             il_open = true;
         } else if (strcmp(a, "-h") == 0 || strcmp(a, "--help") == 0) {
@@ -179,6 +267,29 @@ int main(int argc, char **argv)
                 cfg.jitter_us = (uint32_t)(parse_micro(a, v) / 1000000);
             } else if (strcmp(a, "--seed") == 0) {
                 cfg.seed = (uint32_t)(int64_t)(parse_micro(a, v) / 1000000); /* mod 2^32 */
+            } else if (strcmp(a, "--bits-ev") == 0 || strcmp(a, "--bits-mv") == 0) {
+                int64_t b = parse_micro(a, v) / 1000000;
+                cfg.bits[a[7] == 'e' ? 0 : 1] = (uint8_t)(b >= 2 && b <= LEVEL_MAX_BITS ? b : 0);
+                if (b < 2 || b > LEVEL_MAX_BITS) {
+                    fprintf(stderr, "masking-fw: %s needs 2..%d bits\n", a, LEVEL_MAX_BITS);
+                    return 2;
+                }
+            } else if (strcmp(a, "--fsv-ev") == 0) {
+                cfg.fsv_uv[0] = parse_micro(a, v);
+            } else if (strcmp(a, "--fsv-mv") == 0) {
+                cfg.fsv_uv[1] = parse_micro(a, v);
+            } else if (strcmp(a, "--att") == 0) {
+                parse_att(&cfg, v);
+            } else if (strcmp(a, "--iwdg-ms") == 0) {
+                iwdg_ms = (uint32_t)(parse_micro(a, v) / 1000000);
+            } else if (strcmp(a, "--test-overdrive-pct") == 0) {
+                cfg.test_overdrive_pct = (uint32_t)(parse_micro(a, v) / 1000000);
+            } else if (strcmp(a, "--test-stall-ms") == 0) {
+                test_stall_ms = (uint32_t)(parse_micro(a, v) / 1000000);
+            } else if (strcmp(a, "--test-clock-stepback-us") == 0) {
+                stepback_us = (uint32_t)(parse_micro(a, v) / 1000000);
+            } else if (strcmp(a, "--clock-start-us") == 0) {
+                micros_offset = (uint64_t)(parse_micro(a, v) / 1000000);
             } else if (strcmp(a, "--sn") == 0) {
                 cfg.serial_number = v;
             } else if (strcmp(a, "--model") == 0) {
@@ -189,8 +300,14 @@ int main(int argc, char **argv)
             }
         }
     }
-    if (cfg.fs_hz < 1000 || cfg.limit_uv[0] <= 0 || cfg.limit_uv[1] <= 0) {
-        fprintf(stderr, "masking-fw: need --fs >= 1000 and limits > 0 V\n");
+    bool bad_v = false;
+    for (int ch = 0; ch < CH_COUNT; ch++) {
+        bad_v |= cfg.limit_uv[ch] <= 0 || cfg.limit_uv[ch] > 1000 * 1000000LL;
+        bad_v |= cfg.fsv_uv[ch] <= 0 || cfg.fsv_uv[ch] > 1000 * 1000000LL;
+    }
+    if (cfg.fs_hz < 1000 || cfg.fs_hz > 1000000 || bad_v || iwdg_ms == 0) {
+        fprintf(stderr, "masking-fw: need 1000 <= --fs <= 1000000, limits and full scales in "
+                        "(0, 1000] V, --iwdg-ms > 0\n");
         return 2;
     }
     clock_gettime(CLOCK_MONOTONIC, &t_boot);
@@ -232,6 +349,7 @@ int main(int argc, char **argv)
             (double)cfg.limit_uv[0] / 1e6, (double)cfg.limit_uv[1] / 1e6, cfg.wd_ms, cfg.fs_hz,
             il_open ? "open" : "closed");
     fw_boot(&fw);
+    board_iwdg_feed();
 
     while (!want_exit) {
         if (il_request >= 0) {
@@ -258,9 +376,21 @@ int main(int argc, char **argv)
                 fw_rx(&fw, buf, (size_t)n);
             }
         }
+        if (test_stall_ms && fw.playing) {
+            burn_cpu_ms(test_stall_ms); /* fault injection: one starved iteration */
+            test_stall_ms = 0;
+        }
         flush_out();
         if (!fw.cfg.virtual_time) {
             run_dac();
+        }
+        if (cpu_us() - iwdg_fed_cpu_us > (uint64_t)iwdg_ms * 1000u) {
+            /* the modelled IWDG expired before this iteration fed it: reset */
+            fprintf(stderr, "masking-fw: IWDG expired (iteration > %u ms): reset\n", iwdg_ms);
+            reset_cause = "watchdog";
+            fw_init(&fw, &cfg, fw.interlock_open);
+            fw_boot(&fw);
+            flush_out();
         }
         fw_poll(&fw);
     }

@@ -45,6 +45,28 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="start with the interlock input open (HV enable off, E-stop pressed, wristband "
         "off); SIGUSR1 toggles it, to rehearse the safety chain without a rig",
     )
+    p.add_argument(
+        "--bits",
+        type=_bits,
+        default=12,
+        metavar="N",
+        help="converter resolution of both channels, bits (2-16; default 12, HELLO bits_ev/mv)",
+    )
+    p.add_argument(
+        "--fsv",
+        type=_full_scale,
+        default=10.0,
+        metavar="V",
+        help="converter full scale at the amplifier input, peak V (default 10, HELLO fsv_ev/mv)",
+    )
+    p.add_argument(
+        "--att",
+        type=_att_steps,
+        default=(0, 20, 40),
+        metavar="DB,DB,..",
+        help="attenuator steps the emulated board switches, dB, ascending from 0 "
+        "(default 0,20,40; '0' for none; HELLO att, PLAY tatt/matt)",
+    )
     p.add_argument("--seed", type=int, default=0, help="seed of simulated onset lateness")
     p.add_argument("--log", metavar="FILE", help="also append the emulator's event log to FILE")
     p.set_defaults(handler=run)
@@ -76,6 +98,9 @@ def run(args: argparse.Namespace) -> int:
         seed=args.seed,
         log_path=args.log,
         interlock_open=args.interlock_open,
+        bits=args.bits,
+        fsv_v=args.fsv,
+        att_db=args.att,
     ).start()
     interlock_open = args.interlock_open
     try:
@@ -107,3 +132,32 @@ def _non_negative_int(text: str) -> int:
     if value < 0:
         raise argparse.ArgumentTypeError(f"must be ≥ 0, got {value}")
     return value
+
+
+def _bits(text: str) -> int:
+    value = int(text)
+    if not 2 <= value <= 16:
+        raise argparse.ArgumentTypeError(f"must be 2..16 bits, got {value}")
+    return value
+
+
+def _full_scale(text: str) -> float:
+    value = float(text)
+    if not 0 < value <= 1000:  # also refuses nan
+        raise argparse.ArgumentTypeError(f"must be in (0, 1000] V, got {text}")
+    return value
+
+
+def _att_steps(text: str) -> tuple[int, ...]:
+    try:
+        steps = tuple(int(x) for x in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"need whole dB steps like 0,20,40, got {text!r}"
+        ) from None
+    ok = steps[0] == 0 and list(steps) == sorted(set(steps)) and steps[-1] <= 60
+    if not ok or len(steps) > 4:
+        raise argparse.ArgumentTypeError(
+            f"need up to 4 ascending whole dB steps in 0..60 starting at 0, got {text!r}"
+        )
+    return steps

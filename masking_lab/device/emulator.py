@@ -7,7 +7,8 @@ any fault (corrupted frame, over-limit request, any ERR, watchdog, STOP, unplug,
 reports faults as framed events. It runs in a background thread (tests, ``--device emulator``)
 or as a process (``masking-lab emulate``), and can imitate a board that resets when the port is
 opened (``boot_delay_s``) and a set of injected faults (:meth:`FirmwareEmulator.inject`).
-It speaks protocol 2 through the shim :mod:`masking_lab.device.emulator_v2`. Two time modes:
+
+Two time modes:
 
 - real time: PLAY is hardware-timed: the emulator waits until each onset and reports when it
   switched the output on (real onset jitter), and renders each trial's buffers with
@@ -17,7 +18,9 @@ It speaks protocol 2 through the shim :mod:`masking_lab.device.emulator_v2`. Two
   so a simulated study runs thousands of trials through the pty in seconds.
 
 It also models the interlock input (:meth:`FirmwareEmulator.set_interlock`) and answers the
-read-only ``DIAG`` command, like ``firmware/`` does (host side: ``device.serial_device``).
+read-only ``DIAG`` command, like ``firmware/`` does.
+
+The host side of the same protocol is :mod:`masking_lab.device.serial_device`.
 """
 
 from __future__ import annotations
@@ -32,25 +35,25 @@ from pathlib import Path
 from types import MappingProxyType
 from typing import Any
 
-from masking_lab.core import waveforms
 from masking_lab.core.stimulus import CHANNELS
-from masking_lab.device import emulator_v2 as v2
 from masking_lab.device import protocol as proto
 from masking_lab.device.config import DeviceConfig, default_device_config
+from masking_lab.device.emulator_checks import (
+    ONE,
+    Checker,
+    Converter,
+    LimitError,
+)
+from masking_lab.device.emulator_commands import FIRMWARE_VERSION, EmulatorCommands
 from masking_lab.device.emulator_state import (
-    INTERLOCK_TEXT,
     OnsetLateness,
     OutputSnapshot,
     PlayState,
-    channel,
-    check_frequency,
+    build_hash,
     interlock_text,
-    plan_from,
-    to_us,
-    virtual_play,
 )
 
-FIRMWARE_VERSION = "fw-2.0.0"  # the emulator answers like firmware protocol 2
+MAX_FIELDS = 24  # FRAME_MAX_FIELDS of firmware/core/frame.h
 HARD_MAX_DRIVE_V = 10.0  # the DAC's range: no config can raise a limit above it
 BOOT_BANNER = b"\r\nML bootloader v0.3 ... starting application\r\n"
 __all__ = ["FirmwareEmulator", "OutputSnapshot"]
@@ -59,7 +62,7 @@ FAULT_KINDS = ("garbage", "bad_crc", "mute", "unplug_on_play")
 _OUT_CAP = 1 << 16  # bytes queued for a host that is not reading before output is dropped
 
 
-class FirmwareEmulator:
+class FirmwareEmulator(EmulatorCommands):
     """Emulated two-channel (EV, MV) firmware on a pseudo-terminal.
 
     Parameters
@@ -82,6 +85,15 @@ class FirmwareEmulator:
         Also append the emulator's event log to this file (fsynced per line).
     interlock_open : bool
         Start with the interlock input open (HV enable off, E-stop pressed or wristband off).
+    bits : int
+        Converter resolution of both channels, bits (HELLO ``bits_ev``/``bits_mv``).
+    fsv_v : float
+        Converter full scale of both channels at the amplifier input, V peak.
+    att_db : tuple of int
+        Attenuator steps the board switches, dB, ascending, first 0 (HELLO ``att``).
+    overdrive : float
+        Fault injection for tests: scale every rendered sample by this factor after the level
+        checks, so the per-sample limit check (``FAULT code=LIMIT``) can be exercised.
     """
 
     def __init__(
@@ -95,6 +107,10 @@ class FirmwareEmulator:
         render_buffers: bool | None = None,
         log_path: str | Path | None = None,
         interlock_open: bool = False,
+        bits: int = 12,
+        fsv_v: float = 10.0,
+        att_db: tuple[int, ...] = (0, 20, 40),
+        overdrive: float = 1.0,
     ) -> None:
         self.config = config or default_device_config()
         self.virtual_time = bool(virtual_time)
@@ -104,7 +120,14 @@ class FirmwareEmulator:
         self.limits = {
             ch: min(HARD_MAX_DRIVE_V, self.config.limits.max_drive_v[ch]) for ch in CHANNELS
         }
-        self.converters = v2.converters_of(self.config, HARD_MAX_DRIVE_V)
+        self.checker = Checker(
+            {ch: round(v * ONE) for ch, v in self.limits.items()},
+            {ch: Converter(int(bits), round(fsv_v * ONE)) for ch in CHANNELS},
+            att_db,
+            round(self.config.waveform.sample_rate_hz),
+        )
+        self.overdrive = float(overdrive)
+        self.build = build_hash()
         self._lateness = OnsetLateness(seed, round(self.config.emulator.onset_jitter_s * 1e6))
         self._interlock_open = bool(interlock_open)
         self._lock = threading.Lock()
@@ -115,12 +138,14 @@ class FirmwareEmulator:
         self._amp = dict.fromkeys(CHANNELS, 0.0)
         self._stream: dict[str, tuple[float, float | None]] = {}
         self._last_sample = dict.fromkeys(CHANNELS, 0.0)
+        self._peak = dict.fromkeys(CHANNELS, 0.0)  # largest |rendered sample| since start, V
         self._play: PlayState | None = None
         self._faults: dict[str, int] = {}
         self._wd_trips = 0
         self._event_no = 0
         self.commands_received = 0  # valid commands handled (tests: "nothing was sent")
         self._rx = bytearray()
+        self._rx_discard = False  # skipping the tail of an over-long line
         self._out = bytearray()
         self._last_rx = time.perf_counter()
         self._booting_until: float | None = None
@@ -294,6 +319,7 @@ class FirmwareEmulator:
                 elif what == "reset":
                     self._zero("reset")
                     self._rx.clear()
+                    self._rx_discard = False
                     self._booting_until = time.perf_counter() + self.boot_delay_s
                     self._note("RESET board reset: outputs zeroed, booting")
             self._done_requests.notify_all()
@@ -313,9 +339,18 @@ class FirmwareEmulator:
             self._rx += data
             while True:
                 i = self._rx.find(b"\n")
-                if i < 0:
-                    if len(self._rx) > proto.MAX_FRAME_BYTES:
+                if self._rx_discard:  # the rest of a line already reported as too long
+                    if i < 0:
                         self._rx.clear()
+                        break
+                    del self._rx[: i + 1]
+                    self._rx_discard = False
+                    continue
+                if i < 0:
+                    # like the firmware: the 256th byte without a newline is garbage, once
+                    if len(self._rx) >= proto.MAX_FRAME_BYTES:
+                        self._rx.clear()
+                        self._rx_discard = True
                         self._fault("FRAME", "line too long without a newline")
                     break
                 line = bytes(self._rx[: i + 1])
@@ -330,6 +365,7 @@ class FirmwareEmulator:
             if self._booting_until is not None and now >= self._booting_until:
                 self._booting_until = None
                 self._rx.clear()
+                self._rx_discard = False
                 self._out += BOOT_BANNER
                 self._send_event("BOOT", {"fw": FIRMWARE_VERSION, "rst": "power"})
                 self._note("BOOT done")
@@ -352,6 +388,9 @@ class FirmwareEmulator:
         if frame.kind != "command":
             self._fault("FRAME", f"expected a command, got a {frame.kind}")
             return
+        if len(frame.fields) > MAX_FIELDS:  # the firmware's command_t holds no more
+            self._fault("FRAME", f"more than {MAX_FIELDS} fields")
+            return
         if self._take_fault("mute"):
             return  # a hung firmware neither answers nor feeds its watchdog
         self._last_rx = time.perf_counter()
@@ -362,120 +401,11 @@ class FirmwareEmulator:
             return
         try:
             handler(frame)
+        except LimitError as exc:
+            self._note(f"LIMIT #{frame.seq} {exc}: refused")
+            self._err(frame.seq, "LIMIT", str(exc))
         except (proto.FrameError, ValueError) as exc:
             self._err(frame.seq, "ARGS", f"{frame.name}: {exc}")
-
-    def _cmd_hello(self, frame: proto.Frame) -> None:
-        self._zero("HELLO (new host session)")
-        emu = self.config.emulator
-        self._note(f"HELLO from host #{frame.seq}")
-        fields = {"proto": proto.PROTOCOL_VERSION, "fw": FIRMWARE_VERSION}
-        fields.update(model=emu.model.replace(" ", "_"), sn=emu.serial_number.replace(" ", "_"))
-        fields.update(max_ev=self.limits["EV"], max_mv=self.limits["MV"])
-        fields.update(wd_ms=round(self.watchdog_s * 1000), fs=self.config.waveform.sample_rate_hz)
-        fields.update(vt=int(self.virtual_time), il=interlock_text(self._interlock_open))
-        fields.update(v2.hello_fields(self.converters))
-        self._ok(frame.seq, fields)
-
-    def _cmd_time(self, frame: proto.Frame) -> None:
-        self._ok(frame.seq, {"t": self._device_now()})
-
-    def _cmd_ping(self, frame: proto.Frame) -> None:
-        self._ok(frame.seq, {"t": self._device_now()})
-
-    def _cmd_diag(self, frame: proto.Frame) -> None:
-        fields = {"ev": self._amp["EV"], "mv": self._amp["MV"], "playing": int(bool(self._play))}
-        fields.update(il=interlock_text(self._interlock_open), dac_ev=self._last_sample["EV"])
-        fields.update(dac_mv=self._last_sample["MV"], wd=self._wd_trips, t=self._device_now())
-        self._ok(frame.seq, fields)
-
-    def _interlocked(self, frame: proto.Frame) -> bool:
-        if not self._interlock_open:
-            return False
-        self._err(frame.seq, "INTERLOCK", INTERLOCK_TEXT)
-        return True
-
-    def _cmd_stop(self, frame: proto.Frame) -> None:
-        self._zero("STOP", aborted_why="STOP")
-        self._note(f"STOP #{frame.seq}: outputs zeroed")
-        self._ok(frame.seq)
-
-    def _cmd_setup(self, frame: proto.Frame) -> None:
-        if self._interlocked(frame):
-            return
-        ch = channel(frame, "ch")
-        carrier, env, amp = frame.number("car"), frame.number("env"), frame.number("amp")
-        check_frequency(carrier, env, self.config.waveform.sample_rate_hz)
-        if self._play is not None:
-            self._err(frame.seq, "BUSY", "SETUP while a trial is playing")
-            return
-        if not self._within_limit(frame.seq, ch, amp):
-            return
-        self._stream[ch] = (carrier, env or None)
-        self._amp[ch] = amp
-        self._ok(frame.seq)
-
-    def _cmd_amp(self, frame: proto.Frame) -> None:
-        if self._interlocked(frame):
-            return
-        ch = channel(frame, "ch")
-        amp = frame.number("amp")
-        if self._play is not None:
-            self._err(frame.seq, "BUSY", "AMP while a trial is playing")
-            return
-        if ch not in self._stream:
-            self._err(frame.seq, "STATE", f"AMP on {ch} before SETUP of {ch}")
-            return
-        if not self._within_limit(frame.seq, ch, amp):
-            return
-        self._amp[ch] = amp
-        self._ok(frame.seq)
-
-    def _cmd_play(self, frame: proto.Frame) -> None:
-        if self._interlocked(frame):
-            return
-        if self._play is not None:
-            self._err(frame.seq, "BUSY", "PLAY while a trial is playing")
-            return
-        plan = plan_from(frame, self.config.waveform.sample_rate_hz)
-        self._att = v2.play_steps(frame, plan, self.converters)
-        amps = {ch: 0.0 for ch in CHANNELS}
-        amps[plan.target.channel] += plan.target_amplitude_v
-        if plan.masker is not None:
-            amps[plan.masker.channel] += plan.masker_amplitude_v
-        for ch, amp in amps.items():
-            if not self._within_limit(frame.seq, ch, amp):
-                return
-        # PLAY owns the outputs: any streamed output stops first.
-        self._stream.clear()
-        self._amp = dict.fromkeys(CHANNELS, 0.0)
-        at = frame.number("at")
-        if self.virtual_time:  # integer µs, so the onsets match the C firmware to the digit
-            start_us = max(to_us(at), self._vt_us)
-            self._ok(frame.seq, {"start": start_us / 1e6})
-            onsets_us, end_us = virtual_play(plan, start_us, self._lateness)
-            self._vt_us = max(self._vt_us, end_us)
-            if self._take_fault("unplug_on_play"):
-                self._unplug_locked("unplug injected during PLAY")
-                return
-            play = PlayState(frame.seq, start_us / 1e6, plan, [], actual=[])
-            play.actual = [t / 1e6 for t in onsets_us]
-            self._send_done(play, end_us / 1e6)
-            return
-        now = self._device_now()
-        start = max(at, now)
-        planned = plan.planned_onsets_s(start)
-        play = PlayState(frame.seq, start, plan, planned)
-        if self.render_buffers:
-            bufs = waveforms.trial_buffers(
-                plan, self.config.waveform.sample_rate_hz, ramp_s=self.config.waveform.ramp_s
-            )
-            self._last_sample = {ch: float(bufs.channel(ch)[-1]) for ch in CHANNELS}
-        self._ok(frame.seq, {"start": start})
-        for k, onset in enumerate(planned):
-            play.steps.append((onset, "on", k))
-            play.steps.append((onset + plan.stimulus_s, "off", k))
-        self._play = play
 
     def _advance_play(self, now_real: float) -> None:
         play = self._play
@@ -497,20 +427,7 @@ class FirmwareEmulator:
                 self._play = None
                 self._send_done(play, self._device_now())
 
-    def _send_done(self, play: PlayState, end: float) -> None:
-        plan = play.plan
-        fields = {"seq": play.seq, "on": play.actual, "end": end}
-        fields.update(v2.played(plan, self.converters, getattr(self, "_att", {})))
-        self._send_event("DONE", fields)
-
     # ---------------------------------------------------------------- helpers (lock held)
-
-    def _within_limit(self, seq: int, ch: str, amp: float) -> bool:
-        if 0 <= amp <= self.limits[ch]:
-            return True
-        self._note(f"LIMIT #{seq} {ch} {amp:g} V > {self.limits[ch]:g} V refused")
-        self._err(seq, "LIMIT", f"{ch} amplitude {amp:g} V exceeds the {self.limits[ch]:g} V limit")
-        return False
 
     def _armed(self) -> bool:
         return self._play is not None or any(v > 0 for v in self._amp.values())

@@ -1,24 +1,26 @@
 """Pieces of the firmware emulator that are not about serving a port.
 
-The output snapshot tests read, the state of a scheduled trial, the PLAY field parsing and
-checks (the same order and error codes as ``firmware/core/commands.c``), and the virtual-time
+The output snapshot tests read, the state of a scheduled trial, the plan of a checked PLAY
+(the checks themselves are in :mod:`masking_lab.device.emulator_checks`), the build id, and
+the virtual-time
 onset lateness generator, which is defined bit for bit in ``docs/device-protocol.md`` so the
 emulator and the C firmware report the same onsets for the same seed.
 """
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass, field
+from pathlib import Path
 from types import MappingProxyType
 
-from masking_lab.core.stimulus import CHANNELS, Stimulus
-from masking_lab.device import protocol as proto
+from masking_lab.core import waveforms
+from masking_lab.core.stimulus import Stimulus
 from masking_lab.device.base import TrialPlan
+from masking_lab.device.emulator_checks import ONE, CheckedPlay, Part
 
 PRNG_SEED_MIX = 0x6D2B79F5
 _MASK32 = 0xFFFFFFFF
-MAX_INTERVALS = 9
-MAX_TRIAL_US = 60_000_000
 INTERLOCK_TEXT = "interlock open: check HV enable, E-stop and the grounding wristband"
 
 
@@ -168,45 +170,13 @@ def to_us(seconds: float) -> int:
     return round(seconds * 1_000_000)
 
 
-def channel(frame: proto.Frame, key: str) -> str:
-    """Field ``key`` as ``"EV"``/``"MV"``; ValueError otherwise.
-
-    Examples
-    --------
-    >>> channel(proto.decode(proto.encode_command(1, "AMP", {"ch": "MV"})), "ch")
-    'MV'
-    """
-    ch = frame.fields.get(key)
-    if ch not in CHANNELS:
-        raise ValueError(f"{key}={ch!r} is not EV or MV")
-    return ch
-
-
-def check_frequency(carrier: float, env: float | None, sample_rate_hz: float) -> None:
-    """ValueError unless ``0 < carrier < fs/2`` and ``0 <= env < fs/2`` (Hz).
-
-    Examples
-    --------
-    >>> check_frequency(270.0, None, 1000.0)
-    >>> check_frequency(600.0, None, 1000.0)
-    Traceback (most recent call last):
-    ...
-    ValueError: frequencies must be in (0, 500) Hz
-    """
-    nyquist = sample_rate_hz / 2
-    if not 0 < carrier < nyquist or (env is not None and not 0 <= env < nyquist):
-        raise ValueError(f"frequencies must be in (0, {nyquist:g}) Hz")
-
-
-def plan_from(frame: proto.Frame, sample_rate_hz: float) -> TrialPlan:
-    """The TrialPlan of a PLAY frame; FrameError/ValueError (→ ``ERR ARGS``) if a field is bad.
+def plan_of(play: CheckedPlay) -> TrialPlan:
+    """The TrialPlan of a checked PLAY, amplitudes as played (quantised), for rendering.
 
     Parameters
     ----------
-    frame : Frame
-        A decoded PLAY command (carriers and envelopes in Hz, amplitudes in V, times in s).
-    sample_rate_hz : float
-        The emulator's sample rate, Hz (frequencies must lie below half of it).
+    play : CheckedPlay
+        Fields in integer µs / µV / µHz that passed the firmware's checks and levels.
 
     Returns
     -------
@@ -214,37 +184,89 @@ def plan_from(frame: proto.Frame, sample_rate_hz: float) -> TrialPlan:
 
     Examples
     --------
-    >>> play = proto.decode(proto.encode_command(7, "PLAY", {
-    ...     "tch": "EV", "tcar": 270, "tenv": 0, "tamp": 0.05, "ti": 2, "n": 3, "mch": "MV",
-    ...     "mcar": 120, "menv": 0, "mamp": 0.2, "stim": 1.8, "gap": 0.6, "lead": 0.6}))
-    >>> plan = plan_from(play, 10_000.0)
-    >>> plan.target.name, plan.target_amplitude_v, plan.masker.name, plan.duration_s
-    ('EV270', 0.05, 'MV120', 7.2)
+    >>> from masking_lab.device.emulator_checks import Part
+    >>> play = CheckedPlay(Part("EV", 270_000_000, 0, 50_000, played_uv=48_828),
+    ...                    None, 2, 3, 1_800_000, 600_000, 600_000, 0)
+    >>> plan = plan_of(play)
+    >>> plan.target.name, plan.target_amplitude_v, plan.duration_s
+    ('EV270', 0.048828, 7.2)
     """
-    target = Stimulus(channel(frame, "tch"), frame.number("tcar"), frame.number("tenv") or None)
-    check_frequency(target.carrier_hz, target.envelope_hz, sample_rate_hz)
-    masker = None
-    if frame.fields.get("mch", "-") != "-":
-        masker = Stimulus(channel(frame, "mch"), frame.number("mcar"), frame.number("menv") or None)
-        check_frequency(masker.carrier_hz, masker.envelope_hz, sample_rate_hz)
-    n = int(frame.number("n"))
-    ti = int(frame.number("ti"))
-    if not 1 <= ti <= n or n > MAX_INTERVALS:
-        raise ValueError(f"ti={ti} n={n}: need 1 <= ti <= n <= {MAX_INTERVALS}")
-    plan = TrialPlan(
-        target=target,
-        target_amplitude_v=frame.number("tamp"),
-        target_interval=ti,
-        masker=masker,
-        masker_amplitude_v=frame.number("mamp") if masker is not None else 0.0,
-        stimulus_s=frame.number("stim"),
-        gap_s=frame.number("gap"),
-        lead_in_s=frame.number("lead"),
-        n_intervals=n,
+
+    def stim(part: Part) -> Stimulus:
+        env = part.envelope_uhz / ONE or None
+        return Stimulus(part.channel, part.carrier_uhz / ONE, env)
+
+    m = play.masker
+    return TrialPlan(
+        target=stim(play.target),
+        target_amplitude_v=play.target.played_uv / ONE,
+        target_interval=play.ti,
+        masker=stim(m) if m is not None else None,
+        masker_amplitude_v=m.played_uv / ONE if m is not None else 0.0,
+        stimulus_s=play.stim_us / ONE,
+        gap_s=play.gap_us / ONE,
+        lead_in_s=play.lead_us / ONE,
+        n_intervals=play.n,
     )
-    if plan.stimulus_s <= 0 or plan.gap_s < 0 or plan.lead_in_s < 0 or plan.duration_s > 60:
-        raise ValueError("durations must be stim > 0, gap >= 0, lead >= 0, trial <= 60 s")
-    return plan
+
+
+def render_trial(
+    plan: TrialPlan, sample_rate_hz: float, ramp_s: float, overdrive: float = 1.0
+) -> dict[str, tuple[float, float]]:
+    """Render a trial like the output stage: per channel (largest |sample|, last sample), V.
+
+    Each tone peaks at its played (quantised) amplitude; ``overdrive`` scales every sample
+    afterwards (fault injection for the per-sample limit check). A stimulus under 3 samples
+    is silent, as in the firmware. (The firmware scales each tone by its closed-form peak
+    bound rather than the sampled peak, so its samples are never larger than these.)
+
+    Examples
+    --------
+    >>> from masking_lab.core.stimulus import parse_stimulus
+    >>> plan = TrialPlan(parse_stimulus("EV270"), 0.5, 1, stimulus_s=0.05, n_intervals=1)
+    >>> render_trial(plan, 10_000.0, 0.002)["EV"]
+    (0.5, 0.0)
+    """
+    out = {"EV": (0.0, 0.0), "MV": (0.0, 0.0)}
+    if round(plan.stimulus_s * sample_rate_hz) + 1 < 3:
+        return out
+    bufs = waveforms.trial_buffers(plan, sample_rate_hz, ramp_s=ramp_s)
+    for ch in out:
+        samples = bufs.channel(ch) * overdrive
+        if len(samples):
+            out[ch] = (float(abs(samples).max()), float(samples[-1]))
+    return out
+
+
+def build_hash(root: Path | None = None) -> str:
+    """The firmware build id HELLO reports: 12 hex digits of SHA-256 over the host build's sources.
+
+    The emulator is the twin of the host build, so it reports the host build's ``FW_BUILD``, by
+    the Makefile's recipe: the bytes of ``firmware/core/*.c *.h`` and ``firmware/host/*.c *.h
+    *.ld``, in byte-wise sorted path order (relative to ``firmware/``), concatenated.
+    ``000000000000`` when the sources are not found (an installed package without the
+    firmware tree).
+
+    Examples
+    --------
+    >>> len(build_hash()), build_hash(Path("/nonexistent"))
+    (12, '000000000000')
+    """
+    firmware = (root or Path(__file__).resolve().parents[2]) / "firmware"
+    wanted = {"core": (".c", ".h"), "host": (".c", ".h", ".ld")}
+    files = [
+        p
+        for folder, suffixes in wanted.items()
+        if (firmware / folder).is_dir()
+        for p in (firmware / folder).iterdir()
+        if p.suffix in suffixes and p.is_file()
+    ]
+    if not files:
+        return "000000000000"
+    digest = hashlib.sha256()
+    for path in sorted(files, key=lambda p: p.relative_to(firmware).as_posix().encode()):
+        digest.update(path.read_bytes())
+    return digest.hexdigest()[:12]
 
 
 def virtual_play(plan: TrialPlan, start_us: int, lateness: OnsetLateness) -> tuple[list[int], int]:
