@@ -9,6 +9,8 @@ a missing compiler or QEMU skips those targets locally but fails under CI (``CI`
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import functools
 import os
 import re
@@ -16,6 +18,7 @@ import shutil
 import signal
 import subprocess
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -71,6 +74,16 @@ def _missing(tools: list[str]) -> str | None:
     return ", ".join(absent) or None
 
 
+@contextlib.contextmanager
+def build_lock() -> Iterator[None]:
+    """Hold the firmware build folder's lock: parallel test workers (pytest-xdist) share it."""
+    lock = FIRMWARE / "build" / ".lock"
+    lock.parent.mkdir(parents=True, exist_ok=True)
+    with lock.open("w") as handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        yield
+
+
 @functools.cache
 def _make(target: str) -> str | None:
     """Build one firmware target; the reason it cannot be built, or None."""
@@ -79,9 +92,13 @@ def _make(target: str) -> str | None:
     absent = _missing(tools[target])
     if absent:
         return f"{absent} not installed (apt-get install gcc-arm-none-eabi qemu-system-arm make)"
-    proc = subprocess.run(
-        ["make", "-C", str(FIRMWARE), "-j2", target], capture_output=True, text=True, timeout=300
-    )
+    with build_lock():
+        proc = subprocess.run(
+            ["make", "-C", str(FIRMWARE), "-j2", target],
+            capture_output=True,
+            text=True,
+            timeout=300,
+        )
     if proc.returncode != 0:
         pytest.fail(f"make -C firmware {target} failed:\n{proc.stdout}\n{proc.stderr}")
     return None

@@ -13,6 +13,7 @@ from masking_lab.device import protocol as proto
 from masking_lab.device.check import run_checks
 from masking_lab.device.config import parse_device_config
 from masking_lab.device.emulator import FirmwareEmulator
+from masking_lab.device.emulator_state import build_hash
 
 # Real time (a board), a short boot budget so probing a silent port ends soon; the emulator's
 # converter described (the scripted boards' is not: the check warns that it took the board's).
@@ -72,7 +73,7 @@ def test_check_against_the_emulator_reports_every_item(tmp_path, closing, capsys
         "PLAY latency",
     ):
         assert f"ok    {item}" in out, out
-    assert "protocol 2, firmware fw-2.0.0, build 000000000000" in out
+    assert f"protocol 2, firmware fw-2.0.0, build {build_hash()}" in out
     assert "EV 2.5 V (config 2.5 V, in force 2.5 V)" in out
     assert out.rstrip().endswith("all 8 checks passed")
     assert emu.outputs().zero

@@ -240,7 +240,12 @@ def test_streamed_amplitudes_setup_once_then_amp(connect):
     dev.set_amplitude("EV", EV270, 0.4)
     dev.set_amplitude("EV", EV270, 0.6)
     dev.set_amplitude("MV", parse_stimulus("MV120am40"), 2.0)
-    assert dict(emu.outputs().amplitude_v) == {"EV": 0.6, "MV": 2.0}
+    # streams play whole converter codes (12 bits, 10 V full scale: 4.88 mV per LSB)
+    lsb = 20.0 / 4096
+    played = dict(emu.outputs().amplitude_v)
+    assert played == pytest.approx(
+        {"EV": round(0.6 / lsb) * lsb, "MV": round(2.0 / lsb) * lsb}, abs=1e-6
+    )
     dev.keepalive()
     dev.stop()
     assert emu.outputs().zero
@@ -605,7 +610,7 @@ def test_outputs_never_stay_on_after_the_host_program_ends(tmp_path, closing, ho
     )
     try:
         assert proc.stdout.readline().strip() == "playing"
-        assert emu.outputs().amplitude_v["EV"] == 1.0
+        assert emu.outputs().amplitude_v["EV"] == pytest.approx(1.0, abs=20.0 / 4096)  # whole codes
         proc.stdin.write("go\n")
         proc.stdin.flush()
         if how in ("SIGTERM", "SIGKILL"):

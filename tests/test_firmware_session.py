@@ -138,8 +138,10 @@ def test_killing_the_host_mid_trial_zeroes_within_one_watchdog_period(target, tm
             assert aborted.fields["why"] == "WATCHDOG"
             quiet_ms = trip.number("quiet_ms")
             # the last PING was at most 50 ms before the kill; the device zeroed one period
-            # after it, i.e. within one period of the kill
-            assert wd_ms <= quiet_ms <= wd_ms + 30
+            # after it, i.e. within one period of the kill. The slack is the device's own
+            # scheduling on a loaded host (a descheduled QEMU's clock jumps on resume), far
+            # below a second period.
+            assert wd_ms <= quiet_ms <= wd_ms + 150
             diag = link.call("DIAG")
             assert (diag.number("ev"), diag.number("mv"), diag.fields["playing"]) == (0, 0, "0")
             assert (diag.number("dac_ev"), diag.number("dac_mv")) == (0, 0)

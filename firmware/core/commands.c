@@ -337,8 +337,11 @@ static bool parse_plan(ctx_t *c, trial_t *t, int64_t *at)
         args_err(c, "bad: need lead + n*stim + (n-1)*gap <= 60 s", "durations");
     }
     *at = number(c, "at");
-    if (!c->failed && (*at < 0 || *at > clock_add_sat(fw_now_us(c->fw), TRIAL_MAX_DURATION_US))) {
-        args_err(c, "out of range: need 0 <= at <= device time + 60 s", "at");
+    int64_t ahead = c->fw->cfg.virtual_time ? TRIAL_MAX_AHEAD_VT_US : TRIAL_MAX_AHEAD_RT_US;
+    if (!c->failed && (*at < 0 || *at > clock_add_sat(fw_now_us(c->fw), ahead))) {
+        args_err(c, c->fw->cfg.virtual_time ? "out of range: need 0 <= at <= device time + 1 day"
+                                            : "out of range: need 0 <= at <= device time + 60 s",
+                 "at");
     }
     t->target.att_idx = attenuation(c, "tatt");
     t->masker.att_idx = t->masker.ch >= 0 ? attenuation(c, "matt") : 0;

@@ -197,14 +197,21 @@ void fw_limit_fault(fw_t *fw)
 
 static void poll_work(fw_t *fw);
 
-void fw_poll(fw_t *fw)
+void fw_refill_end(fw_t *fw)
 {
-    uint64_t t0 = clock_now_us();
-    if (fw->render_open) { /* the output stage's refill since the last poll has ended */
-        uint64_t took = clock_since_us(t0, fw->render_t0_us);
+    if (fw->render_open) { /* the output stage's refill has ended: record its work */
+        uint64_t took = clock_since_us(clock_now_us(), fw->render_t0_us);
         fw->refill_max_us = took > fw->refill_max_us ? took : fw->refill_max_us;
         fw->render_open = false;
     }
+}
+
+void fw_poll(fw_t *fw)
+{
+    /* A board that does not call fw_refill_end() gets its refill closed here (the measure then
+     * includes whatever ran between, e.g. a sleep until the next interrupt). */
+    fw_refill_end(fw);
+    uint64_t t0 = clock_now_us();
     poll_work(fw);
     uint64_t took = clock_since_us(clock_now_us(), t0);
     fw->poll_max_us = took > fw->poll_max_us ? took : fw->poll_max_us;

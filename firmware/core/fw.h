@@ -93,6 +93,9 @@ void fw_set_interlock(fw_t *fw, bool open);
 void fw_link_lost(fw_t *fw);
 /* Device time now, µs (virtual or real). */
 int64_t fw_now_us(const fw_t *fw);
+/* The board's output-stage refill (its run of fw_render() calls) has ended: record how long
+ * it took (DIAG omax_us). Call it right after the refill, before the board sleeps. */
+void fw_refill_end(fw_t *fw);
 /* Drive of both channels (V at the amplifier input) at device time t_us: what the output
  * stage must play then; fw->out_code[] holds the same samples as signed converter codes.
  * Every sample is checked against the channel's limit first: one over it is never output

@@ -9,6 +9,11 @@
 
 #define TRIAL_MAX_INTERVALS 9
 #define TRIAL_MAX_DURATION_US (60LL * 1000000LL)
+/* How far ahead of the device clock a PLAY may be scheduled. In real time a trial armed more
+ * than 60 s ahead is a host error; in virtual time the clock moves only at PLAY, so the gap
+ * covers the participant's responses and breaks since the last trial (bounded at one day). */
+#define TRIAL_MAX_AHEAD_RT_US TRIAL_MAX_DURATION_US
+#define TRIAL_MAX_AHEAD_VT_US (86400LL * 1000000LL)
 
 enum { CH_EV = 0, CH_MV = 1, CH_COUNT = 2 };
 

@@ -153,6 +153,7 @@ static void run_dac(void)
         fw_render(&fw, t_us, dac_last);
         dac_samples_out++;
     }
+    fw_refill_end(&fw);
 }
 
 static void on_signal(int sig)

@@ -115,6 +115,7 @@ void output_service(fw_t *fw)
         last_v[1] = v[1];
         next_sample++;
     }
+    fw_refill_end(fw); /* the refill's work, measured before the loop may sleep */
 }
 
 bool output_active(const fw_t *fw)

@@ -51,6 +51,7 @@ void output_service(fw_t *fw)
         fw_render(fw, (int64_t)(next_sample * 1000000u / fs), v);
 #if FW_PROTOCOL_VERSION >= 2
         if (!board_codes_playable(fw)) {
+            fw_refill_end(fw);
             return; /* the same linear-range rule as the DAC board */
         }
 #endif
@@ -58,6 +59,7 @@ void output_service(fw_t *fw)
         ram_out_mv[ram_out_count % RING] = v[1];
         ram_out_count++;
     }
+    fw_refill_end(fw); /* the refill's work, measured before the loop may sleep */
 }
 
 bool output_active(const fw_t *fw)

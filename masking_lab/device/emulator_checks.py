@@ -21,6 +21,7 @@ from dataclasses import dataclass
 
 ONE = 1_000_000  # micro-units per unit (µs per s, µV per V, µHz per Hz)
 MAX_TRIAL_US = 60_000_000
+MAX_AHEAD_VT_US = 86_400 * ONE  # TRIAL_MAX_AHEAD_VT_US of firmware/core/trial.h
 MAX_INTERVALS = 9
 MAX_STEPS = 4
 _QUANTISED = "quantised at this attenuation exceeds"
@@ -267,7 +268,9 @@ class Checker:
             self.frequencies(car, env)
         return ch, car, env, amp
 
-    def play(self, fields: Mapping[str, str], now_us: int) -> CheckedPlay:
+    def play(
+        self, fields: Mapping[str, str], now_us: int, virtual_time: bool = False
+    ) -> CheckedPlay:
         """A PLAY's fields checked like ``parse_plan()``; ArgsError if one is bad."""
         tch = self.channel(fields, "tch")
         target = Part(tch, self.number(fields, "tcar"), self.number(fields, "tenv"), 0)
@@ -292,7 +295,11 @@ class Checker:
         if lead + n * stim + (n - 1) * gap > MAX_TRIAL_US:
             raise ArgsError("durations: need lead + n*stim + (n-1)*gap <= 60 s")
         at = self.number(fields, "at")
-        if not 0 <= at <= now_us + MAX_TRIAL_US:
+        # real time: no trial armed more than 60 s ahead; virtual time: the clock moves only at
+        # PLAY, so the participant's responses and breaks since the last trial lie in between
+        if virtual_time and not 0 <= at <= now_us + MAX_AHEAD_VT_US:
+            raise ArgsError("at out of range: need 0 <= at <= device time + 1 day")
+        if not virtual_time and not 0 <= at <= now_us + MAX_TRIAL_US:
             raise ArgsError("at out of range: need 0 <= at <= device time + 60 s")
         target = _with_att(target, self.attenuation(fields, "tatt"))
         if masker is not None:

@@ -103,7 +103,7 @@ class EmulatorCommands:
         if self._play is not None:
             self._err(frame.seq, "BUSY", "PLAY while a trial is playing")
             return
-        checked = self.checker.play(frame.fields, to_us(self._device_now()))
+        checked = self.checker.play(frame.fields, to_us(self._device_now()), self.virtual_time)
         checked = self.checker.play_levels(checked)
         plan = plan_of(checked)  # amplitudes as played (quantised)
         # PLAY owns the outputs: any streamed output stops first.
