@@ -32,8 +32,7 @@ from masking_lab.formats.protocol import Protocol, SetSpec
 from masking_lab.formats.records import jsonable
 from masking_lab.formats.session_log import SessionLogWriter, SetRecords
 from masking_lab.procedures.base import Procedure, replay
-from masking_lab.procedures.quest_plus import QuestPlus
-from masking_lab.procedures.staircase import Staircase
+from masking_lab.procedures.registry import kind_of
 from masking_lab.responders.base import Responder, SetInfo, TrialPresentation
 from masking_lab.session.interleave import next_set
 from masking_lab.session.pace import session_time_left_s, track_trials_left
@@ -443,11 +442,10 @@ class ThresholdSession(SessionShell[SessionResult]):
             if self.trial_seconds
             else nominal_seconds_per_trial(self.protocol.timing)
         )
-        assert isinstance(state, Staircase | QuestPlus)
         if self.protocol.interleave:
             # Every running track shares the session: the time left is theirs together.
             running = [s for _, _, s in self.interleaved_tracks.values()]
-            trials = sum(track_trials_left(s, self.finished_trials) for s in running)  # type: ignore[arg-type]
+            trials = sum(track_trials_left(s, self.finished_trials) for s in running)
             left = trials * per_trial
         else:
             left = session_time_left_s(
@@ -457,27 +455,19 @@ class ThresholdSession(SessionShell[SessionResult]):
                 finished_set_trials=self.finished_trials,
                 rest_between_sets_s=self.protocol.timing.rest_between_sets_s,
             )
-        if isinstance(state, Staircase):
-            done, goal, what = len(state.reversal_levels_db), state.settings.n_reversals, ""
-        else:
-            done, goal = 0, 0
-            what = (
-                f"posterior {state.posterior_mean_db:.1f} ± {state.posterior_sd_db:.1f}"
-                if state.n_trials
-                else "posterior: prior"
-            )
+        unit = UNIT_LABEL.get(plan.level_unit, plan.level_unit)
         self.out.update(
             format_progress(
                 set_number=k + 1,
                 n_sets=len(self.order),
                 set_id=plan.set_id,
                 trial_index=state.n_trials,
-                reversals=done,
-                n_reversals=goal,
+                reversals=0,
+                n_reversals=0,
                 level_db=state.next_level(),
                 level_unit=plan.level_unit,
                 time_left_s=left,
-                track=what,
+                track_text=kind_of(state).progress(state, unit),
             )
         )
 

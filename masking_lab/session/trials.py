@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
@@ -27,8 +27,7 @@ from masking_lab.core.stimulus import Stimulus
 from masking_lab.core.trial import TrialPlan
 from masking_lab.formats.protocol import SetSpec, Timing
 from masking_lab.procedures.log_fields import SetProcedure
-from masking_lab.procedures.quest_plus import QuestPlusSettings
-from masking_lab.procedures.staircase import StaircaseSettings
+from masking_lab.procedures.registry import kind_of
 
 LevelUnit = Literal["db_sl", "db_v"]
 UNIT_LABEL: dict[str, str] = {"db_sl": "dB SL", "db_v": "dB re 1 V"}
@@ -61,7 +60,7 @@ class SetPlan:
     target_max_v : float
         Largest target drive the device allows, V peak: the channel's limit, less the masker's
         drive when both share a channel (peak drives on one channel add).
-    procedure : StaircaseSettings or QuestPlusSettings
+    procedure : settings of a registered procedure kind
         The set's procedure with ``max_level_db`` lowered to what the device can drive.
     """
 
@@ -158,12 +157,13 @@ def plan_set(
     device_max = limit_db_v if unmasked is None else limit_db_v - unmasked
     protocol_max = sc.max_level_db if sc.max_level_db is not None else math.inf
     effective_max = min(protocol_max, device_max)
-    start_db = sc.start_level_db if isinstance(sc, StaircaseSettings) else sc.min_level_db
+    kind = kind_of(sc)
+    start_db = kind.start_level_db(sc)
     if start_db > effective_max + _LIMIT_SLACK_DB:
         raise LevelError(
             f"set {spec.id}: start level {start_db:g} {unit} of {spec.target.name} is "
             f"above what the device can drive ({limit_v:g} V = {effective_max:.2f} {unit}); "
-            f"lower {_start_key(sc)} in the protocol, or check the participant's "
+            f"lower {kind.start_key} in the protocol, or check the participant's "
             "calibration and the device config"
         )
     if sc.min_level_db is not None and sc.min_level_db >= effective_max - _LIMIT_SLACK_DB:
@@ -172,12 +172,7 @@ def plan_set(
             f"{effective_max:.2f} {unit}) is not above the protocol's min_level_db "
             f"({sc.min_level_db:g} {unit}); the {sc.kind} would have no room to move"
         )
-    settings: SetProcedure
-    if isinstance(sc, StaircaseSettings):
-        # A start level within rounding of the limit is the limit itself.
-        settings = replace(sc, max_level_db=max(effective_max, sc.start_level_db))
-    else:
-        settings = _capped_quest(sc, effective_max)
+    settings: SetProcedure = kind.within_limit(sc, effective_max)
     return SetPlan(
         set_id=spec.id,
         target=spec.target,
@@ -190,32 +185,6 @@ def plan_set(
         target_max_v=limit_v,
         procedure=settings,
     )
-
-
-def _start_key(settings: SetProcedure) -> str:
-    if isinstance(settings, StaircaseSettings):
-        return "staircase.start_level_db"
-    return "procedure.min_level_db"
-
-
-def _capped_quest(settings: QuestPlusSettings, max_db: float) -> QuestPlusSettings:
-    """QUEST+ under a device limit: the stimulus grid stops at the limit, on the protocol's
-    grid so the levels stay round numbers. A threshold grid that follows the stimulus range
-    (the default) follows it down, so a threshold above what the rig can play ends the track
-    as ``ceiling`` rather than as an extrapolated number."""
-    if max_db >= settings.max_level_db:
-        return settings
-    step = settings.level_step_db
-    top = round(
-        settings.min_level_db + step * math.floor((max_db - settings.min_level_db) / step + 1e-9),
-        9,
-    )
-    if top <= settings.min_level_db:
-        raise LevelError(
-            f"the device limit ({max_db:.2f} dB) leaves QUEST+ less than one grid step "
-            f"({step:g} dB) above procedure.min_level_db ({settings.min_level_db:g} dB)"
-        )
-    return replace(settings, max_level_db=top)
 
 
 def plan_trial(
