@@ -81,7 +81,7 @@ def check_file(path: str, limits: dict[str, float]) -> str:
         from masking_lab.formats.protocol import load_protocol
 
         protocol = load_protocol(path, max_level_db_sl=limits)
-        return f"{protocol.experiment} ({protocol.kind}, {len(protocol.sets)} sets)"
+        return protocol.summary()
     if kind == "usertest":
         from masking_lab.usertest.design import load_usertest
 

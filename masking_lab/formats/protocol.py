@@ -496,6 +496,17 @@ def _limit_problems(
     max_level_db_sl: Mapping[str, float],
 ) -> Iterator[tuple[str, str]]:
     for i, s in enumerate(protocol.sets):
+        masker_range = kind_of(s.settings).masker_range_db_sl(s.settings)
+        if s.masker is not None and masker_range is not None:
+            limit = max_level_db_sl.get(s.masker.channel)
+            if limit is not None and masker_range[0] > limit:
+                yield (
+                    _where("procedure.masker_min_db_sl", lines),
+                    f"set {s.id}: masker {s.masker.name} from {masker_range[0]:g} dB SL is "
+                    f"above the device limit for {s.masker.channel} ({limit:g} dB SL); the "
+                    "procedure needs masker levels the rig can play",
+                )
+            continue
         if s.masker is None or s.masker_level_db_sl is None:
             continue
         limit = max_level_db_sl.get(s.masker.channel)

@@ -392,7 +392,7 @@ def ramp_moments(t: RampTables, posterior: NDArray[np.float64]) -> dict[str, flo
     da, db = t.intercepts_db - ma, t.slopes - mb
     va, vb = float(w @ da**2), float(w @ db**2)
     cov = float(w @ (da * db))
-    rho = cov / math.sqrt(va * vb) if va > 0 and vb > 0 else 0.0
+    rho = min(1.0, max(-1.0, cov / math.sqrt(va * vb))) if va > 0 and vb > 0 else 0.0
     return {
         "intercept_db": ma,
         "intercept_sd_db": math.sqrt(max(va, 0.0)),

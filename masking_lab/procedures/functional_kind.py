@@ -107,6 +107,14 @@ def _progress(state: FunctionalRamp, unit: str) -> str:
     )
 
 
+def _result_text(state: FunctionalRamp, unit: str) -> str:
+    m = state.moments()
+    return (
+        f"ramp a {m['intercept_db']:.2f} ± {m['intercept_sd_db']:.2f} dB, "
+        f"b {m['slope']:.3f} ± {m['slope_sd']:.3f} dB/dB (posterior mean ± SD)"
+    )
+
+
 def _no_al_reason(state: FunctionalRamp, unit: str, target_max_v: float) -> str:
     m = state.moments()
     return (
@@ -255,6 +263,7 @@ KIND = ProcedureKind(
     within_masker_limit=_within_masker_limit,
     masker_range_db_sl=lambda s: (s.masker_min_db_sl, s.masker_max_db_sl),
     places_masker=True,
+    result_text=_result_text,
     summary="masking function (ramp intercept and slope) measured directly, masker and target "
     "level chosen per trial",
 )

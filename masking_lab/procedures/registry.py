@@ -95,6 +95,10 @@ def _no_masker(_state: Procedure) -> float | None:
     return None
 
 
+def _no_text(_state: Any, _unit: str) -> str | None:
+    return None
+
+
 def _unchanged(settings: Any, _limit: float) -> Any:
     return settings
 
@@ -152,6 +156,9 @@ class ProcedureKind:
         The masker level of the next trial for procedures that place it (None: the set's).
     start_key : str
         The protocol key to lower when the first trial is above what the device can drive.
+    result_text : callable(state, unit) → str or None
+        What a completed track found when it is not one AL (a ramp's posterior), for the
+        experimenter's set summary; None: the AL says it.
     summary : str
         One phrase for the schema and docs (what the kind is).
     places_masker : bool
@@ -188,6 +195,7 @@ class ProcedureKind:
     within_masker_limit: Callable[[Any, float], Any] = field(default=_unchanged)
     masker_range_db_sl: Callable[[Any], tuple[float, float] | None] = field(default=_no_range)
     summary: str = ""
+    result_text: Callable[[Any, str], str | None] = field(default=_no_text)
 
 
 @functools.cache

@@ -99,6 +99,8 @@ class SetOutcome:
             what = f"AL {self.al_db:.2f} {unit}"
         elif self.status == "aborted":
             what = f"no AL: {self.reason}"
+        elif self.status == "completed" and self.reason:
+            what = self.reason  # a procedure whose result is not one AL (a ramp)
         else:
             what = "no AL (a track that ends at a bound or the trial cap is not a threshold)"
         return f"{self.set_id:<12} {self.status:<9} {what} ({self.n_trials} trials)"
@@ -278,6 +280,7 @@ class ThresholdSession(SessionShell[SessionResult]):
                 state.next_level(),
                 draw_target_interval(self.seed, plan.set_id, state.n_trials),
                 self.protocol.timing,
+                kind_of(state).masker_level_db_sl(state),
             )
         except LevelError as exc:
             # Only after a resume on a device with a lower limit than the set started with.
@@ -291,6 +294,9 @@ class ThresholdSession(SessionShell[SessionResult]):
         index = state.n_trials
         self.where = (plan.set_id, index)
         level = state.next_level()
+        masker_db_sl = kind_of(state).masker_level_db_sl(state)
+        if masker_db_sl is None:
+            masker_db_sl = plan.masker_level_db_sl
         interval = trial.target_interval
         self._show_progress(k, plan, state)
         t0 = self.clock.now()
@@ -302,7 +308,7 @@ class ThresholdSession(SessionShell[SessionResult]):
             start_s=start_s,
             level_db_v=plan.level_db_v(level),
             level_db_sl=plan.level_db_sl(level),
-            masker_level_db_sl=plan.masker_level_db_sl,
+            masker_level_db_sl=masker_db_sl,
         )
         played, response = self.responder.trial(
             presentation, lambda: self.device.play_trial(trial, start_s)
@@ -367,14 +373,20 @@ class ThresholdSession(SessionShell[SessionResult]):
             "method": ends["method"],
             "t_s": self.clock.now(),
         }
-        if "sd_db" in ends:
-            record["sd_db"] = ends["sd_db"]
+        # What else the procedure reports at the end (sd_db; a ramp's posterior summary).
+        record.update({k: v for k, v in ends.items() if k not in record})
         if state.status != "completed":
             record["reason"] = bound_reason(state, UNIT_LABEL[plan.level_unit], plan.target_max_v)
         self._append(record)
         self.finished_trials.append(state.n_trials)
+        found = kind_of(state).result_text(state, UNIT_LABEL[plan.level_unit])
         outcome = SetOutcome(
-            plan.set_id, state.status, al, plan.level_unit, state.n_trials, record.get("reason", "")
+            plan.set_id,
+            state.status,
+            al,
+            plan.level_unit,
+            state.n_trials,
+            record.get("reason", found or ""),
         )
         self.outcomes.append(outcome)
         self.out.message(f"set done: {outcome.summary()}")
