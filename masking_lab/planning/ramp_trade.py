@@ -1,0 +1,248 @@
+"""The trade users ask about: trials per participant for a masking function at the paper's
+precision, by the paper's route, QUEST+ per set, and the functional procedure (pure).
+
+One stimulus pair and direction (a target, a masker, its ramp a + b·x above the knee), one
+simulated participant per replicate. Every route starts from the same calibration: the
+participant's unmasked AL measured by the paper's staircase, whose error e shifts every
+level the session plays (dB SL of the *calibrated* AL). Then:
+
+``paper``
+    five 1-up-3-down staircases (the paper's 11/8 reversals, steps 4, 4, 4, 2 dB) at the
+    masker levels ``levels_db_sl``; shifts = the five ALs (already relative to the calibrated
+    AL); the least-squares ramp (:func:`masking_lab.analysis.ramp_fit.ramp_least_squares_batch`).
+``quest_plus``
+    the same with a QUEST+ track per level (slope known, stop at posterior SD 1.08 dB after 10
+    trials, cap 80: ``protocols/experiment1_questplus.yaml``).
+``functional``
+    one functional_ramp track over the same masker range (``protocols/experiment1_functional
+    .yaml``'s grids), run to ``max(checkpoints)`` trials; its posterior means at each
+    checkpoint (a shorter cap is a prefix of the same track: nothing else stops it).
+
+Precision of one participant's fitted ramp, over replicates: SD of the intercept (dB), SD of
+the slope (dB/dB), and RMS error of the predicted masked AL over the masker range (dB), each
+against the participant's true ramp. The Cramér–Rao bound of the two-dimensional design (slope
+and lapse known, every trial above the knee at the most informative target level, half at
+each end of the masker range) gives the fewest trials any unbiased procedure needs for each.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from masking_lab.analysis.ramp_fit import ramp_least_squares_batch
+from masking_lab.core.masking import ramp
+from masking_lab.core.psychometric import Psychometric
+from masking_lab.procedures.fisher import max_information
+from masking_lab.procedures.functional import FunctionalRampSettings
+from masking_lab.procedures.quest_plus import QuestPlusSettings
+from masking_lab.procedures.quest_plus_batch import simulate_quest_plus
+from masking_lab.procedures.staircase import StaircaseSettings
+from masking_lab.procedures.staircase_batch import Observer, simulate
+
+__all__ = ["RouteResult", "TradeSettings", "cramer_rao_ramp", "ramp_precision", "run_trade"]
+
+PAPER_STAIRCASE = StaircaseSettings(
+    20.0, step_sizes_db=(4.0, 4.0, 4.0, 2.0), min_level_db=-20.0, max_level_db=45.0,
+    max_trials=150,
+)  # fmt: skip
+PAPER_QUEST = QuestPlusSettings(-20.0, 45.0, target_sd_db=1.08, min_trials=10, max_trials=80)
+
+
+@dataclass(frozen=True)
+class TradeSettings:
+    """One pair and direction to compare the routes on.
+
+    Attributes
+    ----------
+    intercept_db, slope : float
+        The participants' true ramp (a dB, b dB/dB); default EV270 by MV120 (ground truth).
+    levels_db_sl : tuple of float
+        The paper's masker levels, dB SL.
+    scale_db, lapse : float
+        The observers' psychometric scale (dB) and lapse.
+    replicates : int
+        Simulated participants per route.
+    checkpoints : tuple of int
+        Trial counts at which the functional track's ramp is read.
+    seconds_per_trial : float
+        Time per trial, s (the paper's timing: 7.8 s of stimuli, ~1 s answer, 0.5 s pause).
+    functional : FunctionalRampSettings
+        Its grids (``max_trials`` is set to the largest checkpoint).
+    """
+
+    intercept_db: float = -7.442
+    slope: float = 0.711
+    levels_db_sl: tuple[float, ...] = (5.0, 10.0, 15.0, 20.0, 25.0)
+    scale_db: float = 1.5
+    lapse: float = 0.02
+    replicates: int = 60
+    checkpoints: tuple[int, ...] = (45, 60, 87, 120, 150)
+    seconds_per_trial: float = 9.3
+    functional: FunctionalRampSettings = field(default_factory=FunctionalRampSettings)
+
+
+@dataclass(frozen=True)
+class RouteResult:
+    """One route's precision and cost per participant and masking function.
+
+    Attributes
+    ----------
+    route : str
+    trials_mean : float
+        Trials per participant for this masking function (masked sets only).
+    minutes : float
+    sd_intercept_db, sd_slope, rms_al_db : float
+        Spread of the fitted intercept (dB) and slope (dB/dB), RMS error of the predicted
+        masked AL over the masker range (dB).
+    n : int
+        Replicates that gave a ramp.
+    """
+
+    route: str
+    trials_mean: float
+    minutes: float
+    sd_intercept_db: float
+    sd_slope: float
+    rms_al_db: float
+    n: int
+
+
+def ramp_precision(
+    a_hat: NDArray[np.float64],
+    b_hat: NDArray[np.float64],
+    a: float,
+    b: float,
+    levels_db_sl: tuple[float, ...],
+) -> tuple[float, float, float]:
+    """(SD of intercepts dB, SD of slopes, RMS error of predicted masked AL dB over the range).
+
+    SDs are root-mean-square errors against the truth (bias included).
+
+    Examples
+    --------
+    >>> ramp_precision(np.array([-7.0, -8.0]), np.array([0.7, 0.72]), -7.5, 0.71, (5.0, 25.0))[0]
+    0.5
+    """
+    x = np.linspace(min(levels_db_sl), max(levels_db_sl), 41)
+    pred = np.maximum(0.0, a_hat[:, None] + b_hat[:, None] * x[None, :])
+    err = pred - ramp(x, a, b)[None, :]
+    return (
+        float(np.sqrt(np.mean((a_hat - a) ** 2))),
+        float(np.sqrt(np.mean((b_hat - b) ** 2))),
+        float(np.sqrt(np.mean(err**2))),
+    )
+
+
+def cramer_rao_ramp(
+    n_trials: float, levels_db_sl: tuple[float, ...], *, scale_db: float = 1.5, lapse: float = 0.02
+) -> tuple[float, float, float]:
+    """Cramér–Rao SDs (intercept dB, slope, RMS of predicted AL dB) for ``n_trials`` trials.
+
+    The design: half the trials at each end of the masker range, each at the target level of
+    peak Fisher information I* (:func:`masking_lab.procedures.fisher.max_information`), all
+    above the knee, slope and lapse known: Cov = (n·I*·M)⁻¹ with M = mean of [1, x; x, x²].
+
+    Examples
+    --------
+    >>> sd_a, sd_b, rms = cramer_rao_ramp(100, (5.0, 25.0))
+    >>> round(sd_b, 3)
+    0.043
+    """
+    info, _, _ = max_information(scale_db=scale_db, guess=1 / 3, lapse=lapse)
+    ends = np.array([min(levels_db_sl), max(levels_db_sl)])
+    m = np.array([[1.0, ends.mean()], [ends.mean(), (ends**2).mean()]])
+    cov = np.linalg.inv(m) / (n_trials * info)
+    x = np.linspace(ends[0], ends[1], 41)
+    design = np.stack([np.ones_like(x), x], axis=1)
+    var_pred = np.einsum("ij,jk,ik->i", design, cov, design)
+    return math.sqrt(cov[0, 0]), math.sqrt(cov[1, 1]), float(math.sqrt(var_pred.mean()))
+
+
+def _calibration_errors(s: TradeSettings, rng: np.random.Generator) -> NDArray[np.float64]:
+    sim = simulate(
+        PAPER_STAIRCASE, np.zeros(s.replicates), Observer(scale_db=s.scale_db, lapse=s.lapse), rng
+    )
+    return np.nan_to_num(sim.al_db, nan=0.0)
+
+
+def _per_level_route(
+    s: TradeSettings, name: str, errors: NDArray[np.float64], rng: np.random.Generator
+) -> RouteResult:
+    truth = np.array([float(ramp(x, s.intercept_db, s.slope)) for x in s.levels_db_sl])
+    als, trials = [], np.zeros(s.replicates)
+    for k in range(len(s.levels_db_sl)):
+        thresholds = truth[k] - errors  # dB SL of the calibrated AL
+        if name == "paper":
+            sim = simulate(
+                PAPER_STAIRCASE, thresholds, Observer(scale_db=s.scale_db, lapse=s.lapse), rng
+            )
+            al = sim.al_db
+        else:
+            q = simulate_quest_plus(
+                PAPER_QUEST, thresholds, scale_db=s.scale_db, lapse=s.lapse, rng=rng
+            )
+            al = q.estimate_db
+        als.append(al)
+        trials += sim.n_trials if name == "paper" else q.n_trials
+    shifts = np.stack(als, axis=1)
+    ok = np.all(np.isfinite(shifts), axis=1)
+    a_hat, b_hat = ramp_least_squares_batch(np.array(s.levels_db_sl), shifts[ok])
+    sd_a, sd_b, rms = ramp_precision(a_hat, b_hat, s.intercept_db, s.slope, s.levels_db_sl)
+    mean_trials = float(trials.mean())
+    return RouteResult(
+        name, mean_trials, mean_trials * s.seconds_per_trial / 60, sd_a, sd_b, rms, int(ok.sum())
+    )
+
+
+def _functional_routes(
+    s: TradeSettings, errors: NDArray[np.float64], rng: np.random.Generator
+) -> list[RouteResult]:
+    from dataclasses import replace
+
+    settings = replace(s.functional, max_trials=max(s.checkpoints))
+    psy = Psychometric(0.0, s.scale_db, 1 / 3, s.lapse)
+    draws = rng.random((max(s.checkpoints), s.replicates))
+    at = {c: ([], []) for c in s.checkpoints}
+    for i in range(s.replicates):
+        state = settings.start()
+        while not state.finished:
+            theta = float(ramp(state.next_masker_level_db_sl(), s.intercept_db, s.slope))
+            p = psy.p_correct(state.next_level() - (theta - errors[i]))
+            state = state.update(bool(draws[state.n_trials, i] < p))
+            if state.n_trials in at:
+                m = state.moments()
+                at[state.n_trials][0].append(m["intercept_db"])
+                at[state.n_trials][1].append(m["slope"])
+    out = []
+    for c in s.checkpoints:
+        a_hat, b_hat = (np.array(v) for v in at[c])
+        sd_a, sd_b, rms = ramp_precision(a_hat, b_hat, s.intercept_db, s.slope, s.levels_db_sl)
+        out.append(
+            RouteResult(
+                f"functional ({c})", float(c), c * s.seconds_per_trial / 60, sd_a, sd_b, rms,
+                a_hat.size,
+            )
+        )  # fmt: skip
+    return out
+
+
+def run_trade(s: TradeSettings, seed: int = 0) -> list[RouteResult]:
+    """The three routes on the same simulated participants (same calibration errors).
+
+    Examples
+    --------
+    >>> small = TradeSettings(replicates=3, checkpoints=(10,))
+    >>> [r.route for r in run_trade(small)]
+    ['paper', 'quest_plus', 'functional (10)']
+    """
+    rng = np.random.default_rng(np.random.SeedSequence([seed, 0x7A1D]))
+    errors = _calibration_errors(s, rng)
+    results = [
+        _per_level_route(s, "paper", errors, rng),
+        _per_level_route(s, "quest_plus", errors, rng),
+    ]
+    return results + _functional_routes(s, errors, rng)
