@@ -28,12 +28,15 @@ each end of the masker range) gives the fewest trials any unbiased procedure nee
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from masking_lab.analysis.ramp_fit import ramp_least_squares_batch
+from masking_lab.core.errors import AnalysisError
 from masking_lab.core.masking import ramp
 from masking_lab.core.psychometric import Psychometric
 from masking_lab.procedures.fisher import max_information
@@ -43,7 +46,15 @@ from masking_lab.procedures.quest_plus_batch import simulate_quest_plus
 from masking_lab.procedures.staircase import StaircaseSettings
 from masking_lab.procedures.staircase_batch import Observer, simulate
 
-__all__ = ["RouteResult", "TradeSettings", "cramer_rao_ramp", "ramp_precision", "run_trade"]
+__all__ = [
+    "RouteResult",
+    "TradeSettings",
+    "cramer_rao_ramp",
+    "format_trade",
+    "ramp_precision",
+    "run_trade",
+    "trade_for_protocol",
+]
 
 PAPER_STAIRCASE = StaircaseSettings(
     20.0, step_sizes_db=(4.0, 4.0, 4.0, 2.0), min_level_db=-20.0, max_level_db=45.0,
@@ -246,3 +257,86 @@ def run_trade(s: TradeSettings, seed: int = 0) -> list[RouteResult]:
         _per_level_route(s, "quest_plus", errors, rng),
     ]
     return results + _functional_routes(s, errors, rng)
+
+
+def trade_for_protocol(
+    protocol: Any, truth: Any, *, replicates: int, seed: int
+) -> tuple[TradeSettings, list[RouteResult]]:
+    """The trade for the first set of a protocol whose procedure places the masker level.
+
+    The pair's true ramp and the observers' psychometric function come from the ground truth;
+    the functional grids, masker range and the checkpoints (up to the protocol's trial cap)
+    from the protocol.
+
+    Raises
+    ------
+    AnalysisError
+        If the ground truth has no masking function for the pair.
+    """
+    spec = protocol.sets[0]
+    fn = truth.masking_function(spec.target.name, spec.masker.name)
+    if fn is None:
+        raise AnalysisError(
+            f"the ground truth has no masking function for {spec.target.name} by "
+            f"{spec.masker.name}; add it, or pass another with --ground-truth"
+        )
+    settings = spec.settings
+    lo, hi = settings.masker_min_db_sl, settings.masker_max_db_sl
+    cap = settings.max_trials
+    checkpoints = tuple(sorted({max(10, cap // 2), max(10, (2 * cap) // 3), cap}))
+    trade = TradeSettings(
+        intercept_db=fn.intercept_db,
+        slope=fn.slope,
+        levels_db_sl=tuple(float(v) for v in np.linspace(lo, hi, 5)),
+        scale_db=truth.scale_db,
+        lapse=truth.lapse,
+        replicates=replicates,
+        checkpoints=checkpoints,
+        functional=settings,
+    )
+    return trade, run_trade(trade, seed=seed)
+
+
+def format_trade(trade: TradeSettings, results: Sequence[RouteResult]) -> str:
+    """The trade as a text table with the Cramér–Rao trials for the paper's precision.
+
+    Examples
+    --------
+    >>> r = RouteResult("paper", 260.0, 40.3, 3.1, 0.13, 1.1, 60)
+    >>> print(format_trade(TradeSettings(), [r]).splitlines()[1])
+    route                trials  minutes  SD a (dB)  SD b (dB/dB)  RMS AL (dB)
+    """
+    paper = results[0]
+    lines = [
+        f"masking function {trade.intercept_db:g} + {trade.slope:g}·x dB over "
+        f"{min(trade.levels_db_sl):g}-{max(trade.levels_db_sl):g} dB SL, "
+        f"{trade.replicates} simulated participants per route",
+        f"{'route':<20} {'trials':>6} {'minutes':>8} {'SD a (dB)':>10} {'SD b (dB/dB)':>13} "
+        f"{'RMS AL (dB)':>12}",
+    ]
+    for r in results:
+        ok = (
+            r.sd_intercept_db <= paper.sd_intercept_db
+            and r.sd_slope <= paper.sd_slope
+            and r.rms_al_db <= paper.rms_al_db
+        )
+        mark = "" if r is paper else ("  at the paper's precision" if ok else "")
+        lines.append(
+            f"{r.route:<20} {r.trials_mean:>6.0f} {r.minutes:>8.1f} {r.sd_intercept_db:>10.2f} "
+            f"{r.sd_slope:>13.3f} {r.rms_al_db:>12.2f}{mark}"
+        )
+    need = []
+    for k, target in enumerate((paper.sd_intercept_db, paper.sd_slope, paper.rms_al_db)):
+        n = 1.0
+        while (
+            cramer_rao_ramp(n, trade.levels_db_sl, scale_db=trade.scale_db, lapse=trade.lapse)[k]
+            > target
+            and n < 1e6
+        ):
+            n *= 1.01
+        need.append(math.ceil(n))
+    lines.append(
+        f"Cramér-Rao bound of the 2-D design (slope and lapse known): {max(need)} trials for "
+        f"the paper's precision ({need[0]} intercept, {need[1]} slope, {need[2]} RMS AL)"
+    )
+    return "\n".join(lines) + "\n"
