@@ -127,7 +127,7 @@ def ramp_posterior(
     p = likelihood(
         x, y, t.intercepts_db, t.slopes, t.nuisance, settings.guess, settings.p_at_threshold
     )  # (A, T, N)
-    ll = np.where(r[None, :, None], np.log(p), np.log1p(-p)).sum(axis=1)  # (A, N)
+    ll = np.log(np.where(r[None, :, None], p, 1.0 - p)).sum(axis=1)  # (A, N); p in (0, 1)
     post = np.exp(ll - ll.max())
     w = post.sum(axis=1)
     w /= w.sum()

@@ -264,6 +264,9 @@ class RampTables:
     first_stimulus: int
 
 
+_P_FLOOR = 1e-12
+
+
 def likelihood(
     maskers_db_sl: NDArray[np.float64],
     targets_db: NDArray[np.float64],
@@ -289,7 +292,9 @@ def likelihood(
     shift = ramp(maskers_db_sl[None, :], intercepts_db[:, None], slopes[:, None])  # type: ignore[arg-type]
     theta = shift[:, :, None] + u[None, None, :]  # (A, S, N)
     z = (targets_db[None, :, None] - theta) / scale + np.log(q / (1.0 - q))
-    return guess + rise / (1.0 + np.exp(-z))
+    # Kept off 0 and 1 by 1e-12: with a lapse of 0 a wrong answer far above threshold would
+    # otherwise make every point impossible (a 0/0 posterior).
+    return np.clip(guess + rise / (1.0 + np.exp(-z)), _P_FLOOR, 1.0 - _P_FLOOR)
 
 
 def _xlogx_sum(m: NDArray[np.float32]) -> NDArray[np.float32]:
