@@ -69,15 +69,20 @@ def main() -> None:
     args = parser.parse_args()
     rng = np.random.default_rng(args.seed)
     print(f"{args.tracks} tracks per cell, seed {args.seed}\n")
-    print("| observer scale, lapse | QUEST+ slope known | psi-marginal | functional a | "
-          "functional b |")
+    print(
+        "| observer scale, lapse | QUEST+ slope known | psi-marginal | functional a | "
+        "functional b |"
+    )
     print("|---|---:|---:|---:|---:|")
     for scale, lapse in OBSERVERS:
         known, _ = quest_coverage(QUEST_KNOWN, scale, lapse, args.tracks, rng)
         marg, trials = quest_coverage(QUEST_MARGINAL, scale, lapse, args.tracks, rng)
         fa, fb = functional_coverage(scale, lapse, args.tracks, rng)
-        print(f"| {scale:g} dB, {lapse:g} | {known:.0%} | {marg:.0%} ({trials:.0f} trials) | "
-              f"{fa:.0%} | {fb:.0%} |", flush=True)
+        print(
+            f"| {scale:g} dB, {lapse:g} | {known:.0%} | {marg:.0%} ({trials:.0f} trials) | "
+            f"{fa:.0%} | {fb:.0%} |",
+            flush=True,
+        )
 
 
 if __name__ == "__main__":
