@@ -182,3 +182,18 @@ def test_the_shipped_protocol_measures_the_papers_pair_within_memory():
     t = ramp_tables(settings)
     assert t.p_correct.nbytes < 64 * 2**20
     assert np.unique(t.maskers_db_sl).tolist() == [5.0, 10.0, 15.0, 20.0, 25.0]
+
+
+def test_progress_shows_the_ramp_and_the_masker_level(tmp_path):
+    write_calibration(tmp_path / "data", "S01", CAL)
+    out = io.StringIO()
+    options = RunOptions(
+        functional_protocol(tmp_path), "S01", data_dir=tmp_path / "data", seed=4, progress=True
+    )
+    assert run_session(options, stream=out).exit_code == 0
+    lines = [line for line in out.getvalue().splitlines() if line.startswith("set ")]
+    progress = [line for line in lines if line.endswith(" left")]
+    assert any("ramp: prior | masker" in line for line in progress)
+    assert any("ramp a " in line and " dB, b " in line and "| masker " in line for line in progress)
+    done = [line for line in lines if line.startswith("set done:")]
+    assert len(done) == 2 and all("ramp a " in line and "dB/dB" in line for line in done)
