@@ -1,7 +1,7 @@
 """The trade table of docs/speed-accuracy.md: trials per participant for one masking function at
 the paper's precision, by the paper's route, QUEST+ per set and the functional procedure.
 
-    OMP_NUM_THREADS=1 python tools/ramp_trade.py [--replicates 60] [--seed 0]
+    OMP_NUM_THREADS=1 python tools/ramp_trade.py [--replicates 60] [--seed 0] [--scheduler local]
 
 Simulated participants with the ground truth's EV270-by-MV120 ramp (a = -7.442 dB,
 b = 0.711 dB/dB), logistic scale 1.5 dB, lapse 0.02; every route from the same calibration
@@ -22,10 +22,17 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--replicates", type=int, default=60)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--scheduler",
+        default="local",
+        help="'local' (a local Dask cluster), 'synchronous' or a scheduler address; the table "
+        "is the same for any",
+    )
     args = parser.parse_args()
     settings = TradeSettings(replicates=args.replicates)
     t0 = time.perf_counter()
-    results = run_trade(settings, seed=args.seed)
+    scheduler = None if args.scheduler == "local" else args.scheduler
+    results = run_trade(settings, seed=args.seed, scheduler=scheduler)
     paper = results[0]
     print(
         f"{args.replicates} simulated participants, seed {args.seed}, "

@@ -166,6 +166,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--per-set", action="store_true", help="print every setting per set, not just pooled"
     )
+    p.add_argument(
+        "--scheduler",
+        default="local",
+        metavar="ADDRESS",
+        help="where the masking-function simulations of a functional protocol run: 'local' "
+        "(a local Dask cluster, default), 'synchronous' (this process) or a Dask "
+        "scheduler's address (tcp://host:8786); the same --seed gives the same table on any",
+    )
     p.set_defaults(handler=run)
 
 
@@ -191,7 +199,13 @@ def _masking_function_plan(args: argparse.Namespace, protocol: object) -> int:
 
     truth = load_ground_truth(args.ground_truth)
     replicates = min(args.replicates, _FUNCTIONAL_REPLICATES)
-    trade, results = trade_for_protocol(protocol, truth, replicates=replicates, seed=args.seed)
+    trade, results = trade_for_protocol(
+        protocol,
+        truth,
+        replicates=replicates,
+        seed=args.seed,
+        scheduler=None if args.scheduler == "local" else args.scheduler,
+    )
     text = format_trade(trade, results)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -180,9 +180,10 @@ def _calibration_errors(s: TradeSettings, rng: np.random.Generator) -> NDArray[n
     return np.nan_to_num(sim.al_db, nan=0.0)
 
 
-def _per_level_route(
+def _per_level_fits(
     s: TradeSettings, name: str, errors: NDArray[np.float64], rng: np.random.Generator
-) -> RouteResult:
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """(intercepts, slopes) of the replicates that gave five ALs, and every replicate's trials."""
     truth = np.array([float(ramp(x, s.intercept_db, s.slope)) for x in s.levels_db_sl])
     als, trials = [], np.zeros(s.replicates)
     for k in range(len(s.levels_db_sl)):
@@ -191,33 +192,30 @@ def _per_level_route(
             sim = simulate(
                 PAPER_STAIRCASE, thresholds, Observer(scale_db=s.scale_db, lapse=s.lapse), rng
             )
-            al = sim.al_db
+            als.append(sim.al_db)
+            trials += sim.n_trials
         else:
             q = simulate_quest_plus(
                 PAPER_QUEST, thresholds, scale_db=s.scale_db, lapse=s.lapse, rng=rng
             )
-            al = q.estimate_db
-        als.append(al)
-        trials += sim.n_trials if name == "paper" else q.n_trials
+            als.append(q.estimate_db)
+            trials += q.n_trials
     shifts = np.stack(als, axis=1)
     ok = np.all(np.isfinite(shifts), axis=1)
+    if not ok.any():
+        return np.zeros(0), np.zeros(0), trials
     a_hat, b_hat = ramp_least_squares_batch(np.array(s.levels_db_sl), shifts[ok])
-    sd_a, sd_b, rms = ramp_precision(a_hat, b_hat, s.intercept_db, s.slope, s.levels_db_sl)
-    mean_trials = float(trials.mean())
-    return RouteResult(
-        name, mean_trials, mean_trials * s.seconds_per_trial / 60, sd_a, sd_b, rms, int(ok.sum())
-    )
+    return a_hat, b_hat, trials
 
 
-def _functional_routes(
+def _functional_fits(
     s: TradeSettings, errors: NDArray[np.float64], rng: np.random.Generator
-) -> list[RouteResult]:
-    from dataclasses import replace
-
+) -> dict[int, tuple[NDArray[np.float64], NDArray[np.float64]]]:
+    """Per checkpoint, every replicate's posterior-mean intercept and slope."""
     settings = replace(s.functional, max_trials=max(s.checkpoints))
     psy = Psychometric(0.0, s.scale_db, 1 / 3, s.lapse)
     draws = rng.random((max(s.checkpoints), s.replicates))
-    at = {c: ([], []) for c in s.checkpoints}
+    at: dict[int, tuple[list[float], list[float]]] = {c: ([], []) for c in s.checkpoints}
     for i in range(s.replicates):
         state = settings.start()
         while not state.finished:
@@ -228,21 +226,42 @@ def _functional_routes(
                 m = state.moments()
                 at[state.n_trials][0].append(m["intercept_db"])
                 at[state.n_trials][1].append(m["slope"])
-    out = []
-    for c in s.checkpoints:
-        a_hat, b_hat = (np.array(v) for v in at[c])
-        sd_a, sd_b, rms = ramp_precision(a_hat, b_hat, s.intercept_db, s.slope, s.levels_db_sl)
-        out.append(
-            RouteResult(
-                f"functional ({c})", float(c), c * s.seconds_per_trial / 60, sd_a, sd_b, rms,
-                a_hat.size,
-            )
-        )  # fmt: skip
-    return out
+    return {c: (np.array(a), np.array(b)) for c, (a, b) in at.items()}
 
 
-def run_trade(s: TradeSettings, seed: int = 0) -> list[RouteResult]:
+def simulate_chunk(
+    s: TradeSettings, replicates: int, seed: np.random.SeedSequence
+) -> dict[str, Any]:
+    """One chunk of simulated participants through every route (what a worker runs).
+
+    Its result depends only on its arguments: the same chunk gives the same numbers on any
+    worker.
+    """
+    rng = np.random.default_rng(seed)
+    sub = replace(s, replicates=replicates)
+    errors = _calibration_errors(sub, rng)
+    return {
+        "paper": _per_level_fits(sub, "paper", errors, rng),
+        "quest_plus": _per_level_fits(sub, "quest_plus", errors, rng),
+        "functional": _functional_fits(sub, errors, rng),
+    }
+
+
+def _route(s: TradeSettings, name: str, a_hat: Any, b_hat: Any, trials: float) -> RouteResult:
+    sd_a, sd_b, rms = ramp_precision(a_hat, b_hat, s.intercept_db, s.slope, s.levels_db_sl)
+    return RouteResult(
+        name, trials, trials * s.seconds_per_trial / 60, sd_a, sd_b, rms, int(a_hat.size)
+    )
+
+
+def run_trade(
+    s: TradeSettings, seed: int = 0, *, scheduler: str | None = "synchronous", chunk: int = 10
+) -> list[RouteResult]:
     """The three routes on the same simulated participants (same calibration errors).
+
+    Participants are simulated in chunks of ``chunk`` (:mod:`masking_lab.planning.parallel`):
+    ``scheduler`` ``"synchronous"`` in this process, None on a local Dask cluster, or a Dask
+    scheduler's address; the same seed gives the same results whichever.
 
     Examples
     --------
@@ -250,17 +269,32 @@ def run_trade(s: TradeSettings, seed: int = 0) -> list[RouteResult]:
     >>> [r.route for r in run_trade(small)]
     ['paper', 'quest_plus', 'functional (10)']
     """
-    rng = np.random.default_rng(np.random.SeedSequence([seed, 0x7A1D]))
-    errors = _calibration_errors(s, rng)
-    results = [
-        _per_level_route(s, "paper", errors, rng),
-        _per_level_route(s, "quest_plus", errors, rng),
-    ]
-    return results + _functional_routes(s, errors, rng)
+    from masking_lab.planning.parallel import chunk_plan, run_chunks
+
+    plan = chunk_plan(
+        int(np.random.SeedSequence([seed, 0x7A1D]).generate_state(1)[0]), s.replicates, chunk
+    )
+    parts = run_chunks(simulate_chunk, [(s, n, ss) for n, ss in plan], scheduler=scheduler)
+    out = []
+    for name in ("paper", "quest_plus"):
+        a_hat = np.concatenate([p[name][0] for p in parts])
+        b_hat = np.concatenate([p[name][1] for p in parts])
+        trials = float(np.concatenate([p[name][2] for p in parts]).mean())
+        out.append(_route(s, name, a_hat, b_hat, trials))
+    for c in s.checkpoints:
+        a_hat = np.concatenate([p["functional"][c][0] for p in parts])
+        b_hat = np.concatenate([p["functional"][c][1] for p in parts])
+        out.append(_route(s, f"functional ({c})", a_hat, b_hat, float(c)))
+    return out
 
 
 def trade_for_protocol(
-    protocol: Any, truth: Any, *, replicates: int, seed: int
+    protocol: Any,
+    truth: Any,
+    *,
+    replicates: int,
+    seed: int,
+    scheduler: str | None = "synchronous",
 ) -> tuple[TradeSettings, list[RouteResult]]:
     """The trade for the first set of a protocol whose procedure places the masker level.
 
@@ -294,7 +328,7 @@ def trade_for_protocol(
         checkpoints=checkpoints,
         functional=settings,
     )
-    return trade, run_trade(trade, seed=seed)
+    return trade, run_trade(trade, seed=seed, scheduler=scheduler)
 
 
 def format_trade(trade: TradeSettings, results: Sequence[RouteResult]) -> str:
