@@ -58,7 +58,8 @@ def run_chunks(
     if scheduler is None:
         import os
 
-        workers = max(1, min(max_workers, os.cpu_count() or 1, len(args)))
+        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None
+        workers = max(1, min(max_workers, cores or os.cpu_count() or 1, len(args)))
         with (
             LocalCluster(
                 n_workers=workers,
