@@ -36,8 +36,9 @@ def test_paper_protocols_are_valid(capsys):
     assert {p.name for p in PAPER} >= {"baseline.yaml", "experiment1.yaml", "experiment2.yaml"}
     assert main(["validate", *map(str, PAPER)]) == 0
     out = capsys.readouterr().out
-    assert "experiment1 (masked, 15 sets)" in out
-    assert "experiment2 (masked, 15 sets)" in out
+    # the summary names the procedure and every set's trial cap (issue 21 item 2)
+    assert "experiment1 (masked, 15 sets; staircase, at most 150 trials per set)" in out
+    assert "experiment2 (masked, 15 sets; staircase, at most 150 trials per set)" in out
 
 
 def test_paper_experiments_match_table_1():

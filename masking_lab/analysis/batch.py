@@ -157,6 +157,7 @@ def _analyze_into(
     files: list[Path] = []
     tracks: list[TrackJob] = []
     rigs: list[RigUse] = []
+    analysed: list[Path] = []
     # One read per log (hashed and parsed from the same bytes), in parallel for many logs.
     for res in read_logs(paths, data, est, progress=progress):
         rel = res.rel
@@ -181,6 +182,7 @@ def _analyze_into(
             if isinstance(h.get("created_utc"), str) and is_utc_stamp(h["created_utc"]):
                 created.append(h["created_utc"])
             rows.extend(res.rows)
+            analysed.append(res.path)
             if settings.figures == "all":
                 tracks.append(_track_job(out, read_log(res.path), unpacked(res.rows)))
     if not inputs:
@@ -217,11 +219,14 @@ def _analyze_into(
     warnings = [f"{p['log']}: {p['problem']} ({p['action']})" for p in problems]
     warnings += report_inputs.rig_warnings
     if shifts.empty:
+        ramp_files, ramp_problems = _functional_ramps(out, analysed, inputs, settings, created_utc)
         report = build_report(
             [], settings, source="analyze", inputs=report_inputs, thresholds=thresholds
         )
         files.append(write_text_atomic(out / "report.txt", render_text(report)))
         files.append(write_text_atomic(out / "report.html", render_html(report)))
+        if ramp_files:  # functional-procedure logs: their ramps are the result
+            return RunSummary(out, files + ramp_files, warnings + ramp_problems)
         raise AnalysisError(
             f"{data}: no completed masked set to analyse ({len(thresholds)} sets, none with an "
             "AL shift); see report.txt for the status of each set"
@@ -239,7 +244,24 @@ def _analyze_into(
         thresholds=thresholds,
     )
     warnings += result_warnings(results)
-    return RunSummary(out, files, warnings)
+    ramp_files, ramp_problems = _functional_ramps(out, analysed, inputs, settings, created_utc)
+    return RunSummary(out, files + ramp_files, warnings + ramp_problems)
+
+
+def _functional_ramps(
+    out: Path,
+    logs: list[Path],
+    inputs: list[dict[str, str]],
+    settings: AnalysisSettings,
+    created_utc: str,
+) -> tuple[list[Path], list[str]]:
+    """Ramp posteriors and group ramps of functional-procedure sets, if any (the procedures
+    hook: analysis/functional_outputs.py)."""
+    from masking_lab.analysis.functional_outputs import write_functional_outputs
+
+    return write_functional_outputs(
+        out, logs, inputs=inputs, settings=settings.as_dict("analyze"), created_utc=created_utc
+    )
 
 
 def _track_job(out: Path, log: SessionLog, rows: list[dict]) -> TrackJob:

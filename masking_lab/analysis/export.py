@@ -112,6 +112,7 @@ def masking_params_document(
                     "uncertainty": f.uncertainty,
                     "ci_level": f.ci_level,
                     "n_participants": gf.n_participants,
+                    "estimate": "paper_route",
                 }
     provenance: dict[str, Any] = {
         "source": source,

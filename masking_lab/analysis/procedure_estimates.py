@@ -1,7 +1,8 @@
 """ALs of sets run by a Bayesian procedure (QUEST+), re-estimated from the logged trials (pure).
 
 The staircase's AL is the mean of its last reversals (:mod:`masking_lab.analysis.thresholds`).
-A QUEST+ set (``set_start.procedure.kind == "quest_plus"``) is estimated from its logged levels
+A set run by another procedure (``set_start.procedure`` with its ``kind``) is estimated by its
+kind's estimator (:mod:`masking_lab.procedures.registry`); for QUEST+, from its logged levels
 and answers under the model and prior its ``set_start`` record states:
 
 ``reversals`` (the analysis default, named for the staircase)
@@ -23,12 +24,9 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-import numpy as np
-
-from masking_lab.core.errors import StaircaseError
-from masking_lab.procedures.estimators import ml_threshold
-from masking_lab.procedures.quest_plus import QuestPlusSettings, tables
-from masking_lab.procedures.quest_plus_model import psychometric_table
+from masking_lab.core.errors import ProcedureError
+from masking_lab.procedures.quest_plus_kind import posterior_summary
+from masking_lab.procedures.registry import kind_named
 
 __all__ = ["ProcedureEstimate", "posterior_summary", "procedure_estimate"]
 
@@ -62,44 +60,6 @@ class ProcedureEstimate:
     note: str | None = None
 
 
-def posterior_summary(
-    settings: QuestPlusSettings, levels_db: Sequence[float], correct: Sequence[bool]
-) -> tuple[float, float, float, float]:
-    """Posterior (mean, SD, 2.5 % quantile, 97.5 % quantile) of the threshold, dB.
-
-    Parameters
-    ----------
-    settings : QuestPlusSettings
-        Model, grids and prior the set ran under.
-    levels_db, correct : sequences
-        Every trial's level (dB, any value: off-grid levels are evaluated exactly) and answer.
-
-    Examples
-    --------
-    >>> s = QuestPlusSettings(-20.0, 45.0, max_trials=40)
-    >>> mean, sd, lo, hi = posterior_summary(s, [10.0] * 20 + [0.0] * 20,
-    ...                                      [True] * 20 + [False, True, False] * 6 + [False] * 2)
-    >>> lo < mean < hi and sd > 0
-    True
-    """
-    t = tables(settings)
-    x = np.asarray(levels_db, dtype=float)
-    r = np.asarray(correct, dtype=bool)
-    p_c, p_w = psychometric_table(
-        x, t.thresholds_db, t.nuisance, settings.guess, settings.p_at_threshold
-    )
-    log_post = np.log(t.prior) + np.where(r[:, None, None], np.log(p_c), np.log(p_w)).sum(axis=0)
-    post = np.exp(log_post - log_post.max())
-    marginal = post.sum(axis=1)
-    marginal /= marginal.sum()
-    grid = t.thresholds_db
-    mean = float(marginal @ grid)
-    sd = float(np.sqrt(max(float(marginal @ (grid - mean) ** 2), 0.0)))
-    cdf = np.cumsum(marginal)
-    lo, hi = (float(np.interp(q, cdf, grid)) for q in (0.025, 0.975))
-    return mean, sd, lo, hi
-
-
 def procedure_estimate(
     procedure: Mapping[str, Any],
     levels_db: Sequence[float],
@@ -119,31 +79,12 @@ def procedure_estimate(
     >>> est.method, est.status, est.ci_low_db < est.al_db < est.ci_high_db
     ('posterior_mean', 'completed', True)
     """
-    kind = procedure.get("kind")
     method = "ml" if estimator == "ml" else "posterior_mean"
-    if kind != "quest_plus":
-        note = f"procedure kind {kind!r} has no estimator here (known: staircase, quest_plus)"
-        return ProcedureEstimate(None, None, None, None, method, "invalid", note)
     try:
-        settings = QuestPlusSettings.from_mapping(procedure)
-    except StaircaseError as exc:
-        return ProcedureEstimate(
-            None, None, None, None, method, "invalid", f"set_start.procedure: {exc}"
-        )
-    if not levels_db:
-        return ProcedureEstimate(
-            None, None, None, None, method, "estimator_failed", "no trials to estimate from"
-        )
-    mean, sd, lo, hi = posterior_summary(settings, levels_db, correct)
-    if estimator != "ml":
-        return ProcedureEstimate(mean, sd, lo, hi, method, "completed")
-    fit = ml_threshold(
-        levels_db,
-        correct,
-        guess=settings.guess,
-        lapse=lapse,
-        p_target=settings.p_at_threshold,
-    )
-    if not fit.ok:
-        return ProcedureEstimate(None, sd, lo, hi, method, "estimator_failed", fit.message)
-    return ProcedureEstimate(float(fit.threshold_db), sd, lo, hi, method, "completed")  # type: ignore[arg-type]
+        kind = kind_named(procedure.get("kind"))
+    except ProcedureError as exc:
+        return ProcedureEstimate(None, None, None, None, method, "invalid", str(exc))
+    if kind.estimate_log is None:
+        note = f"procedure kind {kind.name!r} is estimated from its reversals, not here"
+        return ProcedureEstimate(None, None, None, None, method, "invalid", note)
+    return ProcedureEstimate(*kind.estimate_log(procedure, levels_db, correct, estimator, lapse))

@@ -196,7 +196,52 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--per-set", action="store_true", help="print every setting per set, not just pooled"
     )
+    p.add_argument(
+        "--scheduler",
+        default="local",
+        metavar="ADDRESS",
+        help="where the masking-function simulations of a functional protocol run: 'local' "
+        "(a local Dask cluster, default), 'synchronous' (this process) or a Dask "
+        "scheduler's address (tcp://host:8786); the same --seed gives the same table on any",
+    )
     p.set_defaults(handler=run)
+
+
+def _places_masker(protocol: object) -> bool:
+    from masking_lab.procedures.registry import kind_of
+
+    return any(kind_of(s.settings).places_masker for s in protocol.sets)  # type: ignore[attr-defined]
+
+
+#: Simulated participants per route for a functional protocol (each track is ~1 s of CPU).
+_FUNCTIONAL_REPLICATES = 60
+
+
+def _masking_function_plan(args: argparse.Namespace, protocol: object) -> int:
+    """A protocol whose procedure measures masking functions: plan compares, for its first
+    pair, the paper's route, QUEST+ per set and the functional procedure
+    (planning/ramp_trade.py; docs/speed-accuracy.md section 4)."""
+    from pathlib import Path
+
+    from masking_lab.formats.fileio import write_text_atomic
+    from masking_lab.planning.ramp_trade import format_trade, trade_for_protocol
+    from masking_lab.simulation.observer import load_ground_truth
+
+    truth = load_ground_truth(args.ground_truth)
+    replicates = min(args.replicates, _FUNCTIONAL_REPLICATES)
+    trade, results = trade_for_protocol(
+        protocol,
+        truth,
+        replicates=replicates,
+        seed=args.seed,
+        scheduler=None if args.scheduler == "local" else args.scheduler,
+    )
+    text = format_trade(trade, results)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    write_text_atomic(out / "masking_function_trade.txt", text)
+    print(text, end="")
+    return 0
 
 
 def run(args: argparse.Namespace) -> int:
@@ -222,6 +267,8 @@ def run(args: argparse.Namespace) -> int:
     from masking_lab.simulation.observer import load_ground_truth
 
     protocol = load_protocol(args.protocol)
+    if _places_masker(protocol):
+        return _masking_function_plan(args, protocol)
     if args.ground_truth is not None and not Path(args.ground_truth).is_file():
         raise ProtocolError(
             args.ground_truth,

@@ -83,7 +83,7 @@ def check_file(path: str, limits: dict[str, float], device_config: str | None = 
 
         protocol = load_protocol(path, max_level_db_sl=limits)
         _check_levels_playable(path, protocol, device_config)
-        return f"{protocol.experiment} ({protocol.kind}, {len(protocol.sets)} sets)"
+        return protocol.summary()
     if kind == "usertest":
         from masking_lab.usertest.design import load_usertest
 

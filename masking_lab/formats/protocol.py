@@ -13,17 +13,23 @@ from __future__ import annotations
 import difflib
 import hashlib
 from collections.abc import Iterator, Mapping
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
 
-from masking_lab.core.errors import ProtocolError, StaircaseError
+from masking_lab.core.errors import ProcedureError, ProtocolError
 from masking_lab.core.stimulus import Stimulus, parse_stimulus
 from masking_lab.formats.reader import decode_utf8, excerpt, parse_yaml, read_limited, where
 from masking_lab.formats.schemas import describe_type_error, key_path, load_schema, schema_errors
-from masking_lab.procedures.quest_plus import QuestPlusSettings
+from masking_lab.procedures.registry import (
+    DEFAULT_KIND,
+    ProtocolContext,
+    SettingsProblem,
+    kind_named,
+    kind_of,
+)
 from masking_lab.procedures.staircase import StaircaseSettings
 
 Kind = Literal["baseline", "masked"]
@@ -63,7 +69,7 @@ class SetSpec:
     staircase : StaircaseSettings or None
         The staircase for this set (start level in the protocol's level unit); None when the
         set runs another procedure and the protocol has no ``staircase`` block.
-    procedure : QuestPlusSettings or None
+    procedure : settings of a registered procedure kind, or None
         The set's procedure when it is not the staircase (``procedure: {kind: quest_plus}``);
         None runs ``staircase`` (the default and the paper's choice).
     """
@@ -73,10 +79,15 @@ class SetSpec:
     masker: Stimulus | None
     masker_level_db_sl: float | None
     staircase: StaircaseSettings | None
-    procedure: QuestPlusSettings | None = None
+    procedure: Any = None
 
     @property
-    def settings(self) -> StaircaseSettings | QuestPlusSettings:
+    def trial_cap(self) -> int:
+        """The most trials this set's track can take (every kind has a finite cap)."""
+        return int(kind_of(self.settings).trial_cap(self.settings))
+
+    @property
+    def settings(self) -> Any:
         """The settings of the procedure this set runs (levels in the protocol's unit)."""
         chosen = self.procedure if self.procedure is not None else self.staircase
         assert chosen is not None  # the loader gives every set one
@@ -142,6 +153,23 @@ class Protocol:
             len(ids)
         )
         return [ids[i] for i in perm]
+
+    def summary(self) -> str:
+        """One line for ``validate``: sets, procedures and the trial cap per set.
+
+        Examples
+        --------
+        >>> from masking_lab.formats.resources import shipped
+        >>> load_protocol(shipped("protocols", "experiment1.yaml")).summary()
+        'experiment1 (masked, 15 sets; staircase, at most 150 trials per set)'
+        """
+        kinds = sorted({s.settings.kind for s in self.sets})
+        caps = sorted({s.trial_cap for s in self.sets})
+        cap = f"{caps[0]}" if len(caps) == 1 else f"{caps[0]}–{caps[-1]}"
+        return (
+            f"{self.experiment} ({self.kind}, {len(self.sets)} sets; {', '.join(kinds)}, "
+            f"at most {cap} trials per set)"
+        )
 
     def stimuli(self) -> set[str]:
         """Names of every stimulus the protocol plays."""
@@ -326,32 +354,22 @@ def _describe(err: Any, schema: Mapping[str, Any]) -> str:
     return err.message
 
 
-_STAIRCASE_KEYS = {f.name for f in fields(StaircaseSettings)}
-
-
 def _build(
     data: Mapping[str, Any], source: str, sha256: str, lines: Mapping[str, int]
 ) -> tuple[Protocol | None, list[tuple[str, str]]]:
     problems: list[tuple[str, str]] = []
     kind: Kind = data["kind"]
-    base_sc: StaircaseSettings | None = None
-    if "staircase" in data:
-        sc_data = dict(data["staircase"])
-        if "step_sizes_db" in sc_data:
-            sc_data["step_sizes_db"] = tuple(sc_data["step_sizes_db"])
-        try:
-            base_sc = StaircaseSettings(
-                **{k: v for k, v in sc_data.items() if k in _STAIRCASE_KEYS}
-            )
-        except StaircaseError as exc:
-            key = str(exc).split(":")[0].replace("staircase setting ", "").split("[")[0]
-            problems.append((_where(f"staircase.{key}", lines), str(exc).split(": ", 1)[1]))
-    top_procedure = dict(data.get("procedure") or {"kind": "staircase"})
+    top_procedure = dict(data.get("procedure") or {"kind": DEFAULT_KIND})
     timing = Timing(**data.get("timing", {}))
     default_target = data.get("target")
     sets: list[SetSpec] = []
     seen_ids: dict[str, int] = {}
     seen_conditions: dict[tuple[Any, ...], str] = {}
+
+    def note(problem: tuple[str, str]) -> None:
+        if problem not in problems:  # a protocol-wide block is reported once
+            problems.append(problem)
+
     for i, s in enumerate(data["sets"]):
         here = f"sets[{i}]"
         sid = s["id"]
@@ -382,7 +400,15 @@ def _build(
                     "masker_level_db_sl, or set kind: masked",
                 )
             )
-        if kind == "masked" and (masker_name is None or level is None):
+        chosen = _set_procedure(top_procedure, s.get("procedure"))
+        block_key = "procedure" if s.get("procedure") is None else f"{here}.procedure"
+        try:
+            proc_kind = kind_named(chosen.get("kind", DEFAULT_KIND))
+        except ProcedureError as exc:  # the schema's enum names the kinds first
+            note((_where(f"{block_key}.kind", lines), str(exc)))
+            continue
+        level_missing = level is None and not proc_kind.places_masker
+        if kind == "masked" and (masker_name is None or level_missing):
             problems.append(
                 (
                     _where(here, lines),
@@ -399,49 +425,25 @@ def _build(
                 )
             )
         seen_conditions.setdefault(condition, sid)
-        chosen = _set_procedure(top_procedure, s.get("procedure"))
-        quest: QuestPlusSettings | None = None
-        if chosen.get("kind") == "quest_plus":
-            where = "procedure" if s.get("procedure") is None else f"{here}.procedure"
-            try:
-                quest = QuestPlusSettings.from_mapping(chosen)
-            except StaircaseError as exc:
-                problem = _procedure_problem(where, str(exc), lines)
-                if problem not in problems:  # a protocol-wide block is reported once
-                    problems.append(problem)
-                continue
-            if "start_level_db" in s:
-                problems.append(
-                    (
-                        _where(f"{here}.start_level_db", lines),
-                        "start_level_db belongs to a staircase; QUEST+ places its first trial "
-                        "itself (remove the key or run this set as a staircase)",
-                    )
-                )
-                continue
-        elif "staircase" not in data:
-            problems.append(
-                (
-                    _where(here, lines),
-                    "this set runs the staircase (the default procedure) but the protocol has "
-                    "no `staircase:` block; add one, or give `procedure: {kind: quest_plus, ...}`",
-                )
-            )
+        ctx = ProtocolContext(chosen, block_key, data, s, here)
+        try:
+            settings = proc_kind.from_protocol(ctx)
+        except SettingsProblem as exc:
+            note((_where(exc.key, lines), exc.detail))
             continue
-        if base_sc is None:
-            if quest is not None:
-                sets.append(_set_spec(sid, target_name, masker_name, level, None, quest))
-            continue
-        sc = base_sc
-        if quest is None and "start_level_db" in s:
+        staircase: StaircaseSettings | None = None
+        if proc_kind.name == DEFAULT_KIND:
+            staircase, settings = settings, None
+        elif "staircase" in data:
+            # The protocol's staircase block, kept for `plan` to set beside this procedure.
             try:
-                sc = StaircaseSettings(
-                    **{**sc.__dict__, "start_level_db": float(s["start_level_db"])}
+                staircase = kind_named(DEFAULT_KIND).from_protocol(
+                    ProtocolContext({}, "staircase", data, {}, here)
                 )
-            except StaircaseError as exc:
-                problems.append((_where(f"{here}.start_level_db", lines), str(exc)))
+            except SettingsProblem as exc:
+                note((_where(exc.key, lines), exc.detail))
                 continue
-        sets.append(_set_spec(sid, target_name, masker_name, level, sc, quest))
+        sets.append(_set_spec(sid, target_name, masker_name, level, staircase, settings))
     if problems:
         return None, problems
     protocol = Protocol(
@@ -465,7 +467,7 @@ def _set_spec(
     masker_name: str | None,
     level: float | None,
     staircase: StaircaseSettings | None,
-    quest: QuestPlusSettings | None,
+    procedure: Any,
 ) -> SetSpec:
     return SetSpec(
         id=sid,
@@ -473,7 +475,7 @@ def _set_spec(
         masker=parse_stimulus(masker_name) if masker_name is not None else None,
         masker_level_db_sl=float(level) if level is not None else None,
         staircase=staircase,
-        procedure=quest,
+        procedure=procedure,
     )
 
 
@@ -481,18 +483,10 @@ def _set_procedure(top: Mapping[str, Any], own: Mapping[str, Any] | None) -> dic
     """A set's ``procedure`` block: its own keys over the protocol's when the kinds agree."""
     if not own:
         return dict(top)
-    own_kind = own.get("kind", top.get("kind", "staircase"))
-    if own_kind == top.get("kind", "staircase"):
+    own_kind = own.get("kind", top.get("kind", DEFAULT_KIND))
+    if own_kind == top.get("kind", DEFAULT_KIND):
         return {**top, **own}
     return dict(own)
-
-
-def _procedure_problem(where: str, message: str, lines: Mapping[str, int]) -> tuple[str, str]:
-    """Place a QuestPlusSettings error on the key it names (``procedure.max_trials``...)."""
-    head, _, detail = message.partition(": ")
-    key = head.removeprefix("quest_plus setting ").removeprefix("quest_plus settings")
-    path = f"{where}.{key}" if key and " " not in key else where
-    return _where(path, lines), detail or message
 
 
 def _limit_problems(
@@ -502,6 +496,17 @@ def _limit_problems(
     max_level_db_sl: Mapping[str, float],
 ) -> Iterator[tuple[str, str]]:
     for i, s in enumerate(protocol.sets):
+        masker_range = kind_of(s.settings).masker_range_db_sl(s.settings)
+        if s.masker is not None and masker_range is not None:
+            limit = max_level_db_sl.get(s.masker.channel)
+            if limit is not None and masker_range[0] > limit:
+                yield (
+                    _where("procedure.masker_min_db_sl", lines),
+                    f"set {s.id}: masker {s.masker.name} from {masker_range[0]:g} dB SL is "
+                    f"above the device limit for {s.masker.channel} ({limit:g} dB SL); the "
+                    "procedure needs masker levels the rig can play",
+                )
+            continue
         if s.masker is None or s.masker_level_db_sl is None:
             continue
         limit = max_level_db_sl.get(s.masker.channel)

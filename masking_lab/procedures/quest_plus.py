@@ -39,6 +39,7 @@ from masking_lab.core.errors import ProcedureError
 from masking_lab.core.psychometric import LEVITT_1U3D
 from masking_lab.procedures.base import ThresholdEstimate
 from masking_lab.procedures.base import replay as _replay
+from masking_lab.procedures.limits import grid_memory_problem, grid_points, normal_prior_problem
 from masking_lab.procedures.quest_plus_model import grid_db, psychometric_table
 
 Status = Literal["running", "completed", "ceiling", "floor", "trial_cap"]
@@ -171,6 +172,7 @@ class QuestPlusSettings:
                 yield "prior_mean_db", "a normal prior needs a finite prior_mean_db (dB)"
             if not (finite(self.prior_sd_db) and self.prior_sd_db > 0):
                 yield "prior_sd_db", "a normal prior needs a positive prior_sd_db (dB)"
+        yield from self._size_problems()
         if self.entropy_over not in ("threshold", "all"):
             yield "entropy_over", f"must be 'threshold' or 'all', got {self.entropy_over!r}"
         if self.max_trials is None and self.target_sd_db is None:
@@ -192,6 +194,29 @@ class QuestPlusSettings:
             yield "min_trials", f"{self.min_trials} exceeds max_trials={self.max_trials}"
         if finite(self.bound_margin_db) and self.bound_margin_db < 0:
             yield "bound_margin_db", f"must be ≥ 0 dB, got {self.bound_margin_db}"
+
+    def _size_problems(self) -> Iterable[tuple[str, str]]:
+        """Grids that would not fit in memory, priors the grid cannot hold (checked before any
+        table is built, so ``validate`` refuses what ``run`` could not run)."""
+        lo, hi = self.min_level_db, self.max_level_db
+        t_lo, t_hi = self.threshold_range_db
+        step = self.level_step_db
+        t_step = self.threshold_step_db or step
+        if not all(
+            isinstance(v, int | float) and math.isfinite(v) for v in (lo, hi, t_lo, t_hi)
+        ) or not (step > 0 and t_step > 0):
+            return
+        cells = grid_points(lo, hi, step) * grid_points(t_lo, t_hi, t_step)
+        cells *= max(1, len(self.scales_db) * len(self.lapses))
+        problem = grid_memory_problem(cells, "QUEST+ grid (stimuli × thresholds × nuisance)")
+        if problem is not None:
+            yield "level_step_db", problem
+            return
+        if self.prior == "normal" and isinstance(self.prior_mean_db, int | float):
+            sd = self.prior_sd_db if isinstance(self.prior_sd_db, int | float) else math.nan
+            bad = normal_prior_problem(self.prior_mean_db, sd, t_lo, t_hi, t_step)
+            if bad is not None and math.isfinite(self.prior_mean_db) and sd > 0:
+                yield bad
 
     @property
     def guess(self) -> float:

@@ -1,100 +1,40 @@
 """Trials left in a set and in the session, for any procedure (pure: no I/O, no clock).
 
-The staircase's pace is counted in reversals (:func:`masking_lab.session.trials.
-estimate_time_left_s`). A QUEST+ track stops on its posterior SD or its trial count, so its
-trials left come from the stop rule: each trial adds to the posterior's precision 1/SD² about
-``efficiency`` × I*, the Fisher information of the most informative trial
-(:func:`masking_lab.procedures.fisher.max_information`; QUEST+ runs at ~60 % of it,
-docs/procedures.md), so a track at SD σ needs about (1/target² − 1/σ²)/(efficiency·I*) more.
+Each procedure kind states its own trials-left rule in :mod:`masking_lab.procedures.registry`
+(reversals for the staircase, the precision stop rule for QUEST+, ...); this module adds the
+session's later sets and rests.
 
-Units: SDs and levels in dB, information in dB⁻², times in s.
+Units: times in s.
 """
 
 from __future__ import annotations
 
-import functools
-import math
 from collections.abc import Sequence
 
 import numpy as np
 
-from masking_lab.procedures.fisher import max_information
-from masking_lab.procedures.quest_plus import QuestPlus, QuestPlusSettings
-from masking_lab.procedures.staircase import Staircase
-from masking_lab.session.trials import estimate_time_left_s
+from masking_lab.procedures.base import Procedure
+from masking_lab.procedures.quest_plus_kind import QUEST_EFFICIENCY, quest_trials_left
+from masking_lab.procedures.registry import kind_of
 
-#: QUEST+'s measured efficiency against the Cramér-Rao bound (docs/procedures.md: 59 %).
-QUEST_EFFICIENCY = 0.6
+__all__ = ["QUEST_EFFICIENCY", "quest_trials_left", "session_time_left_s", "track_trials_left"]
 
 
-@functools.lru_cache(maxsize=32)
-def _information(settings: QuestPlusSettings) -> float:
-    """I* of the settings' model (first scale and lapse of its grids), dB⁻²."""
-    info, _, _ = max_information(
-        scale_db=settings.scales_db[0], guess=settings.guess, lapse=settings.lapses[0]
-    )
-    return info
-
-
-def quest_trials_left(
-    settings: QuestPlusSettings, n_trials: int, sd_db: float | None = None
-) -> float:
-    """Expected trials before a QUEST+ track stops.
-
-    Parameters
-    ----------
-    settings : QuestPlusSettings
-        The track's rules.
-    n_trials : int
-        Trials answered so far.
-    sd_db : float or None
-        The posterior SD now, dB (None before the track starts: the prior counts as no
-        information).
-
-    Returns
-    -------
-    float
-        Trials, ≥ 0: ``max_trials − n_trials`` without a precision rule; otherwise the
-        information still missing for ``target_sd_db`` over what a trial brings, at least
-        ``min_trials − n_trials``, at most the trials left to ``max_trials``.
+def track_trials_left(state: Procedure, finished_set_trials: Sequence[int] = ()) -> float:
+    """Expected trials before one running track stops (any procedure), at most its cap.
 
     Examples
     --------
-    >>> s = QuestPlusSettings(-20.0, 45.0, target_sd_db=1.08, max_trials=80)
-    >>> round(quest_trials_left(s, 0))
-    27
-    >>> quest_trials_left(s, 20, 1.0)
-    0.0
-    """
-    s = settings
-    cap = math.inf if s.max_trials is None else max(0.0, float(s.max_trials - n_trials))
-    if s.target_sd_db is None:
-        return cap
-    have = 0.0 if sd_db is None or not sd_db > 0 else 1.0 / sd_db**2
-    missing = max(0.0, 1.0 / s.target_sd_db**2 - have)
-    left = missing / (QUEST_EFFICIENCY * _information(s))
-    left = max(left, float(s.min_trials - n_trials))
-    return float(min(left, cap))
-
-
-def track_trials_left(
-    state: Staircase | QuestPlus, finished_set_trials: Sequence[int] = ()
-) -> float:
-    """Expected trials before one running track stops (any procedure).
-
-    Examples
-    --------
+    >>> from masking_lab.procedures.quest_plus import QuestPlusSettings
     >>> s = QuestPlusSettings(-20.0, 45.0, max_trials=40)
     >>> track_trials_left(s.start().update(True))
     39.0
     """
-    return session_time_left_s(
-        state, seconds_per_trial=1.0, sets_after_current=0, finished_set_trials=finished_set_trials
-    )
+    return float(kind_of(state).trials_left(state, finished_set_trials))
 
 
 def session_time_left_s(
-    state: Staircase | QuestPlus,
+    state: Procedure,
     *,
     seconds_per_trial: float,
     sets_after_current: int,
@@ -108,27 +48,15 @@ def session_time_left_s(
 
     Examples
     --------
+    >>> from masking_lab.procedures.quest_plus import QuestPlusSettings
     >>> s = QuestPlusSettings(-20.0, 45.0, max_trials=40)
     >>> session_time_left_s(s.start(), seconds_per_trial=10.0, sets_after_current=1)
     800.0
     """
-    if isinstance(state, Staircase):
-        sc = state.settings
-        return estimate_time_left_s(
-            seconds_per_trial=seconds_per_trial,
-            trials_done_in_set=state.n_trials,
-            reversals_in_set=len(state.reversal_levels_db),
-            n_reversals=sc.n_reversals,
-            max_trials=sc.max_trials,
-            sets_after_current=sets_after_current,
-            finished_set_trials=finished_set_trials,
-            rest_between_sets_s=rest_between_sets_s,
-        )
-    sd = state.posterior_sd_db if state.n_trials else None
-    current = quest_trials_left(state.settings, state.n_trials, sd)
+    current = track_trials_left(state, finished_set_trials)
     if finished_set_trials:
         per_set = float(np.mean(finished_set_trials))
     else:
-        per_set = quest_trials_left(state.settings, 0)
+        per_set = track_trials_left(state.settings.start())  # type: ignore[attr-defined]
     trials = current + sets_after_current * per_set
     return max(0.0, trials * seconds_per_trial + sets_after_current * rest_between_sets_s)

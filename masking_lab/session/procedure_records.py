@@ -6,7 +6,6 @@ The record fields themselves are built by :mod:`masking_lab.procedures.log_field
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Mapping
 from typing import Any
 
@@ -20,8 +19,7 @@ from masking_lab.procedures.log_fields import (
     start_fields,
     trial_fields,
 )
-from masking_lab.procedures.quest_plus import QuestPlus, QuestPlusSettings
-from masking_lab.procedures.staircase import Staircase, StaircaseSettings
+from masking_lab.procedures.registry import kind_of, settings_from_start
 
 __all__ = [
     "bound_reason",
@@ -44,6 +42,7 @@ def settings_from_record(start_record: Mapping[str, Any], spec: SetSpec) -> SetP
     Examples
     --------
     >>> from masking_lab.core.stimulus import parse_stimulus
+    >>> from masking_lab.procedures.quest_plus import QuestPlusSettings
     >>> spec = SetSpec("s", parse_stimulus("EV270"), None, None, None,
     ...                QuestPlusSettings(-20.0, 45.0))
     >>> rec = start_fields(QuestPlusSettings(-20.0, 30.0))
@@ -51,22 +50,7 @@ def settings_from_record(start_record: Mapping[str, Any], spec: SetSpec) -> SetP
     30.0
     """
     try:
-        procedure = start_record.get("procedure")
-        if procedure:
-            if procedure.get("kind") != "quest_plus":
-                raise LogError(
-                    f"set {spec.id}: the log names procedure kind {procedure.get('kind')!r}, "
-                    "which this version cannot run (known: staircase, quest_plus)"
-                )
-            return QuestPlusSettings.from_mapping(procedure)
-        data = dict(start_record.get("staircase") or {})
-        if not data:
-            return spec.settings
-        known = {f.name for f in dataclasses.fields(StaircaseSettings)}
-        data = {k: v for k, v in data.items() if k in known}
-        default = spec.staircase.step_sizes_db if spec.staircase else (4.0,)
-        data["step_sizes_db"] = tuple(data.get("step_sizes_db", default))
-        return StaircaseSettings(**data)
+        return settings_from_start(start_record, spec.settings)
     except (StaircaseError, OverflowError, TypeError, ValueError) as exc:
         # Not only what the settings refuse: a crafted record's 400-digit number or wrong type.
         raise LogError(
@@ -79,32 +63,9 @@ def bound_reason(state: Procedure, unit: str, target_max_v: float) -> str:
 
     Examples
     --------
+    >>> from masking_lab.procedures.quest_plus import QuestPlusSettings
     >>> s = QuestPlusSettings(-20.0, 45.0, max_trials=1, target_sd_db=1.0)
     >>> bound_reason(s.start().update(True), "dB SL", 10.0)[:26]
     'reached the trial cap (1 t'
     """
-    if isinstance(state, Staircase):
-        sc = state.settings
-        if state.status == "ceiling":
-            return (
-                f"pinned at the upper bound {sc.max_level_db:.2f} {unit} (protocol max ∩ device "
-                f"limit {target_max_v:g} V): a ceiling, not a threshold"
-            )
-        if state.status == "floor":
-            return f"pinned at the lower bound {sc.min_level_db} {unit}: a floor, not a threshold"
-        return f"reached the trial cap ({sc.max_trials} trials) before {sc.n_reversals} reversals"
-    assert isinstance(state, QuestPlus)
-    qs = state.settings
-    lo, hi = qs.threshold_range_db
-    where = f"{state.posterior_mean_db:.2f} ± {state.posterior_sd_db:.2f} {unit}"
-    if state.status == "ceiling":
-        return (
-            f"stopped with its posterior mean {where} at the top of the threshold grid "
-            f"({hi:g} {unit}, protocol max ∩ device limit {target_max_v:g} V): a ceiling"
-        )
-    if state.status == "floor":
-        return f"stopped with its posterior mean {where} at the grid's bottom ({lo:g} {unit})"
-    return (
-        f"reached the trial cap ({qs.max_trials} trials) with posterior SD "
-        f"{state.posterior_sd_db:.2f} {unit}, above the target {qs.target_sd_db}"
-    )
+    return kind_of(state).no_al_reason(state, unit, target_max_v)

@@ -49,6 +49,7 @@ def format_progress(
     level_unit: str,
     time_left_s: float,
     track: str = "",
+    track_text: str | None = None,
 ) -> str:
     """The progress line for the trial about to be played.
 
@@ -71,6 +72,10 @@ def format_progress(
     track : str
         The track's state for procedures without reversals (``"posterior 12.3 ± 1.4"``, dB);
         shown instead of the reversal count when given.
+    track_text : str or None
+        The track's part of the line exactly as its procedure kind words it
+        (:attr:`masking_lab.procedures.registry.ProcedureKind.progress`); overrides the two
+        above.
 
     Examples
     --------
@@ -80,9 +85,11 @@ def format_progress(
     'set 1/2 A | trial 5 | posterior 3.2 ± 1.5 dB SL | level 3.0 dB SL | ~10 min left'
     """
     unit = UNIT_LABEL.get(level_unit, level_unit)
+    if track_text is None:
+        track_text = f"{track} {unit}" if track else f"reversals {reversals}/{n_reversals}"
     return (
         f"set {set_number}/{n_sets} {set_id} | trial {trial_index + 1} | "
-        f"{f'{track} {unit}' if track else f'reversals {reversals}/{n_reversals}'} | "
+        f"{track_text} | "
         f"level {level_db:.1f} {unit} | "
         f"{format_duration(time_left_s)} left"
     )

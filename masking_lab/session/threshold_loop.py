@@ -32,8 +32,7 @@ from masking_lab.formats.protocol import Protocol, SetSpec
 from masking_lab.formats.records import jsonable
 from masking_lab.formats.session_log import SessionLogWriter, SetRecords
 from masking_lab.procedures.base import Procedure, replay
-from masking_lab.procedures.quest_plus import QuestPlus
-from masking_lab.procedures.staircase import Staircase
+from masking_lab.procedures.registry import kind_of
 from masking_lab.responders.base import Responder, SetInfo, TrialPresentation
 from masking_lab.session.interleave import next_set
 from masking_lab.session.pace import session_time_left_s, track_trials_left
@@ -100,6 +99,8 @@ class SetOutcome:
             what = f"AL {self.al_db:.2f} {unit}"
         elif self.status == "aborted":
             what = f"no AL: {self.reason}"
+        elif self.status == "completed" and self.reason:
+            what = self.reason  # a procedure whose result is not one AL (a ramp)
         else:
             what = "no AL (a track that ends at a bound or the trial cap is not a threshold)"
         return f"{self.set_id:<12} {self.status:<9} {what} ({self.n_trials} trials)"
@@ -279,6 +280,7 @@ class ThresholdSession(SessionShell[SessionResult]):
                 state.next_level(),
                 draw_target_interval(self.seed, plan.set_id, state.n_trials),
                 self.protocol.timing,
+                kind_of(state).masker_level_db_sl(state),
             )
         except LevelError as exc:
             # Only after a resume on a device with a lower limit than the set started with.
@@ -292,6 +294,9 @@ class ThresholdSession(SessionShell[SessionResult]):
         index = state.n_trials
         self.where = (plan.set_id, index)
         level = state.next_level()
+        masker_db_sl = kind_of(state).masker_level_db_sl(state)
+        if masker_db_sl is None:
+            masker_db_sl = plan.masker_level_db_sl
         interval = trial.target_interval
         self._show_progress(k, plan, state)
         t0 = self.clock.now()
@@ -303,7 +308,7 @@ class ThresholdSession(SessionShell[SessionResult]):
             start_s=start_s,
             level_db_v=plan.level_db_v(level),
             level_db_sl=plan.level_db_sl(level),
-            masker_level_db_sl=plan.masker_level_db_sl,
+            masker_level_db_sl=masker_db_sl,
         )
         played, response = self.responder.trial(
             presentation, lambda: self.device.play_trial(trial, start_s)
@@ -368,14 +373,20 @@ class ThresholdSession(SessionShell[SessionResult]):
             "method": ends["method"],
             "t_s": self.clock.now(),
         }
-        if "sd_db" in ends:
-            record["sd_db"] = ends["sd_db"]
+        # What else the procedure reports at the end (sd_db; a ramp's posterior summary).
+        record.update({k: v for k, v in ends.items() if k not in record})
         if state.status != "completed":
             record["reason"] = bound_reason(state, UNIT_LABEL[plan.level_unit], plan.target_max_v)
         self._append(record)
         self.finished_trials.append(state.n_trials)
+        found = kind_of(state).result_text(state, UNIT_LABEL[plan.level_unit])
         outcome = SetOutcome(
-            plan.set_id, state.status, al, plan.level_unit, state.n_trials, record.get("reason", "")
+            plan.set_id,
+            state.status,
+            al,
+            plan.level_unit,
+            state.n_trials,
+            record.get("reason", found or ""),
         )
         self.outcomes.append(outcome)
         self.out.message(f"set done: {outcome.summary()}")
@@ -443,11 +454,10 @@ class ThresholdSession(SessionShell[SessionResult]):
             if self.trial_seconds
             else nominal_seconds_per_trial(self.protocol.timing)
         )
-        assert isinstance(state, Staircase | QuestPlus)
         if self.protocol.interleave:
             # Every running track shares the session: the time left is theirs together.
             running = [s for _, _, s in self.interleaved_tracks.values()]
-            trials = sum(track_trials_left(s, self.finished_trials) for s in running)  # type: ignore[arg-type]
+            trials = sum(track_trials_left(s, self.finished_trials) for s in running)
             left = trials * per_trial
         else:
             left = session_time_left_s(
@@ -457,27 +467,19 @@ class ThresholdSession(SessionShell[SessionResult]):
                 finished_set_trials=self.finished_trials,
                 rest_between_sets_s=self.protocol.timing.rest_between_sets_s,
             )
-        if isinstance(state, Staircase):
-            done, goal, what = len(state.reversal_levels_db), state.settings.n_reversals, ""
-        else:
-            done, goal = 0, 0
-            what = (
-                f"posterior {state.posterior_mean_db:.1f} ± {state.posterior_sd_db:.1f}"
-                if state.n_trials
-                else "posterior: prior"
-            )
+        unit = UNIT_LABEL.get(plan.level_unit, plan.level_unit)
         self.out.update(
             format_progress(
                 set_number=k + 1,
                 n_sets=len(self.order),
                 set_id=plan.set_id,
                 trial_index=state.n_trials,
-                reversals=done,
-                n_reversals=goal,
+                reversals=0,
+                n_reversals=0,
                 level_db=state.next_level(),
                 level_unit=plan.level_unit,
                 time_left_s=left,
-                track=what,
+                track_text=kind_of(state).progress(state, unit),
             )
         )
 

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
@@ -27,8 +27,7 @@ from masking_lab.core.stimulus import Stimulus
 from masking_lab.core.trial import TrialPlan
 from masking_lab.formats.protocol import SetSpec, Timing
 from masking_lab.procedures.log_fields import SetProcedure
-from masking_lab.procedures.quest_plus import QuestPlusSettings
-from masking_lab.procedures.staircase import StaircaseSettings
+from masking_lab.procedures.registry import kind_of
 
 LevelUnit = Literal["db_sl", "db_v"]
 UNIT_LABEL: dict[str, str] = {"db_sl": "dB SL", "db_v": "dB re 1 V"}
@@ -61,8 +60,13 @@ class SetPlan:
     target_max_v : float
         Largest target drive the device allows, V peak: the channel's limit, less the masker's
         drive when both share a channel (peak drives on one channel add).
-    procedure : StaircaseSettings or QuestPlusSettings
+    procedure : settings of a registered procedure kind
         The set's procedure with ``max_level_db`` lowered to what the device can drive.
+    masker_unmasked_al_db_v : float or None
+        The masker's unmasked AL, dB re 1 V, for procedures that choose the masker level per
+        trial (None otherwise).
+    masker_limit_v : float
+        The masker channel's drive limit, V peak (inf without a masker).
     """
 
     set_id: str
@@ -75,6 +79,8 @@ class SetPlan:
     masker_amplitude_v: float
     target_max_v: float
     procedure: SetProcedure
+    masker_unmasked_al_db_v: float | None = None
+    masker_limit_v: float = math.inf
 
     @property
     def staircase(self) -> SetProcedure:
@@ -130,11 +136,22 @@ def plan_set(
     if level_unit == "db_sl":
         unmasked = _calibrated(calibration_db_v, spec.target, spec.id)
     sc = spec.settings
+    kind = kind_of(sc)
     unit = UNIT_LABEL[level_unit]
 
     masker_db_v: float | None = None
     masker_v = 0.0
-    if spec.masker is not None and spec.masker_level_db_sl is not None:
+    masker_al_db_v: float | None = None
+    masker_limit_v = math.inf
+    if spec.masker is not None and kind.places_masker:
+        # The procedure picks every trial's masker level: its range stops at the rig's rating.
+        masker_al_db_v = _calibrated(calibration_db_v, spec.masker, spec.id)
+        masker_limit_v = _channel_limit_v(spec.masker, max_drive_v)
+        sc = kind.within_masker_limit(sc, volts_to_db_v(masker_limit_v) - masker_al_db_v)
+        masker_range = kind.masker_range_db_sl(sc)
+        assert masker_range is not None  # a kind that places the masker states its range
+        masker_v = min(db_v_to_volts(masker_al_db_v + masker_range[1]), masker_limit_v)
+    elif spec.masker is not None and spec.masker_level_db_sl is not None:
         masker_al = _calibrated(calibration_db_v, spec.masker, spec.id)
         masker_db_v = masker_al + spec.masker_level_db_sl
         masker_limit_v = _channel_limit_v(spec.masker, max_drive_v)
@@ -158,12 +175,12 @@ def plan_set(
     device_max = limit_db_v if unmasked is None else limit_db_v - unmasked
     protocol_max = sc.max_level_db if sc.max_level_db is not None else math.inf
     effective_max = min(protocol_max, device_max)
-    start_db = sc.start_level_db if isinstance(sc, StaircaseSettings) else sc.min_level_db
+    start_db = kind.start_level_db(sc)
     if start_db > effective_max + _LIMIT_SLACK_DB:
         raise LevelError(
             f"set {spec.id}: start level {start_db:g} {unit} of {spec.target.name} is "
             f"above what the device can drive ({limit_v:g} V = {effective_max:.2f} {unit}); "
-            f"lower {_start_key(sc)} in the protocol, or check the participant's "
+            f"lower {kind.start_key} in the protocol, or check the participant's "
             "calibration and the device config"
         )
     if sc.min_level_db is not None and sc.min_level_db >= effective_max - _LIMIT_SLACK_DB:
@@ -172,12 +189,7 @@ def plan_set(
             f"{effective_max:.2f} {unit}) is not above the protocol's min_level_db "
             f"({sc.min_level_db:g} {unit}); the {sc.kind} would have no room to move"
         )
-    settings: SetProcedure
-    if isinstance(sc, StaircaseSettings):
-        # A start level within rounding of the limit is the limit itself.
-        settings = replace(sc, max_level_db=max(effective_max, sc.start_level_db))
-    else:
-        settings = _capped_quest(sc, effective_max)
+    settings: SetProcedure = kind.within_limit(sc, effective_max)
     return SetPlan(
         set_id=spec.id,
         target=spec.target,
@@ -189,45 +201,29 @@ def plan_set(
         masker_amplitude_v=masker_v,
         target_max_v=limit_v,
         procedure=settings,
+        masker_unmasked_al_db_v=masker_al_db_v,
+        masker_limit_v=masker_limit_v,
     )
-
-
-def _start_key(settings: SetProcedure) -> str:
-    if isinstance(settings, StaircaseSettings):
-        return "staircase.start_level_db"
-    return "procedure.min_level_db"
-
-
-def _capped_quest(settings: QuestPlusSettings, max_db: float) -> QuestPlusSettings:
-    """QUEST+ under a device limit: the stimulus grid stops at the limit, on the protocol's
-    grid so the levels stay round numbers. A threshold grid that follows the stimulus range
-    (the default) follows it down, so a threshold above what the rig can play ends the track
-    as ``ceiling`` rather than as an extrapolated number."""
-    if max_db >= settings.max_level_db:
-        return settings
-    step = settings.level_step_db
-    top = round(
-        settings.min_level_db + step * math.floor((max_db - settings.min_level_db) / step + 1e-9),
-        9,
-    )
-    if top <= settings.min_level_db:
-        raise LevelError(
-            f"the device limit ({max_db:.2f} dB) leaves QUEST+ less than one grid step "
-            f"({step:g} dB) above procedure.min_level_db ({settings.min_level_db:g} dB)"
-        )
-    return replace(settings, max_level_db=top)
 
 
 def plan_trial(
-    set_plan: SetPlan, level_db: float, target_interval: int, timing: Timing
+    set_plan: SetPlan,
+    level_db: float,
+    target_interval: int,
+    timing: Timing,
+    masker_level_db_sl: float | None = None,
 ) -> TrialPlan:
     """The device's view of one trial at staircase level ``level_db`` (in ``level_unit``).
+
+    ``masker_level_db_sl`` is the trial's masker level (dB SL of the masker) for procedures
+    that choose it per trial; None plays the set's masker level.
 
     Raises
     ------
     LevelError
-        If the target's drive exceeds the device limit (the bounds of :func:`plan_set` prevent
-        this; the check guards against a staircase rebuilt with other bounds).
+        If the target's or the masker's drive exceeds the device limit (the bounds of
+        :func:`plan_set` prevent this; the check guards against a track rebuilt with other
+        bounds).
     """
     if target_interval not in (1, 2, 3):
         raise LevelError(f"target_interval must be 1, 2 or 3, got {target_interval!r}")
@@ -239,12 +235,27 @@ def plan_trial(
     )
     # A level on the limit may come back a hair above it from dB → V; the limit is what we meant.
     amplitude_v = min(db_v_to_volts(level_db_v), set_plan.target_max_v)
+    masker_v = set_plan.masker_amplitude_v
+    if masker_level_db_sl is not None:
+        if set_plan.masker is None or set_plan.masker_unmasked_al_db_v is None:
+            raise LevelError(
+                f"set {set_plan.set_id}: a masker level was asked for but the set has no "
+                "masker with a calibrated unmasked AL"
+            )
+        masker_db_v = set_plan.masker_unmasked_al_db_v + float(masker_level_db_sl)
+        check_within_rating(
+            masker_db_v,
+            set_plan.masker_limit_v,
+            what=f"set {set_plan.set_id}: masker {set_plan.masker.name} at "
+            f"{masker_level_db_sl:g} dB SL",
+        )
+        masker_v = min(db_v_to_volts(masker_db_v), set_plan.masker_limit_v)
     return TrialPlan(
         target=set_plan.target,
         target_amplitude_v=amplitude_v,
         target_interval=target_interval,
         masker=set_plan.masker,
-        masker_amplitude_v=set_plan.masker_amplitude_v,
+        masker_amplitude_v=masker_v,
         stimulus_s=timing.stimulus_s,
         gap_s=timing.gap_s,
         lead_in_s=timing.lead_in_s,

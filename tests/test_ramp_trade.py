@@ -1,0 +1,98 @@
+"""The trade of docs/speed-accuracy.md on a few simulated participants: every route gives a
+ramp per participant from the same calibration errors, the functional track's checkpoints are
+prefixes of one track, precision is measured against the truth, and the Cramér-Rao bound falls
+as 1/√n."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from masking_lab.planning.ramp_trade import (
+    TradeSettings,
+    cramer_rao_ramp,
+    ramp_precision,
+    run_trade,
+)
+
+
+def test_every_route_gives_a_ramp_per_participant_and_is_seeded():
+    small = TradeSettings(replicates=3, checkpoints=(10, 20))
+    one = run_trade(small, seed=3)
+    assert [r.route for r in one] == ["paper", "quest_plus", "functional (10)", "functional (20)"]
+    assert one == run_trade(small, seed=3)
+    paper, quest = one[0], one[1]
+    assert 150 < paper.trials_mean < 600  # five staircases of ~52 trials
+    assert quest.trials_mean < paper.trials_mean
+    for r in one:
+        assert r.n >= 2
+        assert all(
+            math.isfinite(v) and v >= 0 for v in (r.sd_intercept_db, r.sd_slope, r.rms_al_db)
+        )
+        assert r.minutes == pytest.approx(r.trials_mean * small.seconds_per_trial / 60)
+
+
+def test_precision_is_the_error_against_the_true_ramp():
+    a_hat = np.array([-7.442, -7.442])
+    b_hat = np.array([0.711, 0.711])
+    assert ramp_precision(a_hat, b_hat, -7.442, 0.711, (5.0, 25.0)) == (0.0, 0.0, 0.0)
+    sd_a, sd_b, rms = ramp_precision(a_hat + 1.0, b_hat, -7.442, 0.711, (5.0, 25.0))
+    assert sd_a == pytest.approx(1.0) and sd_b == 0.0 and 0 < rms <= 1.0
+
+
+def test_the_cramer_rao_bound_falls_as_one_over_root_n():
+    sd100 = cramer_rao_ramp(100, (5.0, 25.0))
+    sd400 = cramer_rao_ramp(400, (5.0, 25.0))
+    for a, b in zip(sd100, sd400, strict=True):
+        assert b == pytest.approx(a / 2)
+    # a wider masker range pins the slope better
+    assert cramer_rao_ramp(100, (0.0, 40.0))[1] < sd100[1]
+
+
+def test_plan_on_a_functional_protocol_prints_the_trade(tmp_path, capsys):
+    import argparse
+
+    from test_functional_session import functional_protocol
+
+    from masking_lab.commands.plan import run
+
+    args = argparse.Namespace(
+        protocol=str(functional_protocol(tmp_path)),
+        ground_truth=None,
+        replicates=2,
+        seed=1,
+        out=str(tmp_path / "plan"),
+        scheduler="synchronous",
+    )
+    assert run(args) == 0
+    text = capsys.readouterr().out
+    assert "paper" in text and "functional (14)" in text and "Cramér-Rao" in text
+    assert (tmp_path / "plan" / "masking_function_trade.txt").read_text(encoding="utf-8") == text
+
+
+def test_the_same_seed_gives_the_same_table_in_process_and_on_a_two_process_cluster():
+    """Chunks carry their own seeds: where they run does not change the numbers."""
+    small = TradeSettings(replicates=4, checkpoints=(6,))
+    here = run_trade(small, seed=5, scheduler="synchronous", chunk=2)
+    from masking_lab.planning.parallel import run_chunks
+
+    calls = []
+
+    def spy(fn, args, *, scheduler, max_workers=4):
+        calls.append((scheduler, len(args)))
+        return run_chunks(fn, args, scheduler=scheduler, max_workers=2)
+
+    import masking_lab.planning.parallel as parallel
+
+    original = parallel.run_chunks
+    parallel.run_chunks = spy
+    try:
+        cluster = run_trade(small, seed=5, scheduler=None, chunk=2)
+    finally:
+        parallel.run_chunks = original
+    assert calls == [(None, 2)]
+    assert cluster == here
+    # and the chunking, not the workers, fixes the streams: another chunk size differs
+    assert run_trade(small, seed=5, scheduler="synchronous", chunk=4) != here
