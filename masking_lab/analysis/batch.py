@@ -42,6 +42,9 @@ from masking_lab.formats.output_dir import staged_output
 from masking_lab.formats.shifts_csv import read_shifts_csv
 
 if TYPE_CHECKING:
+    import pandas as pd
+
+    from masking_lab.analysis.lab_outputs import LabOutputs
     from masking_lab.analysis.track_figures import TrackJob
     from masking_lab.formats.session_log import SessionLog
 
@@ -216,9 +219,17 @@ def _analyze_into(
     )
     warnings = [f"{p['log']}: {p['problem']} ({p['action']})" for p in problems]
     warnings += report_inputs.rig_warnings
+    lab = _lab_outputs(data, out, [i["path"] for i in inputs], thresholds, settings, files)
+    files += lab.files
+    warnings += lab.warnings
     if shifts.empty:
         report = build_report(
-            [], settings, source="analyze", inputs=report_inputs, thresholds=thresholds
+            [],
+            settings,
+            source="analyze",
+            inputs=report_inputs,
+            thresholds=thresholds,
+            lab=lab.section,
         )
         files.append(write_text_atomic(out / "report.txt", render_text(report)))
         files.append(write_text_atomic(out / "report.html", render_html(report)))
@@ -237,9 +248,31 @@ def _analyze_into(
         created_utc=created_utc,
         report_inputs=report_inputs,
         thresholds=thresholds,
+        lab=lab.section,
     )
     warnings += result_warnings(results)
     return RunSummary(out, files, warnings)
+
+
+def _lab_outputs(
+    data: Path,
+    out: Path,
+    logs: list[str],
+    thresholds: pd.DataFrame,
+    settings: AnalysisSettings,
+    drawn: list[Path],
+) -> LabOutputs:
+    """trials.csv, psychometric.csv, participants.tsv, the study status and their figures."""
+    from dataclasses import replace
+
+    from masking_lab.analysis.lab_outputs import write_lab_outputs
+
+    lab = write_lab_outputs(data, out, logs, thresholds, figures=settings.figures)
+    tracks = tuple(
+        (p.relative_to(out).as_posix(), "staircase tracks of one session") for p in drawn
+    )
+    lab.section = replace(lab.section, figures=lab.section.figures + tracks)
+    return lab
 
 
 def _track_job(out: Path, log: SessionLog, rows: list[dict]) -> TrackJob:

@@ -8,6 +8,7 @@ masking-function figures through :mod:`masking_lab.formats` (atomic, byte-stable
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -17,6 +18,7 @@ from masking_lab import __version__
 from masking_lab.analysis.experiment import ExperimentResult
 from masking_lab.analysis.report import LogsInput, ShiftsTableInput, build_report
 from masking_lab.analysis.report_html import render_html
+from masking_lab.analysis.report_lab import LabSection
 from masking_lab.analysis.report_text import render_text
 from masking_lab.analysis.settings import AnalysisSettings
 from masking_lab.analysis.tables import (
@@ -141,6 +143,7 @@ def write_outputs(
     created_utc: str,
     report_inputs: LogsInput | ShiftsTableInput,
     thresholds: pd.DataFrame | None,
+    lab: LabSection | None = None,
 ) -> list[Path]:
     """Write the statistics tables, ``masking_params.json``, the reports and the figures.
 
@@ -165,6 +168,8 @@ def write_outputs(
         What the report says was read.
     thresholds : DataFrame or None
         The thresholds table (``analyze``), for the report.
+    lab : LabSection, optional
+        The per-participant sections of ``analyze`` (the masking figures join its figure list).
 
     Returns
     -------
@@ -181,6 +186,17 @@ def write_outputs(
     doc, export_notes = masking_params_document(
         results, settings, source=source, inputs=inputs, skipped=skipped, created_utc=created_utc
     )
+    if lab is not None and settings.figures != "none":
+        from masking_lab.analysis.figures import safe_stem
+
+        masking = tuple(
+            (
+                f"figures/masking_{safe_stem(r.experiment)}.png",
+                f"masking functions of {r.experiment}",
+            )
+            for r in results
+        )
+        lab = replace(lab, figures=masking + lab.figures)
     report = build_report(
         results,
         settings,
@@ -190,6 +206,7 @@ def write_outputs(
         export_notes=export_notes,
         provenance=inputs,
         created_utc=created_utc,
+        lab=lab,
     )
     tables = [
         ("anova.csv", ANOVA_COLUMNS, effect_rows(results, "anova")),

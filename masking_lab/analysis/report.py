@@ -18,6 +18,7 @@ import pandas as pd
 from masking_lab import __version__
 from masking_lab.analysis.experiment import ExperimentResult, GroupFit, result_warnings
 from masking_lab.analysis.pooling import PoolingDecision
+from masking_lab.analysis.report_lab import LabSection
 from masking_lab.analysis.settings import AnalysisSettings
 from masking_lab.analysis.stats import Effect, PairedTest
 
@@ -252,6 +253,8 @@ class ReportModel:
         Every input file read, as recorded in ``masking_params.json``.
     created_utc : str
         ``created_utc`` of the export (``YYYY-MM-DDTHH:MM:SSZ``; empty if not exported).
+    lab : LabSection or None
+        Study status, participants, psychometric functions and the figure list (``analyze``).
     """
 
     source: str
@@ -264,6 +267,7 @@ class ReportModel:
     warnings: tuple[str, ...] = ()
     provenance: tuple[tuple[str, str], ...] = ()
     created_utc: str = ""
+    lab: LabSection | None = None
 
 
 # --------------------------------------------------------------------------------------------
@@ -280,6 +284,7 @@ def build_report(
     export_notes: Sequence[str] = (),
     provenance: Sequence[Mapping[str, str]] = (),
     created_utc: str = "",
+    lab: LabSection | None = None,
 ) -> ReportModel:
     """Gather the numbers of the report from the analysis results.
 
@@ -301,6 +306,8 @@ def build_report(
         Input files read (``path``, ``sha256``).
     created_utc : str
         ``created_utc`` of the export.
+    lab : LabSection, optional
+        The per-participant sections (``analyze``).
 
     Returns
     -------
@@ -335,6 +342,7 @@ def build_report(
         + (inputs.rig_warnings if isinstance(inputs, LogsInput) else ()),
         provenance=tuple((str(i["path"]), str(i["sha256"])) for i in provenance),
         created_utc=created_utc,
+        lab=lab,
     )
 
 

@@ -17,6 +17,7 @@ from masking_lab.analysis.report import (
     ShiftsTableInput,
     ThresholdsSection,
 )
+from masking_lab.analysis.report_lab import lab_text_sections
 from masking_lab.analysis.stats import PairedTest
 
 __all__ = ["render_text"]
@@ -53,6 +54,9 @@ def render_text(model: ReportModel) -> str:
         out += _section("Thresholds", _threshold_lines(model.thresholds))
     for e in model.experiments:
         out += _section(f"Experiment {e.experiment}", _experiment_lines(e))
+    if model.lab is not None:
+        for title, lines in lab_text_sections(model.lab):
+            out += _section(title, lines)
     if model.export_notes:
         out += _section("Export", [f"  {n}" for n in model.export_notes])
     out.append("")

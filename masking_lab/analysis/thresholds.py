@@ -26,6 +26,7 @@ from __future__ import annotations
 import functools
 import math
 import operator
+import zlib
 from dataclasses import dataclass
 from typing import Any
 
@@ -33,15 +34,17 @@ import pandas as pd
 from msgspec import UNSET
 
 from masking_lab.analysis.procedure_estimates import procedure_estimate
+from masking_lab.analysis.psychometric import fit_pf
 from masking_lab.core.errors import AnalysisError
 from masking_lab.core.psychometric import GUESS_3IFC
 from masking_lab.core.stimulus import Stimulus, parse_stimulus
 from masking_lab.formats.log_records import ATrial
 from masking_lab.formats.session_log import SessionLog, SetRecords
-from masking_lab.procedures.estimators import ESTIMATORS, ml_threshold, reversal_mean_al
+from masking_lab.procedures.estimators import ESTIMATORS, reversal_mean_al
 from masking_lab.procedures.staircase import implied_target_p_for
 
 UNMASKED_SOURCES = ("auto", "baseline", "calibration")
+ML_BOOTSTRAP = 200  # parametric-bootstrap refits behind an ML AL's SD and interval
 
 COLUMNS = [
     "participant",
@@ -175,12 +178,30 @@ def estimate_set(records: SetRecords, settings: EstimatorSettings) -> SetEstimat
             int(staircase.get("n_down", 3)),
             float(staircase.get("down_up_ratio", 1.0)),
         )
-        fit = ml_threshold(
-            levels, correct, guess=GUESS_3IFC, lapse=settings.lapse, p_target=p_target
+        # The ML fit with its parametric bootstrap (analysis.psychometric): SD and 95 %
+        # interval of the AL, seeded by the set so reruns give the same bytes.
+        fit = fit_pf(
+            levels,
+            correct,
+            guess=GUESS_3IFC,
+            lapse=settings.lapse,
+            p_target=p_target,
+            n_boot=ML_BOOTSTRAP,
+            seed=zlib.crc32(str(start.get("set_id")).encode()),
         )
         if not fit.ok:
             return SetEstimate(None, "estimator_failed", n_trials, len(reversals), fit.message)
-        al = float(fit.threshold_db)  # type: ignore[arg-type]
+        if fit.message:
+            notes.append(fit.message)
+        return SetEstimate(
+            fit.al_db,
+            "completed",
+            n_trials,
+            len(reversals),
+            "; ".join(notes) or None,
+            fit.al_sd_db,
+            fit.al_ci_db,
+        )
     return SetEstimate(al, "completed", n_trials, len(reversals), "; ".join(notes) or None)
 
 
