@@ -533,3 +533,47 @@ def _arrow_types() -> dict[str, Callable[[], Any]]:
 
 
 _ARROW = _arrow_types()
+
+
+def study_at_a_glance(data: str | Path) -> tuple[LabSection, list[str]]:
+    """The study status of a data folder, read without writing anything (``masking-lab status``).
+
+    Returns the report section (matrix, unmasked ALs, outlier flags; no psychometric fits)
+    and the problems met (unreadable logs, headers without a participant), one line each.
+
+    Raises
+    ------
+    AnalysisError
+        If ``data`` is not a folder or holds no session log.
+    """
+    from masking_lab.analysis.batch import _skip_reason, find_logs
+    from masking_lab.analysis.log_reading import read_logs
+    from masking_lab.analysis.thresholds import EstimatorSettings, thresholds_table
+    from masking_lab.core.errors import AnalysisError
+
+    root = Path(data)
+    paths = find_logs(root)
+    if not paths:
+        raise AnalysisError(f"{root}: no session logs (*.jsonl) found")
+    rows: list[tuple] = []
+    logs: list[str] = []
+    problems: list[str] = []
+    for res in read_logs(paths, root, EstimatorSettings()):
+        reason = res.error or _skip_reason(res.header)
+        if reason:
+            problems.append(f"{res.rel}: {reason}")
+            continue
+        logs.append(res.rel)
+        rows.extend(res.rows)
+    thresholds = thresholds_table(rows, consume=True)
+    study = read_study(root, logs)
+    section = LabSection(
+        experiments=tuple(sorted({s.experiment for s in study.sessions})),
+        matrix=tuple(status_matrix(study.sessions, thresholds)),
+        unmasked=tuple(
+            (p, tuple(sorted(als.items()))) for p, als in sorted(unmasked_als(thresholds).items())
+        ),
+        outliers=tuple(outliers(thresholds)),
+        pf=(),
+    )
+    return section, problems

@@ -210,7 +210,11 @@ def status_lines(lab: LabSection) -> list[str]:
     '  P1          partial 2/15 sets, 130 trials'
     """
     width = max([len(c.text) for c in lab.matrix] + [len(e) for e in lab.experiments] + [8])
-    out = ["  " + f"{'participant':<12}" + "".join(f"{e:<{width + 2}}" for e in lab.experiments)]
+    out = [
+        (
+            "  " + f"{'participant':<12}" + "".join(f"{e:<{width + 2}}" for e in lab.experiments)
+        ).rstrip()
+    ]
     for p in lab.participants:
         cells = [lab.cell(p, e) for e in lab.experiments]
         out.append(

@@ -21,6 +21,7 @@ COMMANDS = (
     "resume",
     "emulate",
     "analyze",
+    "status",
     "fit",
     "usertest-report",
     "solve",
