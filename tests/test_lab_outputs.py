@@ -72,7 +72,8 @@ def test_trials_csv_has_one_row_per_logged_trial_with_its_values(study, analyzed
                 )
     # Each set attempt carries its thresholds.csv status, so one filter keeps the used sets.
     thresholds = pd.read_csv(analyzed / "thresholds.csv")
-    status = dict(zip(zip(thresholds["log"], thresholds["set_id"]), thresholds["status"]))
+    keys = zip(thresholds["log"], thresholds["set_id"], strict=True)
+    status = dict(zip(keys, thresholds["status"], strict=True))
     assert all(status[(r.log, r.set_id)] == r.set_status for r in table.itertuples(index=False))
 
 

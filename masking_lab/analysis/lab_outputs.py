@@ -327,23 +327,11 @@ def write_lab_outputs(
     files += _write_participants(out, study)
 
     matrix = status_matrix(study.sessions, thresholds)
-    files.append(
-        write_text_atomic(
-            out / "study_status.csv",
-            csv_text(
-                [
-                    "participant",
-                    "experiment",
-                    "status",
-                    "sets_done",
-                    "sets_planned",
-                    "trials",
-                    "sessions",
-                ],
-                [vars(c) for c in matrix],
-            ),
-        )  # fmt: skip
-    )
+    status_cols = [
+        "participant", "experiment", "status", "sets_done", "sets_planned", "trials", "sessions",
+    ]  # fmt: skip
+    status_csv = csv_text(status_cols, [vars(c) for c in matrix])
+    files.append(write_text_atomic(out / "study_status.csv", status_csv))
     flags = outliers(thresholds)
     figure_links: list[tuple[str, str]] = []
     if figures != "none":

@@ -21,6 +21,7 @@ import argparse
 import math
 import sys
 from collections.abc import Callable
+from pathlib import Path
 
 from masking_lab.commands.options import command_texts
 
@@ -162,7 +163,24 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="add the psi-marginal (slope unknown) to the procedures comparison (slow)",
     )
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    p.add_argument("--out", default="plan_out", help="output folder (default ./plan_out)")
+    p.add_argument(
+        "--quest-max-trials",
+        type=_positive_int,
+        metavar="N",
+        help="trial cap of the capped QUEST+ rows (default: the protocol's QUEST+ max_trials, "
+        "or for a staircase protocol its staircase's trial cap)",
+    )
+    p.add_argument(
+        "--out",
+        default=None,
+        help="output folder (default ./plan_out, or plan_out-2, -3, ... when that holds a plan "
+        "already)",
+    )
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="replace the plan already in --out (otherwise refused, so no plan is lost)",
+    )
     p.add_argument(
         "--per-set", action="store_true", help="print every setting per set, not just pooled"
     )
@@ -170,8 +188,6 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from pathlib import Path
-
     import numpy as np
 
     from masking_lab.core.errors import AnalysisError, ProtocolError
@@ -186,12 +202,20 @@ def run(args: argparse.Namespace) -> int:
         format_fewest,
         procedures_figure,
     )
-    from masking_lab.planning.report import answer_text, format_per_set, format_table, rows_to_csv
+    from masking_lab.planning.report import (
+        answer_text,
+        format_per_set,
+        format_table,
+        plan_section_titles,
+        rows_to_csv,
+    )
     from masking_lab.planning.report_html import render_plan_html
+    from masking_lab.planning.settings import protocol_procedure_text, runs_staircase
     from masking_lab.procedures.staircase_batch import Observer
     from masking_lab.simulation.observer import load_ground_truth
 
     protocol = load_protocol(args.protocol)
+    out = plan_folder(args.out, force=args.force)
     if args.ground_truth is not None and not Path(args.ground_truth).is_file():
         raise ProtocolError(
             args.ground_truth,
@@ -259,8 +283,15 @@ def run(args: argparse.Namespace) -> int:
             quest_replicates=args.quest_replicates,
             psi=args.psi,
             progress=progress,
+            quest_max_trials=args.quest_max_trials,
         )
     cap = P.protocol_staircase(protocol).max_trials
+    own_text = protocol_procedure_text(protocol)
+    if not runs_staircase(protocol):
+        own_text += (
+            f"; the staircase rows are the paper's staircase beside it (trial cap {cap}), not "
+            "this protocol"
+        )
     unit = "dB SL" if protocol.level_unit == "db_sl" else "dB re 1 V"
     header = [
         f"masking-lab plan: {args.protocol} — {protocol.experiment} ({protocol.kind}, "
@@ -274,28 +305,30 @@ def run(args: argparse.Namespace) -> int:
             else f"{truth_name}" + ("" if not args.no_spread else " (no spread)")
         ),
         f"one trial = {protocol.timing.trial_s:g} s + {settings.response_s:g} s response + "
-        f"{protocol.timing.inter_trial_s:g} s pause = {result.trial_s:g} s; trial cap "
-        f"{cap if cap is not None else 'none'}; bias = mean(AL − true threshold)",
+        f"{protocol.timing.inter_trial_s:g} s pause = {result.trial_s:g} s; bias = mean(AL − "
+        "true threshold)",
+        f"this protocol: {own_text}",
     ]
-    text = "\n".join(
-        [
-            *header,
-            "",
-            format_table(result),
-            "",
-            format_per_set(result, only_own=not args.per_set),
-            "",
-            f"Reversals needed for ±{settings.precision_db:g} dB (stop rules RUN/RUN−"
-            f"{result.protocol_rule.n_reversals - result.protocol_rule.n_averaged}, no trial "
-            "cap):",
-            *(f"  {answer_text(a, settings, cap)}" for a in result.answers),
-        ]
-    )
+    titles = plan_section_titles(settings.precision_db, comparison is not None)
+    bodies = [
+        format_table(result),
+        format_per_set(result, only_own=not args.per_set),
+        "\n".join(
+            [
+                f"stop rules RUN/RUN−"
+                f"{result.protocol_rule.n_reversals - result.protocol_rule.n_averaged}, no trial "
+                "cap:",
+                *(f"  {answer_text(a, settings, cap)}" for a in result.answers),
+            ]
+        ),
+    ]
     if comparison is not None:
-        text += "\n\n" + format_comparison(comparison) + "\n\n" + format_fewest(comparison)
+        bodies += [format_comparison(comparison), format_fewest(comparison)]
+    text = "\n".join(header)
+    for title, body in zip(titles, bodies, strict=True):
+        text += f"\n\n{title}\n{'-' * len(title)}\n{body}"
     print(text)
 
-    out = Path(args.out)
     files = {
         "plan.txt": text + "\n",
         "plan_table.csv": rows_to_csv(result.table),
@@ -320,6 +353,8 @@ def run(args: argparse.Namespace) -> int:
         header=header,
         answers=[answer_text(a, settings, cap) for a in result.answers],
         figures=pngs,
+        titles=titles,
+        comparison=comparison,
     )
     for name, content in files.items():
         write_text_atomic(out / name, content)
@@ -327,3 +362,37 @@ def run(args: argparse.Namespace) -> int:
         write_bytes_atomic(out / name, png)
     print(f"\nwrote {', '.join(str(out / n) for n in [*files, *figures])}", file=sys.stderr)
     return 0
+
+
+def plan_folder(out: str | None, *, force: bool) -> Path:
+    """Where a plan goes: ``--out`` (a plan already there is refused unless ``force``), or
+    ``plan_out``, ``plan_out-2``, ... the first that holds no plan (the demo's rule).
+
+    Raises
+    ------
+    AnalysisError
+        If ``--out`` names a file, or a folder holding a plan without ``force``.
+
+    Examples
+    --------
+    >>> plan_folder("/nonexistent/p", force=False)
+    PosixPath('/nonexistent/p')
+    """
+    from masking_lab.core.errors import AnalysisError
+
+    if out is None:
+        base = Path("plan_out")
+        folder, k = base, 1
+        while (folder / "plan.txt").exists():
+            k += 1
+            folder = base.with_name(f"{base.name}-{k}")
+        return folder
+    folder = Path(out)
+    if folder.exists() and not folder.is_dir():
+        raise AnalysisError(f"--out {folder}: a file, not a folder; name a folder for the plan")
+    if (folder / "plan.txt").exists() and not force:
+        raise AnalysisError(
+            f"--out {folder} holds a plan already; pass --force to replace it, or leave out "
+            "--out to write plan_out-2, -3, ..."
+        )
+    return folder
