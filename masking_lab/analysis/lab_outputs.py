@@ -47,6 +47,7 @@ from masking_lab.core.errors import LogError
 from masking_lab.core.psychometric import GUESS_3IFC
 from masking_lab.formats.csv_table import csv_text, csv_text_rows
 from masking_lab.formats.fileio import write_bytes_atomic, write_text_atomic
+from masking_lab.formats.html_report import data_uri
 from masking_lab.formats.session_log import SessionLog, read_log
 
 __all__ = ["PF_COLUMNS", "LabOutputs", "pf_row", "read_study", "write_lab_outputs"]
@@ -347,6 +348,11 @@ def write_lab_outputs(
         outliers=tuple(flags),
         pf=tuple(_pf_report_row(r, study.sets[(str(r["log"]), str(r["set_id"]))]) for r in pf_rows),
         figures=tuple(figure_links),
+        embedded=tuple(
+            (rel, data_uri((out / rel).read_bytes()))
+            for rel, _ in figure_links
+            if rel.startswith("figures/shifts_")
+        ),
     )
     warnings = [
         f"outlier: {o.participant} {o.what} = {o.value_db:.2f} dB (z {o.z:+.1f})" for o in flags

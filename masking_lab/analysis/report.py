@@ -19,7 +19,7 @@ from masking_lab import __version__
 from masking_lab.analysis.experiment import ExperimentResult, GroupFit, result_warnings
 from masking_lab.analysis.pooling import PoolingDecision
 from masking_lab.analysis.report_lab import LabSection
-from masking_lab.analysis.settings import AnalysisSettings
+from masking_lab.analysis.settings import EPOCH_UTC, AnalysisSettings
 from masking_lab.analysis.stats import Effect, PairedTest
 
 __all__ = [
@@ -32,6 +32,7 @@ __all__ = [
     "ShiftsTableInput",
     "ThresholdsSection",
     "build_report",
+    "experiment_heading",
     "setting_text",
 ]
 
@@ -269,6 +270,40 @@ class ReportModel:
     created_utc: str = ""
     lab: LabSection | None = None
 
+    @property
+    def created_text(self) -> str:
+        """``created_utc`` as a reader should take it: the fixed placeholder is not a date.
+
+        Examples
+        --------
+        >>> from masking_lab.analysis.settings import EPOCH_UTC, AnalysisSettings
+        >>> m = build_report([], AnalysisSettings(), source="fit",
+        ...                  inputs=ShiftsTableInput("s.csv", 0, None), created_utc=EPOCH_UTC)
+        >>> m.created_text.split(";")[0]
+        'undated (a shifts table has no session dates)'
+        """
+        if not self.created_utc:
+            return "—"
+        if self.created_utc == EPOCH_UTC:
+            why = "a shifts table has no session dates" if self.source == "fit" else "no dates"
+            return (
+                f"undated ({why}); created_utc holds the fixed placeholder {EPOCH_UTC} so "
+                "reruns give the same bytes: pass --created-utc to date the export"
+            )
+        return self.created_utc
+
+
+def experiment_heading(experiment: str) -> str:
+    """The heading of an experiment's section: ``Experiment II`` or ``experiment1``, never
+    ``Experiment experiment1``.
+
+    Examples
+    --------
+    >>> experiment_heading("experiment1"), experiment_heading("EV270|MV")
+    ('experiment1', 'Experiment EV270|MV')
+    """
+    return experiment if experiment.lower().startswith("experiment") else f"Experiment {experiment}"
+
 
 # --------------------------------------------------------------------------------------------
 # Building the model
@@ -315,7 +350,7 @@ def build_report(
 
     Examples
     --------
-    >>> from masking_lab.analysis.settings import AnalysisSettings
+    >>> from masking_lab.analysis.settings import EPOCH_UTC, AnalysisSettings
     >>> model = build_report(
     ...     [], AnalysisSettings(), source="fit", inputs=ShiftsTableInput("s.csv", 0, None)
     ... )

@@ -173,6 +173,11 @@ class LabSection:
         One per fitted participant × set.
     figures : tuple of (path, caption)
         Every figure the run wrote, paths relative to the output folder.
+    outlier_rule : str
+        The rule of the outlier flags, in words.
+    embedded : tuple of (path, data URI)
+        Figures shown in ``report.html`` itself (the individual shift plots), so the page
+        needs no file beside it.
     """
 
     experiments: tuple[str, ...]
@@ -182,6 +187,7 @@ class LabSection:
     pf: tuple[PFRow, ...]
     figures: tuple[tuple[str, str], ...] = ()
     outlier_rule: str = OUTLIER_RULE
+    embedded: tuple[tuple[str, str], ...] = ()
 
     @property
     def participants(self) -> tuple[str, ...]:
