@@ -35,7 +35,46 @@ from masking_lab.formats.csv_table import csv_text
 from masking_lab.formats.fileio import write_bytes_atomic, write_text_atomic
 from masking_lab.formats.masking_params import masking_params_json
 
-__all__ = ["masking_params_document", "write_outputs"]
+__all__ = ["determination", "masking_params_document", "write_outputs"]
+
+
+# A fitted ramp is "poorly determined" when its slope interval reaches 0 (masking not shown to
+# grow with the masker) or an interval is wider than these limits (dB; dB/dB).
+MAX_INTERCEPT_CI_WIDTH_DB = 10.0
+MAX_SLOPE_CI_WIDTH = 1.0
+
+
+def determination(
+    status: str,
+    intercept_ci_db: tuple[float, float] | None,
+    slope_ci: tuple[float, float] | None,
+) -> dict[str, Any]:
+    """``poorly_determined`` and ``determination`` (why, or None) of an exported function.
+
+    Examples
+    --------
+    >>> determination("fitted", (1.0, 3.0), (-0.34, 1.36))["determination"]
+    'slope interval [-0.34, 1.36] includes 0; slope interval 1.7 wider than 1'
+    >>> determination("fitted", (1.0, 3.0), (0.4, 0.6))
+    {'poorly_determined': False, 'determination': None}
+    """
+    why = []
+    if status == "fitted":
+        if slope_ci is not None and slope_ci[0] <= 0.0 <= slope_ci[1]:
+            why.append(f"slope interval [{slope_ci[0]:.2f}, {slope_ci[1]:.2f}] includes 0")
+        if slope_ci is not None and slope_ci[1] - slope_ci[0] > MAX_SLOPE_CI_WIDTH:
+            why.append(
+                f"slope interval {slope_ci[1] - slope_ci[0]:.2g} wider than {MAX_SLOPE_CI_WIDTH:g}"
+            )
+        if (
+            intercept_ci_db is not None
+            and intercept_ci_db[1] - intercept_ci_db[0] > MAX_INTERCEPT_CI_WIDTH_DB
+        ):
+            width = intercept_ci_db[1] - intercept_ci_db[0]
+            why.append(
+                f"intercept interval {width:.3g} dB wider than {MAX_INTERCEPT_CI_WIDTH_DB:g} dB"
+            )
+    return {"poorly_determined": bool(why), "determination": "; ".join(why) or None}
 
 
 def masking_params_document(
@@ -114,7 +153,13 @@ def masking_params_document(
                     "uncertainty": f.uncertainty,
                     "ci_level": f.ci_level,
                     "n_participants": gf.n_participants,
+                    **determination(f.status, f.intercept_ci_db, f.slope_ci),
                 }
+                if entries[(target, masker)]["poorly_determined"]:
+                    why = entries[(target, masker)]["determination"]
+                    note = f"{target}|{masker} is poorly determined: {why}"
+                    if note not in notes:
+                        notes.append(note)
     provenance: dict[str, Any] = {
         "source": source,
         "inputs": [dict(i) for i in inputs],

@@ -90,8 +90,16 @@ def run(args: argparse.Namespace) -> int:
 
 def device_unavailable(command: str, exc: Exception) -> int:
     """The device (or the participant's window/terminal) could not be opened: exit 3."""
+    from masking_lab.core.errors import ResponderError
+
+    # A keypad or window problem is not the rig's: say which part to fix.
+    what, part = (
+        ("responder error", "the participant's terminal or window")
+        if isinstance(exc, ResponderError)
+        else ("device error", "the device")
+    )
     print(
-        f"masking-lab {command}: device error: {exc}\nNothing was played; fix the device and run "
+        f"masking-lab {command}: {what}: {exc}\nNothing was played; fix {part} and run "
         "the same command again.",
         file=sys.stderr,
     )

@@ -8,7 +8,6 @@ print the result. A new kind of session is one more row.
 from __future__ import annotations
 
 import argparse
-import sys
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -78,8 +77,8 @@ def _print_threshold(result: Any) -> int:
     print(f"log: {result.log_path}")
     for outcome in result.outcomes:
         print(f"  {outcome.summary()}")
-    if result.message:
-        print(result.message, file=sys.stderr)
+    # result.message (a fault or an interruption, with the resume command) was shown on stderr
+    # by the session itself when it stopped: printing it again doubled it (issue 17).
     return int(result.exit_code)
 
 
@@ -119,9 +118,7 @@ def _print_usertest(result: Any) -> int:
     print(f"log: {result.log_path}")
     for line in result.summary_lines():
         print(f"  {line}")
-    if result.message:
-        print(result.message, file=sys.stderr)
-    return int(result.exit_code)
+    return int(result.exit_code)  # result.message was shown when the session stopped
 
 
 # The first row whose test matches wins; the threshold session is the default.

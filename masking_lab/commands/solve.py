@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import sys
 from typing import Any
 
 from masking_lab.commands.options import command_texts, rating_options
@@ -91,11 +92,16 @@ def run(args: argparse.Namespace) -> int:
         c, d = _pair(args.ev_masked_by_mv, "--ev-masked-by-mv")
         mm = MutualMasking(a, b, c, d, mv=args.mv or "MV", ev=args.ev)
     elif args.params:
-        from masking_lab.formats.masking_params import read_masking_params
+        from masking_lab.formats.masking_params import (
+            determination_warnings,
+            read_masking_params,
+        )
 
         params = read_masking_params(args.params)
         mv = args.mv or _only_mv(params, args.ev, args.params)
         mm = pair_from_params(params, mv=mv, ev=args.ev, source=args.params)
+        for warning in determination_warnings(params, args.params, (mv, args.ev)):
+            print(f"masking-lab solve: warning: {warning}", file=sys.stderr)
     else:
         raise SolverError(
             "no masking functions: give --params masking_params.json (with --mv NAME), or "

@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import math
+import sys
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -135,7 +136,7 @@ def masking_pairs(
     design: UserTestDesign, params: Path | None, data_dir: Path
 ) -> tuple[dict[tuple[str, str], MutualMasking], dict[str, Any] | None]:
     """The fitted masking of every stimulus pair, and the params file's path and hash."""
-    from masking_lab.formats.masking_params import read_masking_params
+    from masking_lab.formats.masking_params import determination_warnings, read_masking_params
     from masking_lab.rendering.outputs import measurement_protocols, write_measurement_protocol
     from masking_lab.rendering.solver import pair_from_params
 
@@ -151,6 +152,9 @@ def masking_pairs(
             "pass --params masking_params.json (written by `masking-lab fit` or `analyze`)"
         )
     doc = read_masking_params(params)
+    for mv, ev in needed:  # a poorly determined function compensates uncertainly: say so
+        for warning in determination_warnings(doc, str(params), (mv, ev)):
+            print(f"masking-lab run: warning: {warning}", file=sys.stderr)
     pairs: dict[tuple[str, str], MutualMasking] = {}
     problems: list[PairProblem] = []
     for mv, ev in needed:
