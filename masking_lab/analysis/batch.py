@@ -267,7 +267,15 @@ def _lab_outputs(
 
     from masking_lab.analysis.lab_outputs import write_lab_outputs
 
-    lab = write_lab_outputs(data, out, logs, thresholds, figures=settings.figures)
+    lab = write_lab_outputs(
+        data,
+        out,
+        logs,
+        thresholds,
+        figures=settings.figures,
+        n_boot=settings.pf_boot,
+        trial_tables=settings.trial_tables,
+    )
     tracks = tuple(
         (p.relative_to(out).as_posix(), "staircase tracks of one session") for p in drawn
     )

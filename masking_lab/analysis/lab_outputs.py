@@ -261,6 +261,7 @@ def write_lab_outputs(
     figures: str = "summary",
     n_boot: int = PF_BOOTSTRAP,
     progress: Callable[[int, int], None] | None = None,
+    trial_tables: bool = True,
 ) -> LabOutputs:
     """Write the per-trial and per-participant outputs of ``analyze`` into ``out``.
 
@@ -280,6 +281,9 @@ def write_lab_outputs(
         Bootstrap data sets per psychometric function.
     progress : callable, optional
         Called with (sets fitted, sets to fit).
+    trial_tables : bool
+        Write ``trials.csv``/``.parquet`` and ``psychometric.csv`` (False: only the study
+        status, ``participants.tsv`` and the shift plots).
 
     Returns
     -------
@@ -290,22 +294,25 @@ def write_lab_outputs(
         (str(r[0]), str(r[1])): str(r[2])
         for r in thresholds[["log", "set_id", "status"]].itertuples(index=False)
     }
-    trials_path = out / "trials.csv"
-    parquet = _ParquetSink(out / "trials.parquet")
-    with trials_path.open("w", encoding="utf-8", newline="") as fh:
-        fh.write(",".join(TRIAL_COLUMNS) + "\n")
+    if trial_tables:
+        trials_path = out / "trials.csv"
+        parquet = _ParquetSink(out / "trials.parquet")
+        with trials_path.open("w", encoding="utf-8", newline="") as fh:
+            fh.write(",".join(TRIAL_COLUMNS) + "\n")
 
-        def on_log(rel: str, log: SessionLog) -> None:
-            rows = list(trial_rows(log, rel, status))
-            fh.write(csv_text_rows(TRIAL_COLUMNS, rows).split("\n", 1)[1])
-            parquet.add(rows)
+            def on_log(rel: str, log: SessionLog) -> None:
+                rows = list(trial_rows(log, rel, status))
+                fh.write(csv_text_rows(TRIAL_COLUMNS, rows).split("\n", 1)[1])
+                parquet.add(rows)
 
-        study = read_study(data, logs, on_log)
-    files.append(trials_path)
-    files += parquet.close()
+            study = read_study(data, logs, on_log)
+        files.append(trials_path)
+        files += parquet.close()
+    else:
+        study = read_study(data, logs)
 
     # Psychometric functions of the sets whose threshold is used (completed attempts).
-    used = thresholds[thresholds["status"] == "completed"]
+    used = thresholds[thresholds["status"] == "completed"] if trial_tables else thresholds[:0]
     pf_rows: list[dict] = []
     for i, r in enumerate(used.itertuples(index=False)):
         st = study.sets.get((str(r.log), str(r.set_id)))
@@ -324,7 +331,8 @@ def write_lab_outputs(
             pf_rows.append(pf_row(base, st, seed, n_boot))
         if progress:
             progress(i + 1, len(used))
-    files.append(write_text_atomic(out / "psychometric.csv", csv_text(PF_COLUMNS, pf_rows)))
+    if trial_tables:
+        files.append(write_text_atomic(out / "psychometric.csv", csv_text(PF_COLUMNS, pf_rows)))
     files += _write_participants(out, study)
 
     matrix = status_matrix(study.sessions, thresholds)

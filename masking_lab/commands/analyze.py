@@ -5,8 +5,10 @@ Read every session log (*.jsonl) under DATA_DIR, re-estimate each set's AL, comp
 run the repeated-measures statistics per experiment, pool frequency levels, fit the masking
 ramps and write thresholds.csv, anova.csv, sphericity.csv, posthoc.csv, one_sample.csv,
 ramp_fits.csv, problems.csv, masking_params.json, report.txt, report.html and figures/ into
-OUT_DIR. Truncated or invalid logs are reported and skipped. Same inputs and settings give the
-same bytes. OUT_DIR is written as a fresh folder swapped in only when the run completes: a
+OUT_DIR, with trials.csv (one row per trial; trials.parquet with pyarrow), psychometric.csv (a
+psychometric function per participant and set), participants.tsv/.json and study_status.csv.
+Truncated or invalid logs are reported and skipped. Same inputs and settings give the same
+bytes. OUT_DIR is written as a fresh folder swapped in only when the run completes: a
 failed run leaves the previous results untouched.
 """
 
@@ -164,6 +166,21 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="unmasked ALs from the participant's baseline log (falling back to the session "
         "header's calibration: auto, default), from the baseline log only, or from the header",
     )
+    t = p.add_argument_group("trial-level outputs")
+    t.add_argument(
+        "--pf-boot",
+        type=int,
+        default=200,
+        metavar="N",
+        help="parametric-bootstrap data sets per psychometric function in psychometric.csv "
+        "(intervals and deviance p; 0: point estimates only; default 200)",
+    )
+    t.add_argument(
+        "--no-trial-tables",
+        action="store_true",
+        help="skip trials.csv and psychometric.csv (a second read of every log and a fit per "
+        "set: minutes for thousands of sessions)",
+    )
     add_fit_options(p)
     p.set_defaults(handler=run)
 
@@ -179,6 +196,8 @@ def run(args: argparse.Namespace) -> int:
         lapse=parse_lapse(args.lapse),
         unmasked_al=args.unmasked_al,
         figures=args.figures,
+        pf_boot=args.pf_boot,
+        trial_tables=not args.no_trial_tables,
     )
     show = not args.quiet and sys.stderr.isatty()
     progress = progress_printer(sys.stderr, "logs read") if show else None
