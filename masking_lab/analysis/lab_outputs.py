@@ -439,7 +439,9 @@ def _draw(
 
 def _write_participants(out: Path, study: StudyLogs) -> list[Path]:
     """``participants.tsv`` (one row per participant) and its JSON sidecar."""
-    names = sorted(set(study.info_fields) | {k for v in study.info.values() for k in v})
+    # The protocols' order of fields, then any other key found in a header.
+    extra = {k for v in study.info.values() for k in v} - set(study.info_fields)
+    names = [*study.info_fields, *sorted(extra)]
     cols = ["participant_id", "n_sessions", *names]
     lines = ["\t".join(cols)]
     for p in sorted(study.sessions_of):

@@ -54,6 +54,15 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="ground truth of the simulated observer (default: protocols/simulation/"
         "ground_truth.yaml)",
     )
+    p.add_argument(
+        "--info",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="participant metadata the protocol's info section asks for (age, handedness, "
+        "...), e.g. --info age=24 --info handedness=right; repeatable; on a terminal the "
+        "missing fields are asked for",
+    )
     usertest = p.add_argument_group("user tests (protocols with kind: usertest)")
     usertest.add_argument(
         "--params",

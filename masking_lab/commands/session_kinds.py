@@ -64,7 +64,10 @@ def _start_threshold(args: argparse.Namespace) -> Any:
     sets = None
     if args.sets:
         sets = tuple(s for item in args.sets for s in item.split(",") if s)
-    return run_session(RunOptions(sets=sets, **_common(args)))
+    from masking_lab.session.participant_info import parse_info_args
+
+    info = parse_info_args(getattr(args, "info", None) or [])
+    return run_session(RunOptions(sets=sets, info=info, **_common(args)))
 
 
 def _resume_threshold(log: Path, **kwargs: Any) -> Any:
@@ -99,6 +102,8 @@ def _start_usertest(args: argparse.Namespace) -> Any:
 
     if args.sets:
         raise MaskingLabError("--sets: a user-test protocol has no sets; leave it out")
+    if getattr(args, "info", None):
+        raise MaskingLabError("--info: a user-test protocol has no info section; leave it out")
     return run_usertest(
         UserTestOptions(
             params=Path(args.params) if args.params else None,
