@@ -19,6 +19,7 @@ COMMANDS = (
     "validate",
     "run",
     "resume",
+    "watch",
     "emulate",
     "analyze",
     "status",
