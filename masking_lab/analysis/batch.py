@@ -92,6 +92,7 @@ def run_analyze(
     settings: AnalysisSettings,
     *,
     progress: Callable[[int, int], None] | None = None,
+    fit_progress: Callable[[int, int], None] | None = None,
 ) -> RunSummary:
     """Analyse every session log under ``data_dir`` and write every output into ``out_dir``.
 
@@ -109,6 +110,8 @@ def run_analyze(
         Estimation, statistics, export and figure settings.
     progress : callable or None
         Called with (logs read, logs found).
+    fit_progress : callable or None
+        Called with (sets fitted, sets to fit) for ``psychometric.csv``.
 
     Returns
     -------
@@ -129,7 +132,7 @@ def run_analyze(
     if not data.is_dir():
         raise AnalysisError(f"{data}: no such folder; give the folder holding session logs")
     with staged_output(out, protect=[data]) as staging:
-        summary = _analyze_into(data, staging, settings, progress)
+        summary = _analyze_into(data, staging, settings, progress, fit_progress)
     return _moved(summary, staging, out)
 
 
@@ -144,6 +147,7 @@ def _analyze_into(
     out: Path,
     settings: AnalysisSettings,
     progress: Callable[[int, int], None] | None,
+    fit_progress: Callable[[int, int], None] | None = None,
 ) -> RunSummary:
     """The analysis of :func:`run_analyze`, writing into ``out`` (the staging folder)."""
     from masking_lab.formats.session_log import read_log
@@ -219,7 +223,9 @@ def _analyze_into(
     )
     warnings = [f"{p['log']}: {p['problem']} ({p['action']})" for p in problems]
     warnings += report_inputs.rig_warnings
-    lab = _lab_outputs(data, out, [i["path"] for i in inputs], thresholds, settings, files)
+    lab = _lab_outputs(
+        data, out, [i["path"] for i in inputs], thresholds, settings, files, fit_progress
+    )
     files += lab.files
     warnings += lab.warnings
     if shifts.empty:
@@ -261,6 +267,7 @@ def _lab_outputs(
     thresholds: pd.DataFrame,
     settings: AnalysisSettings,
     drawn: list[Path],
+    fit_progress: Callable[[int, int], None] | None = None,
 ) -> LabOutputs:
     """trials.csv, psychometric.csv, participants.tsv, the study status and their figures."""
     from dataclasses import replace
@@ -275,6 +282,7 @@ def _lab_outputs(
         figures=settings.figures,
         n_boot=settings.pf_boot,
         trial_tables=settings.trial_tables,
+        progress=fit_progress,
     )
     tracks = tuple(
         (p.relative_to(out).as_posix(), "staircase tracks of one session") for p in drawn

@@ -86,6 +86,11 @@ def add_fit_options(p: argparse.ArgumentParser) -> None:
         "studies), 'none' no figures",
     )
     o.add_argument("--quiet", action="store_true", help="no progress display")
+    o.add_argument(
+        "--progress",
+        action="store_true",
+        help="progress bars even when stderr is not a terminal (analyze only)",
+    )
 
 
 def fit_settings(args: argparse.Namespace, **analyze_only: Any) -> AnalysisSettings:
@@ -186,7 +191,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from masking_lab.analysis.batch import progress_printer, run_analyze
+    from masking_lab.analysis.batch import run_analyze
     from masking_lab.analysis.settings import parse_lapse
 
     settings = fit_settings(
@@ -199,8 +204,15 @@ def run(args: argparse.Namespace) -> int:
         pf_boot=args.pf_boot,
         trial_tables=not args.no_trial_tables,
     )
-    show = not args.quiet and sys.stderr.isatty()
-    progress = progress_printer(sys.stderr, "logs read") if show else None
-    summary = run_analyze(args.data_dir, args.out, settings, progress=progress)
+    from masking_lab.commands.progress_bars import count_bar, progress_wanted
+
+    show = not args.quiet and progress_wanted(True if args.progress else None)
+    summary = run_analyze(
+        args.data_dir,
+        args.out,
+        settings,
+        progress=count_bar("logs read", show) if show else None,
+        fit_progress=count_bar("psychometric fits", show) if show else None,
+    )
     print_summary("analyze", summary)
     return 0

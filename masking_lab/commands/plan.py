@@ -24,6 +24,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from masking_lab.commands.options import command_texts
+from masking_lab.commands.progress_bars import add_progress_options
 
 
 def _checked(
@@ -184,12 +185,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--per-set", action="store_true", help="print every setting per set, not just pooled"
     )
+    add_progress_options(p)
     p.set_defaults(handler=run)
 
 
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
+    from masking_lab.commands.progress_bars import progress_wanted, step_bar
     from masking_lab.core.errors import AnalysisError, ProtocolError
     from masking_lab.core.psychometric import LEVITT_1U3D
     from masking_lab.formats.fileio import write_bytes_atomic, write_text_atomic
@@ -269,8 +272,7 @@ def run(args: argparse.Namespace) -> int:
         truth_source=truth_name,
     )
 
-    def progress(msg: str) -> None:
-        print(f"plan: {msg}", file=sys.stderr, flush=True)
+    progress = step_bar("plan", progress_wanted(args.progress))
 
     result = P.run_plan(protocol, settings, thresholds, progress=progress)
     comparison = None

@@ -13,11 +13,11 @@ rewritten (:mod:`masking_lab.planning.study`).
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 from masking_lab.commands.options import command_texts
 from masking_lab.commands.plan import _count, _positive_int
+from masking_lab.commands.progress_bars import add_progress_options, progress_wanted, step_bar
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -67,6 +67,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--psi", action="store_true", help="add the psi-marginal (slow)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    add_progress_options(p)
     p.set_defaults(handler=run)
 
 
@@ -93,8 +94,7 @@ _DOC = "docs/speed-accuracy.md"
 def run(args: argparse.Namespace) -> int:
     from masking_lab.planning.study import regenerate
 
-    def say(msg: str) -> None:
-        print(f"study: {msg}", file=sys.stderr, flush=True)
+    say = step_bar("study", progress_wanted(args.progress))
 
     out, doc = study_paths(args.out, args.doc, Path.cwd())
     if doc is None and args.doc is None:
