@@ -236,7 +236,7 @@ def determination_warnings(
     >>> doc = {"functions": [{"target": "EV270", "masker": "MV120", "status": "fitted",
     ...     "slope_ci": [-0.34, 1.36]}]}
     >>> determination_warnings(doc, "p.json")[0][:60]
-    'p.json: EV270 masked by MV120 is poorly determined (slope int'
+    'p.json: EV270 masked by MV120 is poorly determined (slope in'
     """
     out = []
     for f in doc.get("functions", []):
