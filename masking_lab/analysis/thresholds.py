@@ -40,7 +40,7 @@ from masking_lab.core.psychometric import GUESS_3IFC
 from masking_lab.core.stimulus import Stimulus, parse_stimulus
 from masking_lab.formats.log_records import ATrial
 from masking_lab.formats.session_log import SessionLog, SetRecords
-from masking_lab.procedures.estimators import ESTIMATORS, reversal_mean_al
+from masking_lab.procedures.estimators import ESTIMATORS, ml_threshold, reversal_mean_al
 from masking_lab.procedures.staircase import implied_target_p_for
 
 UNMASKED_SOURCES = ("auto", "baseline", "calibration")
@@ -178,9 +178,14 @@ def estimate_set(records: SetRecords, settings: EstimatorSettings) -> SetEstimat
             int(staircase.get("n_down", 3)),
             float(staircase.get("down_up_ratio", 1.0)),
         )
-        # The ML fit with its parametric bootstrap (analysis.psychometric): SD and 95 %
-        # interval of the AL, seeded by the set so reruns give the same bytes.
-        fit = fit_pf(
+        fit = ml_threshold(
+            levels, correct, guess=GUESS_3IFC, lapse=settings.lapse, p_target=p_target
+        )
+        if not fit.ok:
+            return SetEstimate(None, "estimator_failed", n_trials, len(reversals), fit.message)
+        # Its SD and 95 % interval from a parametric bootstrap (analysis.psychometric), seeded
+        # by the set so reruns give the same bytes.
+        boot = fit_pf(
             levels,
             correct,
             guess=GUESS_3IFC,
@@ -189,18 +194,16 @@ def estimate_set(records: SetRecords, settings: EstimatorSettings) -> SetEstimat
             n_boot=ML_BOOTSTRAP,
             seed=zlib.crc32(str(start.get("set_id")).encode()),
         )
-        if not fit.ok:
-            return SetEstimate(None, "estimator_failed", n_trials, len(reversals), fit.message)
-        if fit.message:
-            notes.append(fit.message)
+        if boot.ok and boot.message:  # e.g. few refits inside the bounds
+            notes.append(boot.message)
         return SetEstimate(
-            fit.al_db,
+            float(fit.threshold_db),  # type: ignore[arg-type]
             "completed",
             n_trials,
             len(reversals),
             "; ".join(notes) or None,
-            fit.al_sd_db,
-            fit.al_ci_db,
+            boot.al_sd_db,
+            boot.al_ci_db,
         )
     return SetEstimate(al, "completed", n_trials, len(reversals), "; ".join(notes) or None)
 
