@@ -263,6 +263,7 @@ def fit_pf(
     lapse: float | None = None,
     n_boot: int = 200,
     seed: int = 0,
+    estimate: tuple[float, float, float] | None = None,
 ) -> PFFit:
     """Fit the psychometric function to one set's trials, with bootstrap intervals and deviance.
 
@@ -282,6 +283,9 @@ def fit_pf(
         Parametric-bootstrap data sets (0: no intervals, no deviance p-value).
     seed : int
         Seed of the bootstrap.
+    estimate : (threshold_db, slope_per_db, lapse), optional
+        A maximum-likelihood estimate found elsewhere (e.g. the ML AL estimator's), used as
+        the point estimate the bootstrap draws from, instead of this function's own search.
 
     Returns
     -------
@@ -326,42 +330,45 @@ def fit_pf(
     if r.all() or not r.any():
         which = "correct" if r.all() else "wrong"
         return PFFit(False, f"every answer was {which}: the likelihood has no maximum", **base)
-    # Profile first, on a grid (vectorised): the best α for each of a dense set of scales at
-    # λ = 0.02. A short track's likelihood can have several local maxima along the scale, so
-    # every local minimum of the profile is climbed (jointly in α, s and a fitted λ) and the
-    # best climb is kept (as procedures.estimators.ml_threshold does).
-    lam0 = 0.02 if lapse is None else lapse
-    near = xu[:, None] + SCALE_BOUNDS_DB[0] * np.linspace(-4.0, 4.0, 9)[None, :]
-    grid_a = np.union1d(np.linspace(*bounds[0], 81), np.clip(near.ravel(), *bounds[0]))
-    grid_ls = np.linspace(bounds[1, 0], bounds[1, 1], 25)[:-1]
-    aa, ll = np.meshgrid(grid_a, grid_ls, indexing="ij")
-    grid = np.column_stack([aa.ravel(), ll.ravel(), np.full(aa.size, lam0)])
-    prof_all = _nll(xu, n, k[None, :], grid, guess).reshape(aa.shape)
-    best = np.argmin(prof_all, axis=0)
-    profile = prof_all[best, np.arange(grid_ls.size)]
-    padded = np.concatenate([[np.inf], profile, [np.inf]])
-    local = np.flatnonzero((profile <= padded[:-2]) & (profile <= padded[2:]))
-    local = local[np.argsort(profile[local])][:4]
-    starts = np.column_stack([grid_a[best[local]], grid_ls[local], np.full(local.size, lam0)])
-    if lapse is None:  # each start also from the ends of the lapse range
-        starts = np.vstack([starts, starts * [1, 1, 0], starts * [1, 1, 0] + [0, 0, MAX_LAPSE]])
-    kk = np.tile(k, (len(starts), 1))
-    th, good = _refit(xu, n, kk, starts, bounds, guess, fit_lapse=lapse is None)
-    vals = _nll(xu, n, kk, th, guess)
-    top = int(np.argmin(vals))
-    if not good[top]:
-        if th[top, 1] >= bounds[1, 1] - 1e-6:
-            msg = (
-                f"the fitted psychometric function is flat (scale ≥ {SCALE_BOUNDS_DB[1]} dB): "
-                "answers do not depend on level"
-            )
-        else:
-            msg = (
-                f"the threshold runs to the edge of the search range ({th[top, 0]:.1f} dB): "
-                "the track does not bracket a threshold"
-            )
-        return PFFit(False, msg, **base)
-    start = th[top]
+    if estimate is not None:
+        start = np.array([estimate[0], math.log(1.0 / estimate[1]), estimate[2]])
+    else:
+        # Profile first, on a grid (vectorised): the best α for each of a dense set of scales at
+        # λ = 0.02. A short track's likelihood can have several local maxima along the scale, so
+        # every local minimum of the profile is climbed (jointly in α, s and a fitted λ) and the
+        # best climb is kept (as procedures.estimators.ml_threshold does).
+        lam0 = 0.02 if lapse is None else lapse
+        near = xu[:, None] + SCALE_BOUNDS_DB[0] * np.linspace(-4.0, 4.0, 9)[None, :]
+        grid_a = np.union1d(np.linspace(*bounds[0], 81), np.clip(near.ravel(), *bounds[0]))
+        grid_ls = np.linspace(bounds[1, 0], bounds[1, 1], 25)[:-1]
+        aa, ll = np.meshgrid(grid_a, grid_ls, indexing="ij")
+        grid = np.column_stack([aa.ravel(), ll.ravel(), np.full(aa.size, lam0)])
+        prof_all = _nll(xu, n, k[None, :], grid, guess).reshape(aa.shape)
+        best = np.argmin(prof_all, axis=0)
+        profile = prof_all[best, np.arange(grid_ls.size)]
+        padded = np.concatenate([[np.inf], profile, [np.inf]])
+        local = np.flatnonzero((profile <= padded[:-2]) & (profile <= padded[2:]))
+        local = local[np.argsort(profile[local])][:4]
+        starts = np.column_stack([grid_a[best[local]], grid_ls[local], np.full(local.size, lam0)])
+        if lapse is None:  # each start also from the ends of the lapse range
+            starts = np.vstack([starts, starts * [1, 1, 0], starts * [1, 1, 0] + [0, 0, MAX_LAPSE]])
+        kk = np.tile(k, (len(starts), 1))
+        th, good = _refit(xu, n, kk, starts, bounds, guess, fit_lapse=lapse is None)
+        vals = _nll(xu, n, kk, th, guess)
+        top = int(np.argmin(vals))
+        if not good[top]:
+            if th[top, 1] >= bounds[1, 1] - 1e-6:
+                msg = (
+                    f"the fitted psychometric function is flat (scale ≥ {SCALE_BOUNDS_DB[1]} dB): "
+                    "answers do not depend on level"
+                )
+            else:
+                msg = (
+                    f"the threshold runs to the edge of the search range ({th[top, 0]:.1f} dB): "
+                    "the track does not bracket a threshold"
+                )
+            return PFFit(False, msg, **base)
+        start = th[top]
     alpha, s, lam = float(start[0]), float(math.exp(start[1])), float(start[2])
     beta = 1.0 / s
     p_hat = pf_curve(xu, alpha, beta, lam, guess)

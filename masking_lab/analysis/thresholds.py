@@ -185,6 +185,9 @@ def estimate_set(records: SetRecords, settings: EstimatorSettings) -> SetEstimat
             return SetEstimate(None, "estimator_failed", n_trials, len(reversals), fit.message)
         # Its SD and 95 % interval from a parametric bootstrap (analysis.psychometric), seeded
         # by the set so reruns give the same bytes.
+        s = float(fit.scale_db)  # type: ignore[arg-type]
+        q = (p_target - GUESS_3IFC) / (1.0 - GUESS_3IFC - fit.lapse)
+        alpha = float(fit.threshold_db) - s * math.log(q / (1.0 - q))  # type: ignore[arg-type]
         boot = fit_pf(
             levels,
             correct,
@@ -193,6 +196,7 @@ def estimate_set(records: SetRecords, settings: EstimatorSettings) -> SetEstimat
             p_target=p_target,
             n_boot=ML_BOOTSTRAP,
             seed=zlib.crc32(str(start.get("set_id")).encode()),
+            estimate=(alpha, 1.0 / s, float(fit.lapse)),
         )
         if boot.ok and boot.message:  # e.g. few refits inside the bounds
             notes.append(boot.message)
