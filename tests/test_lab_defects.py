@@ -143,3 +143,33 @@ def test_track_figures_use_legible_text_and_visible_wrong_answers(tmp_path):
     assert wrong.get_markersize() >= 6 and wrong.get_markeredgewidth() >= 1.5
     assert wrong.get_markerfacecolor() == "white" and wrong.get_zorder() > 2
     assert fig.dpi >= 100
+
+
+def test_figure4_draws_each_masked_al_in_its_own_colour_and_both_rated_maxima(
+    tmp_path, monkeypatch
+):
+    import matplotlib.colors as mcolors
+
+    from masking_lab.rendering import figures
+
+    sys.path.insert(0, str(ROOT / "tests"))
+    from test_render import write_params
+
+    drawn = []
+    real = figures.png_bytes
+
+    def keep(fig, **kw):
+        drawn.append([(ln.get_label(), ln.get_color()) for ax in fig.axes for ln in ax.lines])
+        return real(fig, **kw)
+
+    monkeypatch.setattr(figures, "png_bytes", keep)
+    params = write_params(tmp_path / "p.json")
+    scene = str(ROOT / "protocols" / "scenes" / "bump_rough.yaml")
+    assert main(["render", scene, "--params", params, "--out", str(tmp_path / "o")]) == 0
+    (lines,) = drawn
+    colour = {label: mcolors.to_hex(c) for label, c in lines}
+    assert colour["masked AL of MV (by EV)"] == mcolors.to_hex(figures.MV_COLOUR)
+    assert colour["masked AL of EV (by MV)"] == mcolors.to_hex(figures.EV_COLOUR)
+    # The reference rig rates both channels at 30 dB SL: one line says so, none hides another.
+    assert "MV and EV rated maximum (30 dB SL)" in colour
+    assert not any(label in ("MV rated maximum", "EV rated maximum") for label in colour)
