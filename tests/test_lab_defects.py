@@ -173,3 +173,31 @@ def test_figure4_draws_each_masked_al_in_its_own_colour_and_both_rated_maxima(
     # The reference rig rates both channels at 30 dB SL: one line says so, none hides another.
     assert "MV and EV rated maximum (30 dB SL)" in colour
     assert not any(label in ("MV rated maximum", "EV rated maximum") for label in colour)
+
+
+def test_the_new_stimulus_path_names_every_refusal_at_once_with_a_complete_command(
+    tmp_path, capsys
+):
+    data = tmp_path / "data"
+    base = ["--participant", "S01", "--device", "sim", "--responder", "sim", "--data", str(data)]
+    assert main(["run", str(ROOT / "protocols" / "baseline.yaml"), *base]) == 0
+    assert main(["fit", str(ROOT / "data_schema" / "shifts.csv"), "--out", str(tmp_path / "f"),
+                 "--figures", "none", "--quiet"]) == 0  # fmt: skip
+    params = tmp_path / "f" / "masking_params.json"
+    capsys.readouterr()
+    usertest = str(ROOT / "protocols" / "usertest.yaml")
+    assert main(["run", usertest, *base, "--params", str(params)]) == 2
+    err = capsys.readouterr().err
+    # both refusals in one message: the missing baseline and the missing masking functions
+    assert "cannot start yet, for 2 reasons" in err
+    assert "1. " in err and "no unmasked AL for MV120am40" in err
+    assert "2. " in err and "not fitted" in err
+    # the printed baseline command is complete: this run's device and responder, no "..."
+    baseline = next(data.glob("baseline_*MV120am40*.yaml"))
+    assert f"masking-lab run {baseline} --participant S01" in err
+    assert "--device sim --responder sim, then start the user test again" in err
+    assert "--device ..." not in err
+    assert sorted(p.name for p in data.glob("measure_*.yaml")) == [
+        "measure_EV270_by_MV120am40.yaml",
+        "measure_MV120am40_by_EV270.yaml",
+    ]

@@ -80,9 +80,16 @@ def stimuli_of(design: UserTestDesign) -> set[str]:
 
 
 def require_calibration(
-    design: UserTestDesign, data_dir: Path, participant: str
+    design: UserTestDesign,
+    data_dir: Path,
+    participant: str,
+    run_options: str = "--device ... --responder ...",
 ) -> dict[str, float]:
-    """The participant's unmasked AL of every stimulus the objects play, dB re 1 V."""
+    """The participant's unmasked AL of every stimulus the objects play, dB re 1 V.
+
+    ``run_options`` completes the printed ``masking-lab run`` command (the user test's own
+    ``--device`` and ``--responder``), so nothing needs retyping.
+    """
     cal = load_calibration(data_dir, participant)
     needed = stimuli_of(design)
     missing = cal.missing(needed)
@@ -94,7 +101,7 @@ def require_calibration(
             f"unmasked AL for {', '.join(missing)} (calibrated: {have}); the user test plays "
             f"its levels in dB SL. Wrote {written}, a baseline of just these stimuli: run "
             f"masking-lab run {written} --participant {participant} --data {data_dir} "
-            "--device ... --responder ..., then start the user test again"
+            f"{run_options}, then start the user test again"
         )
     return {name: float(cal.unmasked_al_db_v[name]) for name in sorted(needed)}
 
