@@ -76,8 +76,12 @@ def test_analysis_report_renders_tables_figures_and_provenance(analyzed, tmp_pat
     assert "Mauchly W" in dom and "Pooling (paired" in dom
     # The embedded figures are the very PNGs written beside the report.
     images = _images(dom)
-    assert images == [
+    assert images[:2] == [
         (analyzed / "figures" / f"masking_experiment{k}.png").read_bytes() for k in (1, 2)
+    ]
+    # ... and the individual shift plots (issue 17), also the files written beside it.
+    assert images[2:] == [
+        (analyzed / "figures" / f"shifts_experiment{k}.png").read_bytes() for k in (1, 2)
     ]
     # Fitted functions with their intervals, as exported.
     doc = json.loads((analyzed / "masking_params.json").read_text())

@@ -85,7 +85,8 @@ def test_silence_nan_and_the_rating_in_json(capsys):
     assert out["status"][1] == "none" and out["reason"][1] == "target is NaN"
     assert out["mv_exceeds_rating"] == [False, False, True]
     assert out["mv_input_db"][2] > 30  # reported, not clipped
-    assert out["max_mv_db_sl"] == 30.0 and out["max_ev_db_sl"] is None
+    # --max-mv-db-sl overrides; EV keeps the reference rig's rating (solve checks it by default)
+    assert out["max_mv_db_sl"] == 30.0 and out["max_ev_db_sl"] == 30.0
 
 
 def test_table_output(capsys):

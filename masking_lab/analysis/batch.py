@@ -42,6 +42,9 @@ from masking_lab.formats.output_dir import staged_output
 from masking_lab.formats.shifts_csv import read_shifts_csv
 
 if TYPE_CHECKING:
+    import pandas as pd
+
+    from masking_lab.analysis.lab_outputs import LabOutputs
     from masking_lab.analysis.track_figures import TrackJob
     from masking_lab.formats.session_log import SessionLog
 
@@ -89,6 +92,7 @@ def run_analyze(
     settings: AnalysisSettings,
     *,
     progress: Callable[[int, int], None] | None = None,
+    fit_progress: Callable[[int, int], None] | None = None,
 ) -> RunSummary:
     """Analyse every session log under ``data_dir`` and write every output into ``out_dir``.
 
@@ -106,6 +110,8 @@ def run_analyze(
         Estimation, statistics, export and figure settings.
     progress : callable or None
         Called with (logs read, logs found).
+    fit_progress : callable or None
+        Called with (sets fitted, sets to fit) for ``psychometric.csv``.
 
     Returns
     -------
@@ -126,7 +132,7 @@ def run_analyze(
     if not data.is_dir():
         raise AnalysisError(f"{data}: no such folder; give the folder holding session logs")
     with staged_output(out, protect=[data]) as staging:
-        summary = _analyze_into(data, staging, settings, progress)
+        summary = _analyze_into(data, staging, settings, progress, fit_progress)
     return _moved(summary, staging, out)
 
 
@@ -141,6 +147,7 @@ def _analyze_into(
     out: Path,
     settings: AnalysisSettings,
     progress: Callable[[int, int], None] | None,
+    fit_progress: Callable[[int, int], None] | None = None,
 ) -> RunSummary:
     """The analysis of :func:`run_analyze`, writing into ``out`` (the staging folder)."""
     from masking_lab.formats.session_log import read_log
@@ -218,10 +225,20 @@ def _analyze_into(
     )
     warnings = [f"{p['log']}: {p['problem']} ({p['action']})" for p in problems]
     warnings += report_inputs.rig_warnings
+    lab = _lab_outputs(
+        data, out, [i["path"] for i in inputs], thresholds, settings, files, fit_progress
+    )
+    files += lab.files
+    warnings += lab.warnings
     if shifts.empty:
         ramp_files, ramp_problems = _functional_ramps(out, analysed, inputs, settings, created_utc)
         report = build_report(
-            [], settings, source="analyze", inputs=report_inputs, thresholds=thresholds
+            [],
+            settings,
+            source="analyze",
+            inputs=report_inputs,
+            thresholds=thresholds,
+            lab=lab.section,
         )
         files.append(write_text_atomic(out / "report.txt", render_text(report)))
         files.append(write_text_atomic(out / "report.html", render_html(report)))
@@ -242,6 +259,7 @@ def _analyze_into(
         created_utc=created_utc,
         report_inputs=report_inputs,
         thresholds=thresholds,
+        lab=lab.section,
     )
     warnings += result_warnings(results)
     ramp_files, ramp_problems = _functional_ramps(out, analysed, inputs, settings, created_utc)
@@ -262,6 +280,37 @@ def _functional_ramps(
     return write_functional_outputs(
         out, logs, inputs=inputs, settings=settings.as_dict("analyze"), created_utc=created_utc
     )
+
+
+def _lab_outputs(
+    data: Path,
+    out: Path,
+    logs: list[str],
+    thresholds: pd.DataFrame,
+    settings: AnalysisSettings,
+    drawn: list[Path],
+    fit_progress: Callable[[int, int], None] | None = None,
+) -> LabOutputs:
+    """trials.csv, psychometric.csv, participants.tsv, the study status and their figures."""
+    from dataclasses import replace
+
+    from masking_lab.analysis.lab_outputs import write_lab_outputs
+
+    lab = write_lab_outputs(
+        data,
+        out,
+        logs,
+        thresholds,
+        figures=settings.figures,
+        n_boot=settings.pf_boot,
+        trial_tables=settings.trial_tables,
+        progress=fit_progress,
+    )
+    tracks = tuple(
+        (p.relative_to(out).as_posix(), "staircase tracks of one session") for p in drawn
+    )
+    lab.section = replace(lab.section, figures=lab.section.figures + tracks)
+    return lab
 
 
 def _track_job(out: Path, log: SessionLog, rows: list[dict]) -> TrackJob:

@@ -8,6 +8,7 @@ masking-function figures through :mod:`masking_lab.formats` (atomic, byte-stable
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -17,6 +18,7 @@ from masking_lab import __version__
 from masking_lab.analysis.experiment import ExperimentResult
 from masking_lab.analysis.report import LogsInput, ShiftsTableInput, build_report
 from masking_lab.analysis.report_html import render_html
+from masking_lab.analysis.report_lab import LabSection
 from masking_lab.analysis.report_text import render_text
 from masking_lab.analysis.settings import AnalysisSettings
 from masking_lab.analysis.tables import (
@@ -33,7 +35,46 @@ from masking_lab.formats.csv_table import csv_text
 from masking_lab.formats.fileio import write_bytes_atomic, write_text_atomic
 from masking_lab.formats.masking_params import masking_params_json
 
-__all__ = ["masking_params_document", "write_outputs"]
+__all__ = ["determination", "masking_params_document", "write_outputs"]
+
+
+# A fitted ramp is "poorly determined" when its slope interval reaches 0 (masking not shown to
+# grow with the masker) or an interval is wider than these limits (dB; dB/dB).
+MAX_INTERCEPT_CI_WIDTH_DB = 10.0
+MAX_SLOPE_CI_WIDTH = 1.0
+
+
+def determination(
+    status: str,
+    intercept_ci_db: tuple[float, float] | None,
+    slope_ci: tuple[float, float] | None,
+) -> dict[str, Any]:
+    """``poorly_determined`` and ``determination`` (why, or None) of an exported function.
+
+    Examples
+    --------
+    >>> determination("fitted", (1.0, 3.0), (-0.34, 1.36))["determination"]
+    'slope interval [-0.34, 1.36] includes 0; slope interval 1.7 wider than 1'
+    >>> determination("fitted", (1.0, 3.0), (0.4, 0.6))
+    {'poorly_determined': False, 'determination': None}
+    """
+    why = []
+    if status == "fitted":
+        if slope_ci is not None and slope_ci[0] <= 0.0 <= slope_ci[1]:
+            why.append(f"slope interval [{slope_ci[0]:.2f}, {slope_ci[1]:.2f}] includes 0")
+        if slope_ci is not None and slope_ci[1] - slope_ci[0] > MAX_SLOPE_CI_WIDTH:
+            why.append(
+                f"slope interval {slope_ci[1] - slope_ci[0]:.2g} wider than {MAX_SLOPE_CI_WIDTH:g}"
+            )
+        if (
+            intercept_ci_db is not None
+            and intercept_ci_db[1] - intercept_ci_db[0] > MAX_INTERCEPT_CI_WIDTH_DB
+        ):
+            width = intercept_ci_db[1] - intercept_ci_db[0]
+            why.append(
+                f"intercept interval {width:.3g} dB wider than {MAX_INTERCEPT_CI_WIDTH_DB:g} dB"
+            )
+    return {"poorly_determined": bool(why), "determination": "; ".join(why) or None}
 
 
 def masking_params_document(
@@ -113,7 +154,13 @@ def masking_params_document(
                     "ci_level": f.ci_level,
                     "n_participants": gf.n_participants,
                     "estimate": "paper_route",
+                    **determination(f.status, f.intercept_ci_db, f.slope_ci),
                 }
+                if entries[(target, masker)]["poorly_determined"]:
+                    why = entries[(target, masker)]["determination"]
+                    note = f"{target}|{masker} is poorly determined: {why}"
+                    if note not in notes:
+                        notes.append(note)
     provenance: dict[str, Any] = {
         "source": source,
         "inputs": [dict(i) for i in inputs],
@@ -142,6 +189,7 @@ def write_outputs(
     created_utc: str,
     report_inputs: LogsInput | ShiftsTableInput,
     thresholds: pd.DataFrame | None,
+    lab: LabSection | None = None,
 ) -> list[Path]:
     """Write the statistics tables, ``masking_params.json``, the reports and the figures.
 
@@ -166,6 +214,8 @@ def write_outputs(
         What the report says was read.
     thresholds : DataFrame or None
         The thresholds table (``analyze``), for the report.
+    lab : LabSection, optional
+        The per-participant sections of ``analyze`` (the masking figures join its figure list).
 
     Returns
     -------
@@ -182,6 +232,17 @@ def write_outputs(
     doc, export_notes = masking_params_document(
         results, settings, source=source, inputs=inputs, skipped=skipped, created_utc=created_utc
     )
+    if lab is not None and settings.figures != "none":
+        from masking_lab.analysis.figures import safe_stem
+
+        masking = tuple(
+            (
+                f"figures/masking_{safe_stem(r.experiment)}.png",
+                f"masking functions of {r.experiment}",
+            )
+            for r in results
+        )
+        lab = replace(lab, figures=masking + lab.figures)
     report = build_report(
         results,
         settings,
@@ -191,6 +252,7 @@ def write_outputs(
         export_notes=export_notes,
         provenance=inputs,
         created_utc=created_utc,
+        lab=lab,
     )
     tables = [
         ("anova.csv", ANOVA_COLUMNS, effect_rows(results, "anova")),

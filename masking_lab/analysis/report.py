@@ -18,7 +18,8 @@ import pandas as pd
 from masking_lab import __version__
 from masking_lab.analysis.experiment import ExperimentResult, GroupFit, result_warnings
 from masking_lab.analysis.pooling import PoolingDecision
-from masking_lab.analysis.settings import AnalysisSettings
+from masking_lab.analysis.report_lab import LabSection
+from masking_lab.analysis.settings import EPOCH_UTC, AnalysisSettings
 from masking_lab.analysis.stats import Effect, PairedTest
 
 __all__ = [
@@ -31,6 +32,7 @@ __all__ = [
     "ShiftsTableInput",
     "ThresholdsSection",
     "build_report",
+    "experiment_heading",
     "setting_text",
 ]
 
@@ -252,6 +254,8 @@ class ReportModel:
         Every input file read, as recorded in ``masking_params.json``.
     created_utc : str
         ``created_utc`` of the export (``YYYY-MM-DDTHH:MM:SSZ``; empty if not exported).
+    lab : LabSection or None
+        Study status, participants, psychometric functions and the figure list (``analyze``).
     """
 
     source: str
@@ -264,6 +268,41 @@ class ReportModel:
     warnings: tuple[str, ...] = ()
     provenance: tuple[tuple[str, str], ...] = ()
     created_utc: str = ""
+    lab: LabSection | None = None
+
+    @property
+    def created_text(self) -> str:
+        """``created_utc`` as a reader should take it: the fixed placeholder is not a date.
+
+        Examples
+        --------
+        >>> from masking_lab.analysis.settings import EPOCH_UTC, AnalysisSettings
+        >>> m = build_report([], AnalysisSettings(), source="fit",
+        ...                  inputs=ShiftsTableInput("s.csv", 0, None), created_utc=EPOCH_UTC)
+        >>> m.created_text.split(";")[0]
+        'undated (a shifts table has no session dates)'
+        """
+        if not self.created_utc:
+            return "—"
+        if self.created_utc == EPOCH_UTC:
+            why = "a shifts table has no session dates" if self.source == "fit" else "no dates"
+            return (
+                f"undated ({why}); created_utc holds the fixed placeholder {EPOCH_UTC} so "
+                "reruns give the same bytes: pass --created-utc to date the export"
+            )
+        return self.created_utc
+
+
+def experiment_heading(experiment: str) -> str:
+    """The heading of an experiment's section: ``Experiment II`` or ``experiment1``, never
+    ``Experiment experiment1``.
+
+    Examples
+    --------
+    >>> experiment_heading("experiment1"), experiment_heading("EV270|MV")
+    ('experiment1', 'Experiment EV270|MV')
+    """
+    return experiment if experiment.lower().startswith("experiment") else f"Experiment {experiment}"
 
 
 # --------------------------------------------------------------------------------------------
@@ -280,6 +319,7 @@ def build_report(
     export_notes: Sequence[str] = (),
     provenance: Sequence[Mapping[str, str]] = (),
     created_utc: str = "",
+    lab: LabSection | None = None,
 ) -> ReportModel:
     """Gather the numbers of the report from the analysis results.
 
@@ -301,6 +341,8 @@ def build_report(
         Input files read (``path``, ``sha256``).
     created_utc : str
         ``created_utc`` of the export.
+    lab : LabSection, optional
+        The per-participant sections (``analyze``).
 
     Returns
     -------
@@ -308,7 +350,7 @@ def build_report(
 
     Examples
     --------
-    >>> from masking_lab.analysis.settings import AnalysisSettings
+    >>> from masking_lab.analysis.settings import EPOCH_UTC, AnalysisSettings
     >>> model = build_report(
     ...     [], AnalysisSettings(), source="fit", inputs=ShiftsTableInput("s.csv", 0, None)
     ... )
@@ -335,6 +377,7 @@ def build_report(
         + (inputs.rig_warnings if isinstance(inputs, LogsInput) else ()),
         provenance=tuple((str(i["path"]), str(i["sha256"])) for i in provenance),
         created_utc=created_utc,
+        lab=lab,
     )
 
 

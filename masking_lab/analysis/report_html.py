@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 
-from masking_lab.analysis.report import LogsInput, ReportModel
+from masking_lab.analysis.report import LogsInput, ReportModel, experiment_heading
 from masking_lab.formats.html_report import data_uri, render_page
 
 __all__ = ["render_html"]
@@ -55,5 +55,6 @@ def render_html(model: ReportModel, figures: Mapping[str, bytes] | None = None) 
             "m": model,
             "problems": problems,
             "figures": {k: data_uri(v) for k, v in (figures or {}).items()},
+            "heading": experiment_heading,
         },
     )

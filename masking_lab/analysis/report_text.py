@@ -16,7 +16,9 @@ from masking_lab.analysis.report import (
     ReportModel,
     ShiftsTableInput,
     ThresholdsSection,
+    experiment_heading,
 )
+from masking_lab.analysis.report_lab import lab_text_sections
 from masking_lab.analysis.stats import PairedTest
 
 __all__ = ["render_text"]
@@ -47,12 +49,17 @@ def render_text(model: ReportModel) -> str:
     '  shifts table: s.csv (4 rows, cell means without participants)'
     """
     out = [f"masking-lab {model.source} report (software {model.software_version})", "=" * 72]
+    if model.created_utc:
+        out.append(f"export created: {model.created_text}")
     out += _section("Inputs", _input_lines(model.inputs))
     out += _section("Settings", [f"  {k}: {v}" for k, v in model.settings])
     if model.thresholds is not None:
         out += _section("Thresholds", _threshold_lines(model.thresholds))
     for e in model.experiments:
-        out += _section(f"Experiment {e.experiment}", _experiment_lines(e))
+        out += _section(experiment_heading(e.experiment), _experiment_lines(e))
+    if model.lab is not None:
+        for title, lines in lab_text_sections(model.lab):
+            out += _section(title, lines)
     if model.export_notes:
         out += _section("Export", [f"  {n}" for n in model.export_notes])
     out.append("")
@@ -95,7 +102,8 @@ def _threshold_lines(t: ThresholdsSection) -> list[str]:
             )
     if t.unmasked_sources:
         out.append(
-            "  unmasked ALs from: " + ", ".join(f"{k} ({v} sets)" for k, v in t.unmasked_sources)
+            "  masked sets' unmasked ALs (the reference of each shift) from: "
+            + ", ".join(f"{k} ({v} masked sets)" for k, v in t.unmasked_sources)
         )
     return out
 

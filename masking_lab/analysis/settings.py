@@ -116,6 +116,12 @@ class AnalysisSettings:
     figures : {"all", "summary", "none"}
         Figures to draw (default ``summary``: the masking functions; ``all`` adds one
         staircase-track figure per session, slow for big studies).
+    pf_boot : int
+        Parametric-bootstrap data sets per psychometric function of ``psychometric.csv``
+        (0: point estimates and deviance only, no intervals or deviance p).
+    trial_tables : bool
+        Write ``trials.csv`` (and Parquet) and ``psychometric.csv`` (``analyze`` only; off
+        saves a second read of every log and the fits, for very large studies).
     """
 
     estimator: str = "reversals"
@@ -132,6 +138,8 @@ class AnalysisSettings:
     test_alpha: float = 0.05
     created_utc: str | None = None
     figures: str = "summary"
+    pf_boot: int = 200
+    trial_tables: bool = True
 
     def __post_init__(self) -> None:
         checks = [
@@ -147,6 +155,10 @@ class AnalysisSettings:
             (0 < self.test_alpha < 1, "the test alpha must lie in (0, 1)"),
             (0 < self.ci_level < 1, "the confidence level must lie in (0, 1)"),
             (self.n_boot >= 100, "use at least 100 bootstrap replicates"),
+            (
+                self.pf_boot == 0 or self.pf_boot >= 50,
+                "psychometric bootstrap: 0 (none) or at least 50 data sets",
+            ),
             (
                 self.created_utc is None or is_utc_stamp(self.created_utc),
                 "created_utc must look like 2024-05-01T12:00:00Z",
@@ -169,6 +181,13 @@ class AnalysisSettings:
         d["pool_groups"] = list(self.pool_groups)
         d.pop("figures")  # drawing figures changes no number
         if source == "fit":
-            for key in ("estimator", "n_reversals_averaged", "lapse", "unmasked_al"):
+            for key in (
+                "estimator",
+                "n_reversals_averaged",
+                "lapse",
+                "unmasked_al",
+                "pf_boot",
+                "trial_tables",
+            ):
                 d.pop(key)
         return d

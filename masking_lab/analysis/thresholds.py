@@ -26,6 +26,7 @@ from __future__ import annotations
 import functools
 import math
 import operator
+import zlib
 from dataclasses import dataclass
 from typing import Any
 
@@ -33,6 +34,7 @@ import pandas as pd
 from msgspec import UNSET
 
 from masking_lab.analysis.procedure_estimates import procedure_estimate
+from masking_lab.analysis.psychometric import fit_pf
 from masking_lab.core.errors import AnalysisError
 from masking_lab.core.psychometric import GUESS_3IFC
 from masking_lab.core.stimulus import Stimulus, parse_stimulus
@@ -42,6 +44,7 @@ from masking_lab.procedures.estimators import ESTIMATORS, ml_threshold, reversal
 from masking_lab.procedures.staircase import implied_target_p_for
 
 UNMASKED_SOURCES = ("auto", "baseline", "calibration")
+ML_BOOTSTRAP = 200  # parametric-bootstrap refits behind an ML AL's SD and interval
 
 COLUMNS = [
     "participant",
@@ -180,7 +183,32 @@ def estimate_set(records: SetRecords, settings: EstimatorSettings) -> SetEstimat
         )
         if not fit.ok:
             return SetEstimate(None, "estimator_failed", n_trials, len(reversals), fit.message)
-        al = float(fit.threshold_db)  # type: ignore[arg-type]
+        # Its SD and 95 % interval from a parametric bootstrap (analysis.psychometric), seeded
+        # by the set so reruns give the same bytes.
+        s = float(fit.scale_db)  # type: ignore[arg-type]
+        q = (p_target - GUESS_3IFC) / (1.0 - GUESS_3IFC - fit.lapse)
+        alpha = float(fit.threshold_db) - s * math.log(q / (1.0 - q))  # type: ignore[arg-type]
+        boot = fit_pf(
+            levels,
+            correct,
+            guess=GUESS_3IFC,
+            lapse=settings.lapse,
+            p_target=p_target,
+            n_boot=ML_BOOTSTRAP,
+            seed=zlib.crc32(str(start.get("set_id")).encode()),
+            estimate=(alpha, 1.0 / s, float(fit.lapse)),
+        )
+        if boot.ok and boot.message:  # e.g. few refits inside the bounds
+            notes.append(boot.message)
+        return SetEstimate(
+            float(fit.threshold_db),  # type: ignore[arg-type]
+            "completed",
+            n_trials,
+            len(reversals),
+            "; ".join(notes) or None,
+            boot.al_sd_db,
+            boot.al_ci_db,
+        )
     return SetEstimate(al, "completed", n_trials, len(reversals), "; ".join(notes) or None)
 
 

@@ -79,6 +79,9 @@ class TrackJob:
     panels: tuple[TrackPanel, ...]
 
 
+_DPI = 100  # saved size: 9-11 pt text reads at 100 % (it was 8 pt at 80 dpi, ~6.5 pt on screen)
+
+
 def track_job(path: str | Path, log: SessionLog, als: Mapping[str, float | None]) -> TrackJob:
     """The numbers of one session's track figure.
 
@@ -165,14 +168,14 @@ def _canvas(nrows: int) -> tuple[Any, Any]:
             fig, axes = plt.subplots(
                 nrows,
                 _NCOLS,
-                figsize=(2.9 * _NCOLS, 2.3 * nrows + 0.7),
-                dpi=80,
+                figsize=(3.2 * _NCOLS, 2.6 * nrows + 0.8),
+                dpi=_DPI,
                 squeeze=False,
                 layout="none",  # fixed margins: a layout engine redraws every time
             )
-            height = 2.3 * nrows + 0.7
+            height = 2.6 * nrows + 0.8
             fig.subplots_adjust(
-                left=0.05,
+                left=0.06,
                 right=0.99,
                 bottom=0.5 / height,
                 top=1.0 - 0.75 / height,
@@ -205,18 +208,22 @@ def _track_png(job: TrackJob) -> bytes:
             lv = np.asarray(p.levels, dtype=float)
             ok = np.asarray(p.correct, dtype=bool)
             rev = np.asarray(p.reversal, dtype=bool)
-            ax.step(idx, lv, where="post", color="#777777", linewidth=0.7, label="track")
-            ax.plot(idx[ok], lv[ok], "o", ms=3, color="#1b6ca8", label="correct")
-            ax.plot(idx[~ok], lv[~ok], "o", ms=3, mfc="none", color="#d1495b", label="wrong")
-            ax.plot(idx[rev], lv[rev], "x", ms=5, color="#000000", label="reversal")
+            ax.step(idx, lv, where="post", color="#777777", linewidth=0.8, label="track")
+            ax.plot(idx[ok], lv[ok], "o", ms=4.5, color="#1b6ca8", label="correct")
+            # Wrong answers: large, white-filled, thick red ring drawn on top of the track, so
+            # they stand out at 100 % (issue 17: thin 3 pt rings vanished into the line).
+            ax.plot(idx[~ok], lv[~ok], "o", ms=6, mfc="white", mec="#c0392b", mew=1.8,
+                    zorder=3, label="wrong")  # fmt: skip
+            ax.plot(idx[rev], lv[rev], "x", ms=6, mew=1.3, color="#000000", zorder=4,
+                    label="reversal")  # fmt: skip
             if p.al is not None and math.isfinite(p.al):
                 ax.axhline(p.al, color="#2e933c", linewidth=1.0, label="AL")
             ax.relim()
             ax.autoscale_view()
-            ax.set_title(f"{p.set_id} ({p.status})", fontsize=8.5)
-            ax.set_xlabel("trial", fontsize=8)
-            ax.set_ylabel(p.unit, fontsize=8)
-            ax.tick_params(labelsize=8)
+            ax.set_title(f"{p.set_id} ({p.status})", fontsize=10)
+            ax.set_xlabel("trial", fontsize=9.5)
+            ax.set_ylabel(p.unit, fontsize=9.5)
+            ax.tick_params(labelsize=9)
             # Few ticks: tick layout is most of the drawing time of a 15-panel figure.
             ax.xaxis.set_major_locator(ticker.MaxNLocator(4, integer=True))
             ax.yaxis.set_major_locator(ticker.MaxNLocator(4))
@@ -224,7 +231,9 @@ def _track_png(job: TrackJob) -> bytes:
             legend.remove()
         first = axes.ravel()[0]
         handles, labels = first.get_legend_handles_labels()
-        fig.legend(handles, labels, loc="upper right", ncol=len(labels), fontsize=8, frameon=False)
+        fig.legend(
+            handles, labels, loc="upper right", ncol=len(labels), fontsize=9.5, frameon=False
+        )
         # suptitle() replaces the text of the figure's one title when it exists already.
-        fig.suptitle(job.title, x=0.01, ha="left", fontsize=10)
-        return png_bytes(fig, dpi=80, close=False)
+        fig.suptitle(job.title, x=0.01, ha="left", fontsize=11)
+        return png_bytes(fig, dpi=_DPI, close=False)

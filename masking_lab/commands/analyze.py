@@ -5,8 +5,10 @@ Read every session log (*.jsonl) under DATA_DIR, re-estimate each set's AL, comp
 run the repeated-measures statistics per experiment, pool frequency levels, fit the masking
 ramps and write thresholds.csv, anova.csv, sphericity.csv, posthoc.csv, one_sample.csv,
 ramp_fits.csv, problems.csv, masking_params.json, report.txt, report.html and figures/ into
-OUT_DIR. Truncated or invalid logs are reported and skipped. Same inputs and settings give the
-same bytes. OUT_DIR is written as a fresh folder swapped in only when the run completes: a
+OUT_DIR, with trials.csv (one row per trial; trials.parquet with pyarrow), psychometric.csv (a
+psychometric function per participant and set), participants.tsv/.json and study_status.csv.
+Truncated or invalid logs are reported and skipped. Same inputs and settings give the same
+bytes. OUT_DIR is written as a fresh folder swapped in only when the run completes: a
 failed run leaves the previous results untouched.
 """
 
@@ -84,6 +86,11 @@ def add_fit_options(p: argparse.ArgumentParser) -> None:
         "studies), 'none' no figures",
     )
     o.add_argument("--quiet", action="store_true", help="no progress display")
+    o.add_argument(
+        "--progress",
+        action="store_true",
+        help="progress bars even when stderr is not a terminal (analyze only)",
+    )
 
 
 def fit_settings(args: argparse.Namespace, **analyze_only: Any) -> AnalysisSettings:
@@ -164,12 +171,27 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="unmasked ALs from the participant's baseline log (falling back to the session "
         "header's calibration: auto, default), from the baseline log only, or from the header",
     )
+    t = p.add_argument_group("trial-level outputs")
+    t.add_argument(
+        "--pf-boot",
+        type=int,
+        default=200,
+        metavar="N",
+        help="parametric-bootstrap data sets per psychometric function in psychometric.csv "
+        "(intervals and deviance p; 0: point estimates only; default 200)",
+    )
+    t.add_argument(
+        "--no-trial-tables",
+        action="store_true",
+        help="skip trials.csv and psychometric.csv (a second read of every log and a fit per "
+        "set: minutes for thousands of sessions)",
+    )
     add_fit_options(p)
     p.set_defaults(handler=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    from masking_lab.analysis.batch import progress_printer, run_analyze
+    from masking_lab.analysis.batch import run_analyze
     from masking_lab.analysis.settings import parse_lapse
 
     settings = fit_settings(
@@ -179,9 +201,18 @@ def run(args: argparse.Namespace) -> int:
         lapse=parse_lapse(args.lapse),
         unmasked_al=args.unmasked_al,
         figures=args.figures,
+        pf_boot=args.pf_boot,
+        trial_tables=not args.no_trial_tables,
     )
-    show = not args.quiet and sys.stderr.isatty()
-    progress = progress_printer(sys.stderr, "logs read") if show else None
-    summary = run_analyze(args.data_dir, args.out, settings, progress=progress)
+    from masking_lab.commands.progress_bars import count_bar, progress_wanted
+
+    show = not args.quiet and progress_wanted(True if args.progress else None)
+    summary = run_analyze(
+        args.data_dir,
+        args.out,
+        settings,
+        progress=count_bar("logs read", show) if show else None,
+        fit_progress=count_bar("psychometric fits", show) if show else None,
+    )
     print_summary("analyze", summary)
     return 0

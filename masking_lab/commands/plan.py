@@ -22,8 +22,10 @@ import math
 import sys
 from collections.abc import Callable
 from typing import Any
+from pathlib import Path
 
 from masking_lab.commands.options import command_texts
+from masking_lab.commands.progress_bars import add_progress_options
 
 
 def _checked(
@@ -192,7 +194,24 @@ def register(sub: argparse._SubParsersAction) -> None:
         "floor below the rig's resolution is flagged (default: protocols/devices/default.yaml)",
     )
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    p.add_argument("--out", default="plan_out", help="output folder (default ./plan_out)")
+    p.add_argument(
+        "--quest-max-trials",
+        type=_positive_int,
+        metavar="N",
+        help="trial cap of the capped QUEST+ rows (default: the protocol's QUEST+ max_trials, "
+        "or for a staircase protocol its staircase's trial cap)",
+    )
+    p.add_argument(
+        "--out",
+        default=None,
+        help="output folder (default ./plan_out, or plan_out-2, -3, ... when that holds a plan "
+        "already)",
+    )
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="replace the plan already in --out (otherwise refused, so no plan is lost)",
+    )
     p.add_argument(
         "--per-set", action="store_true", help="print every setting per set, not just pooled"
     )
@@ -204,6 +223,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "(a local Dask cluster, default), 'synchronous' (this process) or a Dask "
         "scheduler's address (tcp://host:8786); the same --seed gives the same table on any",
     )
+    add_progress_options(p)
     p.set_defaults(handler=run)
 
 
@@ -217,7 +237,7 @@ def _places_masker(protocol: object) -> bool:
 _FUNCTIONAL_REPLICATES = 60
 
 
-def _masking_function_plan(args: argparse.Namespace, protocol: object) -> int:
+def _masking_function_plan(args: argparse.Namespace, protocol: object, out: Path) -> int:
     """A protocol whose procedure measures masking functions: plan compares, for its first
     pair, the paper's route, QUEST+ per set and the functional procedure
     (planning/ramp_trade.py; docs/speed-accuracy.md section 4)."""
@@ -237,7 +257,6 @@ def _masking_function_plan(args: argparse.Namespace, protocol: object) -> int:
         scheduler=None if args.scheduler == "local" else args.scheduler,
     )
     text = format_trade(trade, results)
-    out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     write_text_atomic(out / "masking_function_trade.txt", text)
     print(text, end="")
@@ -245,10 +264,9 @@ def _masking_function_plan(args: argparse.Namespace, protocol: object) -> int:
 
 
 def run(args: argparse.Namespace) -> int:
-    from pathlib import Path
-
     import numpy as np
 
+    from masking_lab.commands.progress_bars import progress_wanted, step_bar
     from masking_lab.core.errors import AnalysisError, ProtocolError
     from masking_lab.core.psychometric import LEVITT_1U3D
     from masking_lab.formats.fileio import write_bytes_atomic, write_text_atomic
@@ -261,14 +279,22 @@ def run(args: argparse.Namespace) -> int:
         format_fewest,
         procedures_figure,
     )
-    from masking_lab.planning.report import answer_text, format_per_set, format_table, rows_to_csv
+    from masking_lab.planning.report import (
+        answer_text,
+        format_per_set,
+        format_table,
+        plan_section_titles,
+        rows_to_csv,
+    )
     from masking_lab.planning.report_html import render_plan_html
+    from masking_lab.planning.settings import protocol_procedure_text, runs_staircase
     from masking_lab.procedures.staircase_batch import Observer
     from masking_lab.simulation.observer import load_ground_truth
 
     protocol = load_protocol(args.protocol)
+    out = plan_folder(args.out, force=args.force)
     if _places_masker(protocol):
-        return _masking_function_plan(args, protocol)
+        return _masking_function_plan(args, protocol, out)
     if args.ground_truth is not None and not Path(args.ground_truth).is_file():
         raise ProtocolError(
             args.ground_truth,
@@ -322,8 +348,7 @@ def run(args: argparse.Namespace) -> int:
         truth_source=truth_name,
     )
 
-    def progress(msg: str) -> None:
-        print(f"plan: {msg}", file=sys.stderr, flush=True)
+    progress = step_bar("plan", progress_wanted(args.progress))
 
     result = P.run_plan(protocol, settings, thresholds, progress=progress)
     comparison = None
@@ -336,8 +361,15 @@ def run(args: argparse.Namespace) -> int:
             quest_replicates=args.quest_replicates,
             psi=args.psi,
             progress=progress,
+            quest_max_trials=args.quest_max_trials,
         )
     cap = P.protocol_staircase(protocol).max_trials
+    own_text = protocol_procedure_text(protocol)
+    if not runs_staircase(protocol):
+        own_text += (
+            f"; the staircase rows are the paper's staircase beside it (trial cap {cap}), not "
+            "this protocol"
+        )
     unit = "dB SL" if protocol.level_unit == "db_sl" else "dB re 1 V"
     header = [
         f"masking-lab plan: {args.protocol} — {protocol.experiment} ({protocol.kind}, "
@@ -351,29 +383,31 @@ def run(args: argparse.Namespace) -> int:
             else f"{truth_name}" + ("" if not args.no_spread else " (no spread)")
         ),
         f"one trial = {protocol.timing.trial_s:g} s + {settings.response_s:g} s response + "
-        f"{protocol.timing.inter_trial_s:g} s pause = {result.trial_s:g} s; trial cap "
-        f"{cap if cap is not None else 'none'}; bias = mean(AL − true threshold)",
+        f"{protocol.timing.inter_trial_s:g} s pause = {result.trial_s:g} s; bias = mean(AL − "
+        "true threshold)",
         *_rig_resolution(protocol, truth, args.device_config),
+        f"this protocol: {own_text}",
     ]
-    text = "\n".join(
-        [
-            *header,
-            "",
-            format_table(result),
-            "",
-            format_per_set(result, only_own=not args.per_set),
-            "",
-            f"Reversals needed for ±{settings.precision_db:g} dB (stop rules RUN/RUN−"
-            f"{result.protocol_rule.n_reversals - result.protocol_rule.n_averaged}, no trial "
-            "cap):",
-            *(f"  {answer_text(a, settings, cap)}" for a in result.answers),
-        ]
-    )
+    titles = plan_section_titles(settings.precision_db, comparison is not None)
+    bodies = [
+        format_table(result),
+        format_per_set(result, only_own=not args.per_set),
+        "\n".join(
+            [
+                f"stop rules RUN/RUN−"
+                f"{result.protocol_rule.n_reversals - result.protocol_rule.n_averaged}, no trial "
+                "cap:",
+                *(f"  {answer_text(a, settings, cap)}" for a in result.answers),
+            ]
+        ),
+    ]
     if comparison is not None:
-        text += "\n\n" + format_comparison(comparison) + "\n\n" + format_fewest(comparison)
+        bodies += [format_comparison(comparison), format_fewest(comparison)]
+    text = "\n".join(header)
+    for title, body in zip(titles, bodies, strict=True):
+        text += f"\n\n{title}\n{'-' * len(title)}\n{body}"
     print(text)
 
-    out = Path(args.out)
     files = {
         "plan.txt": text + "\n",
         "plan_table.csv": rows_to_csv(result.table),
@@ -398,6 +432,8 @@ def run(args: argparse.Namespace) -> int:
         header=header,
         answers=[answer_text(a, settings, cap) for a in result.answers],
         figures=pngs,
+        titles=titles,
+        comparison=comparison,
     )
     for name, content in files.items():
         write_text_atomic(out / name, content)
@@ -405,3 +441,37 @@ def run(args: argparse.Namespace) -> int:
         write_bytes_atomic(out / name, png)
     print(f"\nwrote {', '.join(str(out / n) for n in [*files, *figures])}", file=sys.stderr)
     return 0
+
+
+def plan_folder(out: str | None, *, force: bool) -> Path:
+    """Where a plan goes: ``--out`` (a plan already there is refused unless ``force``), or
+    ``plan_out``, ``plan_out-2``, ... the first that holds no plan (the demo's rule).
+
+    Raises
+    ------
+    AnalysisError
+        If ``--out`` names a file, or a folder holding a plan without ``force``.
+
+    Examples
+    --------
+    >>> plan_folder("/nonexistent/p", force=False)
+    PosixPath('/nonexistent/p')
+    """
+    from masking_lab.core.errors import AnalysisError
+
+    if out is None:
+        base = Path("plan_out")
+        folder, k = base, 1
+        while (folder / "plan.txt").exists():
+            k += 1
+            folder = base.with_name(f"{base.name}-{k}")
+        return folder
+    folder = Path(out)
+    if folder.exists() and not folder.is_dir():
+        raise AnalysisError(f"--out {folder}: a file, not a folder; name a folder for the plan")
+    if (folder / "plan.txt").exists() and not force:
+        raise AnalysisError(
+            f"--out {folder} holds a plan already; pass --force to replace it, or leave out "
+            "--out to write plan_out-2, -3, ..."
+        )
+    return folder

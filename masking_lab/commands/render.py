@@ -13,6 +13,7 @@ rated level are reported, never clipped. Exit 1 if some points have no unique co
 from __future__ import annotations
 
 import argparse
+import sys
 
 from masking_lab.commands.options import command_texts, rating_options
 
@@ -56,7 +57,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from masking_lab.core.errors import SolverError
     from masking_lab.device.rig_limits import max_level_db_sl
-    from masking_lab.formats.masking_params import read_masking_params
+    from masking_lab.formats.masking_params import determination_warnings, read_masking_params
     from masking_lab.rendering.outputs import (
         measurement_protocols,
         write_measurement_protocol,
@@ -81,6 +82,8 @@ def run(args: argparse.Namespace) -> int:
                 )
             params = read_masking_params(args.params)
             pair = pair_from_params(params, mv=mv, ev=ev, source=args.params)
+            for warning in determination_warnings(params, args.params, (mv, ev)):
+                print(f"masking-lab render: warning: {warning}", file=sys.stderr)
         except MissingMaskingError as exc:
             written = " and ".join(
                 str(write_measurement_protocol(doc, args.out, writer="render"))

@@ -54,6 +54,15 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="ground truth of the simulated observer (default: protocols/simulation/"
         "ground_truth.yaml)",
     )
+    p.add_argument(
+        "--info",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="participant metadata the protocol's info section asks for (age, handedness, "
+        "...), e.g. --info age=24 --info handedness=right; repeatable; on a terminal the "
+        "missing fields are asked for",
+    )
     usertest = p.add_argument_group("user tests (protocols with kind: usertest)")
     usertest.add_argument(
         "--params",
@@ -97,8 +106,16 @@ def run(args: argparse.Namespace) -> int:
 
 def device_unavailable(command: str, exc: Exception) -> int:
     """The device (or the participant's window/terminal) could not be opened: exit 3."""
+    from masking_lab.core.errors import ResponderError
+
+    # A keypad or window problem is not the rig's: say which part to fix.
+    what, part = (
+        ("responder error", "the participant's terminal or window")
+        if isinstance(exc, ResponderError)
+        else ("device error", "the device")
+    )
     print(
-        f"masking-lab {command}: device error: {exc}\nNothing was played; fix the device and run "
+        f"masking-lab {command}: {what}: {exc}\nNothing was played; fix {part} and run "
         "the same command again.",
         file=sys.stderr,
     )

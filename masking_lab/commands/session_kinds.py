@@ -8,7 +8,6 @@ print the result. A new kind of session is one more row.
 from __future__ import annotations
 
 import argparse
-import sys
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -65,7 +64,10 @@ def _start_threshold(args: argparse.Namespace) -> Any:
     sets = None
     if args.sets:
         sets = tuple(s for item in args.sets for s in item.split(",") if s)
-    return run_session(RunOptions(sets=sets, **_common(args)))
+    from masking_lab.session.participant_info import parse_info_args
+
+    info = parse_info_args(getattr(args, "info", None) or [])
+    return run_session(RunOptions(sets=sets, info=info, **_common(args)))
 
 
 def _resume_threshold(log: Path, **kwargs: Any) -> Any:
@@ -78,8 +80,8 @@ def _print_threshold(result: Any) -> int:
     print(f"log: {result.log_path}")
     for outcome in result.outcomes:
         print(f"  {outcome.summary()}")
-    if result.message:
-        print(result.message, file=sys.stderr)
+    # result.message (a fault or an interruption, with the resume command) was shown on stderr
+    # by the session itself when it stopped: printing it again doubled it (issue 17).
     return int(result.exit_code)
 
 
@@ -100,6 +102,8 @@ def _start_usertest(args: argparse.Namespace) -> Any:
 
     if args.sets:
         raise MaskingLabError("--sets: a user-test protocol has no sets; leave it out")
+    if getattr(args, "info", None):
+        raise MaskingLabError("--info: a user-test protocol has no info section; leave it out")
     return run_usertest(
         UserTestOptions(
             params=Path(args.params) if args.params else None,
@@ -120,9 +124,7 @@ def _print_usertest(result: Any) -> int:
     print(f"log: {result.log_path}")
     for line in result.summary_lines():
         print(f"  {line}")
-    if result.message:
-        print(result.message, file=sys.stderr)
-    return int(result.exit_code)
+    return int(result.exit_code)  # result.message was shown when the session stopped
 
 
 # The first row whose test matches wins; the threshold session is the default.

@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import sys
 from typing import Any
 
 from masking_lab.commands.options import command_texts, rating_options
@@ -59,7 +60,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     rating_options(
         p,
         "take the rated maxima from this rig config's channels.<EV|MV>.max_level_db_sl "
-        "(without it and without --max-*: no rating check)",
+        "unless --max-* say otherwise (default: the reference rig, "
+        "protocols/devices/default.yaml, as render)",
     )
     p.add_argument("--json", action="store_true", help="print one JSON object (for programs)")
     p.set_defaults(handler=run)
@@ -90,23 +92,27 @@ def run(args: argparse.Namespace) -> int:
         c, d = _pair(args.ev_masked_by_mv, "--ev-masked-by-mv")
         mm = MutualMasking(a, b, c, d, mv=args.mv or "MV", ev=args.ev)
     elif args.params:
-        from masking_lab.formats.masking_params import read_masking_params
+        from masking_lab.formats.masking_params import (
+            determination_warnings,
+            read_masking_params,
+        )
 
         params = read_masking_params(args.params)
         mv = args.mv or _only_mv(params, args.ev, args.params)
         mm = pair_from_params(params, mv=mv, ev=args.ev, source=args.params)
+        for warning in determination_warnings(params, args.params, (mv, args.ev)):
+            print(f"masking-lab solve: warning: {warning}", file=sys.stderr)
     else:
         raise SolverError(
             "no masking functions: give --params masking_params.json (with --mv NAME), or "
             "--mv-masked-by-ev A,B --ev-masked-by-mv C,D"
         )
-    max_mv, max_ev = args.max_mv_db_sl, args.max_ev_db_sl
-    if args.device_config:
-        from masking_lab.device.rig_limits import max_level_db_sl
+    from masking_lab.device.rig_limits import max_level_db_sl
 
-        limits = max_level_db_sl(args.device_config)
-        max_mv = limits.get("MV") if max_mv is None else max_mv
-        max_ev = limits.get("EV") if max_ev is None else max_ev
+    # The reference rig's ratings unless a config or --max-* say otherwise (as render does).
+    limits = max_level_db_sl(args.device_config)
+    max_mv = limits.get("MV") if args.max_mv_db_sl is None else args.max_mv_db_sl
+    max_ev = limits.get("EV") if args.max_ev_db_sl is None else args.max_ev_db_sl
     sol = solve(mm, np.array(mv_t), np.array(ev_t), max_mv_db_sl=max_mv, max_ev_db_sl=max_ev)
     if args.json:
         print(json.dumps(as_json(mm, sol), allow_nan=False))

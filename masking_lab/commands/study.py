@@ -13,44 +13,95 @@ rewritten (:mod:`masking_lab.planning.study`).
 from __future__ import annotations
 
 import argparse
-import sys
+from pathlib import Path
 
 from masking_lab.commands.options import command_texts
 from masking_lab.commands.plan import _count, _positive_int
+from masking_lab.commands.progress_bars import add_progress_options, progress_wanted, step_bar
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("study", **command_texts(__doc__))
-    p.add_argument("--out", default="docs/study", help="folder for CSV and PNG files")
     p.add_argument(
-        "--doc", default="docs/speed-accuracy.md", help="document to update ('' to skip)"
+        "--out",
+        default=None,
+        help="folder for the CSV and PNG files (default: docs/study inside the repository, "
+        "./study_out elsewhere)",
     )
-    p.add_argument("--replicates", type=_positive_int, default=2000)
-    p.add_argument("--ml-replicates", type=_count, default=500)
-    p.add_argument("--convergence-replicates", type=_positive_int, default=2000)
-    p.add_argument("--max-reversals", type=_positive_int, default=41)
+    p.add_argument(
+        "--doc",
+        default=None,
+        help="study document whose generated blocks are rewritten; '' skips it (default: "
+        "docs/speed-accuracy.md when run in the repository, else skipped)",
+    )
+    p.add_argument(
+        "--replicates",
+        type=_positive_int,
+        default=2000,
+        help="simulated sessions per set in the stop-rule grid (default 2000)",
+    )
+    p.add_argument(
+        "--ml-replicates",
+        type=_count,
+        default=500,
+        help="sessions per set fitted by maximum likelihood; 0 skips the ML estimator "
+        "(default 500)",
+    )
+    p.add_argument(
+        "--convergence-replicates",
+        type=_positive_int,
+        default=2000,
+        help="tracks per step size in the convergence study (default 2000)",
+    )
+    p.add_argument(
+        "--max-reversals",
+        type=_positive_int,
+        default=41,
+        help="longest stop rule of the reversal ladder (default 41)",
+    )
     p.add_argument(
         "--quest-replicates",
         type=_count,
         default=400,
-        help="QUEST+ tracks per set in the procedures study (0 skips it)",
+        help="QUEST+ tracks per set in the procedures study (default 400; 0 skips it)",
     )
     p.add_argument("--psi", action="store_true", help="add the psi-marginal (slow)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    add_progress_options(p)
     p.set_defaults(handler=run)
 
 
-def run(args: argparse.Namespace) -> int:
-    from pathlib import Path
+def study_paths(out: str | None, doc: str | None, cwd: Path) -> tuple[Path, Path | None]:
+    """Where the study writes: the repository's docs when run in it, else ``./study_out``.
 
+    Examples
+    --------
+    >>> study_paths(None, None, Path("/nonexistent"))
+    (PosixPath('study_out'), None)
+    >>> study_paths("x", "", Path("/nonexistent"))
+    (PosixPath('x'), None)
+    """
+    in_repo = (cwd / _DOC).is_file()
+    out_path = Path(out) if out else Path("docs/study" if in_repo else "study_out")
+    if doc is None:
+        return out_path, Path(_DOC) if in_repo else None
+    return out_path, Path(doc) if doc else None
+
+
+_DOC = "docs/speed-accuracy.md"
+
+
+def run(args: argparse.Namespace) -> int:
     from masking_lab.planning.study import regenerate
 
-    def say(msg: str) -> None:
-        print(f"study: {msg}", file=sys.stderr, flush=True)
+    say = step_bar("study", progress_wanted(args.progress))
 
+    out, doc = study_paths(args.out, args.doc, Path.cwd())
+    if doc is None and args.doc is None:
+        say(f"no {_DOC} here (not the repository): tables and figures only, into {out}")
     regenerate(
-        Path(args.out),
-        Path(args.doc) if args.doc else None,
+        out,
+        doc,
         replicates=args.replicates,
         ml_replicates=args.ml_replicates,
         convergence_replicates=args.convergence_replicates,

@@ -218,6 +218,45 @@ def load_masking_params(path: str | Path) -> dict[tuple[str, str], MaskingParams
     return out
 
 
+def determination_warnings(
+    doc: Mapping[str, Any],
+    source: str = "masking_params.json",
+    pair: tuple[str, str] | None = None,
+) -> list[str]:
+    """One warning per poorly determined function of a ``masking_params.json`` document.
+
+    With ``pair`` (two stimulus names, e.g. ``("MV120", "EV270")``), only the two functions
+    of that pair (each masking the other) are checked.
+
+    A function is poorly determined when the file marks it so (``poorly_determined``), or, in
+    a file written before that field existed, when its fitted slope's interval includes 0.
+
+    Examples
+    --------
+    >>> doc = {"functions": [{"target": "EV270", "masker": "MV120", "status": "fitted",
+    ...     "slope_ci": [-0.34, 1.36]}]}
+    >>> determination_warnings(doc, "p.json")[0][:60]
+    'p.json: EV270 masked by MV120 is poorly determined (slope in'
+    """
+    out = []
+    for f in doc.get("functions", []):
+        if pair is not None and {f.get("target"), f.get("masker")} != set(pair):
+            continue
+        why = f.get("determination")
+        poor = f.get("poorly_determined")
+        if poor is None and f.get("status") == "fitted" and f.get("slope_ci"):
+            lo, hi = f["slope_ci"]
+            poor = lo <= 0.0 <= hi
+            why = f"slope interval [{lo:.2f}, {hi:.2f}] includes 0"
+        if poor:
+            out.append(
+                f"{source}: {f['target']} masked by {f['masker']} is poorly determined ({why}); "
+                "levels compensated with it are uncertain: measure the pair again with more "
+                "participants or masker levels"
+            )
+    return out
+
+
 def _pair(v: Any) -> tuple[float, float] | None:
     return None if v is None else (float(v[0]), float(v[1]))
 

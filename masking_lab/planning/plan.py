@@ -51,6 +51,7 @@ from masking_lab.planning.settings import (
     protocol_schedule,
     protocol_staircase,
     protocol_stop_rule,
+    runs_staircase,
     trial_duration_s,
     true_thresholds_db,
 )
@@ -304,6 +305,7 @@ def run_plan(
     ml_reps = min(settings.ml_replicates, reps)
     ml_rows = (np.arange(n_sets)[:, None] * reps + np.arange(ml_reps)[None, :]).reshape(-1)
     own_rule, own_sched = protocol_stop_rule(protocol), protocol_schedule(protocol)
+    own_is_staircase = runs_staircase(protocol)
     rungs = ladder_rules(own_rule, settings.max_reversals)
     longest_table = max(r.n_reversals for r in settings.stop_rules)
     obs = settings.observer
@@ -383,7 +385,9 @@ def run_plan(
                 pooled["meets_precision"] = bool(
                     settings.z * pooled["worst_sd_db"] <= settings.precision_db
                 )
-                pooled["own"] = sched == own_sched and rule == own_rule
+                # "this protocol" only when the protocol runs this staircase (a QUEST+
+                # protocol gets the paper's staircase beside it, not as its own).
+                pooled["own"] = own_is_staircase and sched == own_sched and rule == own_rule
                 pooled |= efficiency_fields(pooled["sd_db"], pooled["trials_mean"], obs)
                 table.append(_label(pooled, sched, rule, est, None))
 

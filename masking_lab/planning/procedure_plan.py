@@ -110,16 +110,22 @@ def protocol_quest_plus(protocol: Protocol) -> QuestPlusSettings | None:
 
 
 def _variants(
-    protocol: Protocol, observer: Observer, psi: bool
+    protocol: Protocol, observer: Observer, psi: bool, max_trials: int | None = None
 ) -> list[tuple[str, QuestPlusSettings]]:
     own = protocol_quest_plus(protocol)
     if own is None:
+        # A staircase protocol: QUEST+ within its level range, capped as its staircase is
+        # (or at ``max_trials``), never at a number fixed here.
         sc = protocol.sets[0].staircase
         lo = -20.0 if sc is None or sc.min_level_db is None else float(sc.min_level_db)
         hi = 45.0 if sc is None or sc.max_level_db is None else float(sc.max_level_db)
+        cap = max_trials if max_trials is not None else (None if sc is None else sc.max_trials)
         own = QuestPlusSettings(
-            lo, hi, scales_db=(observer.scale_db,), target_sd_db=1.08, min_trials=10, max_trials=80
-        )
+            lo, hi, scales_db=(observer.scale_db,), target_sd_db=1.08, min_trials=10,
+            max_trials=cap,
+        )  # fmt: skip
+    elif max_trials is not None:
+        own = replace(own, max_trials=max_trials)
     name = "QUEST+" if len(own.scales_db) == 1 else "psi-marginal"
     out = [(name, own)]
     if psi and len(own.scales_db) == 1:
@@ -137,6 +143,7 @@ def compare_procedures(
     sd_ladder_db: Sequence[float] = SD_LADDER_DB,
     psi: bool = False,
     progress: Progress | None = None,
+    quest_max_trials: int | None = None,
 ) -> ProcedureComparison:
     """Simulate QUEST+ beside the staircase plan and rate every setting against the bound.
 
@@ -159,6 +166,9 @@ def compare_procedures(
         Add the psi-marginal (slope unknown) beside a slope-known QUEST+ (slow).
     progress : callable, optional
         One line per step.
+    quest_max_trials : int, optional
+        Trial cap of the capped QUEST+ rows (default: the protocol's QUEST+ ``max_trials``, or
+        for a staircase protocol its staircase's cap).
 
     Examples
     --------
@@ -194,7 +204,9 @@ def compare_procedures(
             rows.append({**_staircase_row(r, obs), "own": bool(r.get("own")) and own_staircase})
         for r in staircase.ladder:
             rows.append({**_staircase_row(r, obs), "capped": False, "own": False})
-    for k, (name, own) in enumerate(_variants(protocol, obs, psi)):
+    # Only a protocol that runs QUEST+ has a QUEST+ row of its own ("this protocol").
+    quest_is_protocol = protocol_quest_plus(protocol) is not None
+    for k, (name, own) in enumerate(_variants(protocol, obs, psi, quest_max_trials)):
         targets = sorted({*sd_ladder_db, *([own.target_sd_db] if own.target_sd_db else [])})
         longest = replace(
             own, target_sd_db=min(targets), max_trials=max(QUEST_TRIAL_LIMIT, own.max_trials or 0)
@@ -219,23 +231,27 @@ def compare_procedures(
                     row["trials_mean"] = float(np.mean(n[mine]))
                     sets_rows.append(row)
                     if capped:
-                        per_set.append({"set": spec.id, **_head(name, target, own, capped), **row})
+                        head = _head(name, target, own, capped, quest_is_protocol and k == 0)
+                        per_set.append({"set": spec.id, **head, **row})
                 pooled = pool(sets_rows, n, trial_s)
                 pooled["trials_mean"] = float(np.mean(n))
                 pooled |= efficiency_fields(pooled["sd_db"], pooled["trials_mean"], obs)
-                rows.append({**_head(name, target, own, capped), **pooled})
+                head = _head(name, target, own, capped, quest_is_protocol and k == 0)
+                rows.append({**head, **pooled})
     fewest = _fewest(rows, settings.precision_db, settings.z)
     return ProcedureComparison(rows, per_set, bound, fewest, settings.precision_db, settings.z)
 
 
-def _head(name: str, target: float, own: QuestPlusSettings, capped: bool) -> dict[str, Any]:
+def _head(
+    name: str, target: float, own: QuestPlusSettings, capped: bool, mine: bool
+) -> dict[str, Any]:
     return {
         "procedure": name,
         "setting": f"SD ≤ {target:g} dB",
         "estimator": "posterior_mean",
         "target_sd_db": target,
         "max_trials": own.max_trials if capped else None,
-        "own": bool(capped and target == own.target_sd_db),
+        "own": bool(mine and capped and target == own.target_sd_db),
         "capped": capped,
     }
 

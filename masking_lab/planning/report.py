@@ -64,7 +64,8 @@ def rows_to_csv(rows: Sequence[dict]) -> str:
 
 def _num(value: Any, fmt: str) -> str:
     if value is None or (isinstance(value, float) and not math.isfinite(value)):
-        return "—"
+        width = "".join(ch for ch in fmt.split(".")[0] if ch.isdigit())
+        return "—".rjust(int(width or 0))  # keep the columns aligned
     return format(value, fmt)
 
 
@@ -127,11 +128,9 @@ def format_per_set(result: PlanResult, *, only_own: bool) -> str:
             and r["rule"] == own_rule.label
         )
     ]
-    title = (
-        f"Per set, this protocol's setting ({steps} dB, {own_rule.label}):"
-        if only_own
-        else "Per set:"
-    )
+    mine = any(r.get("own") for r in result.table)
+    whose = "this protocol's setting" if mine else "the paper's staircase beside this protocol"
+    title = f"Per set, {whose} ({steps} dB, {own_rule.label}):" if only_own else "Per set:"
     lines = [
         title,
         f"{'set':<12}{'schedule':<16}{'rule':<7}{'estimator':<15}{'trials':>7}{'p90':>5}"
@@ -147,3 +146,24 @@ def format_per_set(result: PlanResult, *, only_own: bool) -> str:
             f"{_num(r.get('bias_db'), '+8.2f')}{_num(r.get('sd_db'), '6.2f')}"
         )
     return "\n".join(lines)
+
+
+def plan_section_titles(precision_db: float, comparison: bool) -> list[str]:
+    """The section titles of ``plan.txt``, which ``report.html`` repeats as its headings.
+
+    Examples
+    --------
+    >>> plan_section_titles(1.0, True)[-1]
+    'Fewest trials for ±1 dB'
+    """
+    titles = [
+        "Speed and accuracy of each setting",
+        "Per set",
+        f"Reversals needed for ±{precision_db:g} dB",
+    ]
+    if comparison:
+        titles += [
+            "Procedures against the Cramér-Rao bound",
+            f"Fewest trials for ±{precision_db:g} dB",
+        ]
+    return titles

@@ -12,6 +12,8 @@ from collections.abc import Mapping, Sequence
 
 from masking_lab.formats.html_report import data_uri, render_page
 from masking_lab.planning.plan import ESTIMATOR_LABELS, PlanResult
+from masking_lab.planning.procedure_plan import ProcedureComparison
+from masking_lab.planning.report import plan_section_titles
 
 __all__ = ["render_plan_html"]
 
@@ -23,6 +25,8 @@ def render_plan_html(
     header: Sequence[str],
     answers: Sequence[str],
     figures: Mapping[str, bytes],
+    titles: Sequence[str] | None = None,
+    comparison: ProcedureComparison | None = None,
 ) -> str:
     """The plan as an HTML document.
 
@@ -38,6 +42,11 @@ def render_plan_html(
         One sentence per schedule (:func:`masking_lab.planning.report.answer_text`).
     figures : mapping of str to bytes
         Caption → PNG, embedded in order.
+    titles : sequence of str, optional
+        The section titles of ``plan.txt``
+        (:func:`masking_lab.planning.report.plan_section_titles`), used as the headings.
+    comparison : ProcedureComparison, optional
+        The procedures against the Cramér-Rao bound, and the fewest-trials answers.
 
     Returns
     -------
@@ -71,5 +80,12 @@ def render_plan_html(
             "per_set": per_set,
             "estimators": ESTIMATOR_LABELS,
             "figures": [(name, data_uri(png)) for name, png in figures.items()],
+            "titles": list(
+                titles or plan_section_titles(result.settings.precision_db, comparison is not None)
+            ),
+            "comparison": comparison,
+            "procedure_rows": [r for r in comparison.rows if r.get("capped", True)]
+            if comparison is not None
+            else [],
         },
     )

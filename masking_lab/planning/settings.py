@@ -39,9 +39,11 @@ __all__ = [
     "parse_ratios",
     "parse_schedules",
     "parse_stop_rules",
+    "protocol_procedure_text",
     "protocol_schedule",
     "protocol_staircase",
     "protocol_stop_rule",
+    "runs_staircase",
     "trial_duration_s",
     "true_thresholds_db",
 ]
@@ -296,6 +298,54 @@ def paper_staircase(protocol: Protocol) -> StaircaseSettings:
     start = min(max(20.0, lo), hi)
     return StaircaseSettings(
         start, step_sizes_db=(4.0, 4.0, 4.0, 2.0), min_level_db=lo, max_level_db=hi, max_trials=150
+    )
+
+
+def runs_staircase(protocol: Protocol) -> bool:
+    """Whether the protocol's sets run the staircase (else another procedure, e.g. QUEST+).
+
+    Examples
+    --------
+    >>> from masking_lab.formats.resources import shipped
+    >>> from masking_lab.formats.protocol import load_protocol
+    >>> runs_staircase(load_protocol(shipped("protocols", "experiment1_questplus.yaml")))
+    False
+    """
+    return any(s.staircase is not None for s in protocol.sets)
+
+
+def protocol_procedure_text(protocol: Protocol) -> str:
+    """The protocol's own procedure and settings in words: what ``plan`` calls "this protocol".
+
+    Examples
+    --------
+    >>> from masking_lab.formats.resources import shipped
+    >>> from masking_lab.formats.protocol import load_protocol
+    >>> text = protocol_procedure_text(load_protocol(shipped("protocols", "experiment1.yaml")))
+    >>> text.split(", ")[0], text.split(", ")[-2:]
+    ('staircase 1-up 3-down', ['steps 4,4,4,2 dB', 'trial cap 150'])
+    >>> protocol_procedure_text(load_protocol(shipped("protocols", "experiment1_questplus.yaml")))
+    'QUEST+ (slope known), stops at posterior SD ≤ 1.08 dB (at least 10 trials), trial cap 80'
+    """
+    quests = [s.procedure for s in protocol.sets if s.procedure is not None]
+    if not runs_staircase(protocol) and quests:
+        q = quests[0]
+        kind = "QUEST+ (slope known)" if len(q.scales_db) == 1 else "psi-marginal (slope unknown)"
+        stop = (
+            f"stops at posterior SD ≤ {q.target_sd_db:g} dB (at least {q.min_trials} trials)"
+            if q.target_sd_db
+            else f"runs {q.max_trials} trials"
+        )
+        cap = f"trial cap {q.max_trials}" if q.max_trials is not None else "no trial cap"
+        return f"{kind}, {stop}, {cap}"
+    sc = protocol_staircase(protocol)
+    steps = ",".join(f"{v:g}" for v in sc.step_sizes_db)
+    ratio = "" if sc.down_up_ratio == 1.0 else f", down/up step ratio {sc.down_up_ratio:g}"
+    cap = f"trial cap {sc.max_trials}" if sc.max_trials is not None else "no trial cap"
+    return (
+        f"staircase {sc.n_up}-up {sc.n_down}-down, {sc.n_reversals}/{sc.n_reversals_averaged} "
+        f"(stop after {sc.n_reversals} reversals, AL = mean of the last "
+        f"{sc.n_reversals_averaged}), steps {steps} dB{ratio}, {cap}"
     )
 
 

@@ -115,17 +115,16 @@ def figure4_png(r: Rendering, *, dpi: int = 100, bands: Any = None) -> bytes:
         fig, axes = plt.subplots(3, 2, figsize=(14, 10.5), sharex=True, squeeze=False)
         for row, (title, inputs, masked, perceived) in enumerate(rows):
             left, right = axes[row]
-            for k, colour, other, name, by in (
-                (0, MV_COLOUR, EV_COLOUR, "MV", "EV"),
-                (1, EV_COLOUR, MV_COLOUR, "EV", "MV"),
-            ):
+            for k, colour, name, by in ((0, MV_COLOUR, "MV", "EV"), (1, EV_COLOUR, "EV", "MV")):
                 if not has[k]:
                     continue
                 target = r.mv_target_db_sl if k == 0 else r.ev_target_db_sl
                 left.plot(x, inputs[k], color=colour, label=f"{name} input")
                 if row > 0:
+                    # In the channel's own colour: it is that channel's threshold (issue 17:
+                    # drawn in the masker's colour it read as the other channel's).
                     left.plot(
-                        x, masked[k], "--", color=other, label=f"masked AL of {name} (by {by})"
+                        x, masked[k], "--", color=colour, label=f"masked AL of {name} (by {by})"
                     )
                 right.plot(x, perceived[k], color=colour, label=f"{name} perceived")
                 if bands is not None and row > 0:
@@ -199,12 +198,16 @@ def _mark_unplayable(
 ) -> None:
     """Row (c): rated maxima, hatching where the rig cannot play, perceived if clipped."""
     x = r.x_mm
-    for limit, colour, name in (
-        (r.solution.max_mv_db_sl, MV_COLOUR, "MV"),
-        (r.solution.max_ev_db_sl, EV_COLOUR, "EV"),
-    ):
-        if limit is not None:
-            left.axhline(limit, ls=":", color=colour, label=f"{name} rated maximum")  # type: ignore[attr-defined]
+    mv_max, ev_max = r.solution.max_mv_db_sl, r.solution.max_ev_db_sl
+    if mv_max is not None and mv_max == ev_max:
+        # One line for both: two dotted lines at one level hid the first under the second.
+        label = f"MV and EV rated maximum ({mv_max:g} dB SL)"
+        left.axhline(mv_max, ls=":", lw=1.8, color="0.2", label=label)  # type: ignore[attr-defined]
+    else:
+        for limit, colour, name in ((mv_max, MV_COLOUR, "MV"), (ev_max, EV_COLOUR, "EV")):
+            if limit is not None:
+                label = f"{name} rated maximum ({limit:g} dB SL)"
+                left.axhline(limit, ls=":", lw=1.8, color=colour, label=label)  # type: ignore[attr-defined]
     if not np.any(over):
         return
     n = int(np.sum(over))

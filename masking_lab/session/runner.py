@@ -18,7 +18,7 @@ Exit codes returned in :class:`SessionResult`: 0 completed, 3 device fault, 130 
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Unpack
 
@@ -93,6 +93,10 @@ class RunOptions:
         Force the progress line on (True) or off (False); None: only on a terminal.
     participant_tty : str or None
         With the keys responder: the participant's terminal (None: this one).
+    info : mapping of str to str
+        Participant metadata as typed (``--info key=value``), checked against the protocol's
+        ``info`` section (:mod:`masking_lab.session.participant_info`); on a terminal the
+        missing fields are asked for.
     """
 
     protocol: Path
@@ -107,6 +111,7 @@ class RunOptions:
     device_config: Path | None = None
     progress: bool | None = None
     participant_tty: str | None = None
+    info: Mapping[str, str] = field(default_factory=dict)
 
 
 @dataclass
@@ -207,7 +212,8 @@ class ThresholdKind:
             calibration = {name: float(cal.unmasked_al_db_v[name]) for name in sorted(needed)}
         # Every level the sets may ask for must be playable on this rig (converter resolution).
         refuse_unplayable(protocol, order, calibration, options.device_config)
-        return _ThresholdPlan(protocol, data_dir, order, calibration, {}, (None, None))
+        info = _participant_info(protocol, options.info)
+        return _ThresholdPlan(protocol, data_dir, order, calibration, {}, (None, None), info)
 
     def plan_resume(
         self,
@@ -232,6 +238,18 @@ class ThresholdKind:
         )
 
 
+def _participant_info(protocol: Protocol, given: Mapping[str, str]) -> dict[str, Any]:
+    """The protocol's ``info`` fields: ``--info`` values, the missing ones asked on a terminal."""
+    import sys
+
+    from masking_lab.session.participant_info import ask_missing, info_fields, resolve_info
+
+    fields = info_fields(protocol.content)
+    if fields and sys.stdin is not None and sys.stdin.isatty():
+        given = ask_missing(fields, given)
+    return resolve_info(fields, given, str(protocol.path))
+
+
 @dataclass
 class _ThresholdPlan(frame.PlanDefaults):
     """A threshold session's plan for this process (see :class:`frame.SessionPlan`)."""
@@ -242,6 +260,7 @@ class _ThresholdPlan(frame.PlanDefaults):
     calibration: dict[str, float]
     existing: Mapping[str, SetRecords]
     stopped_at: tuple[str | None, int | None]
+    info: Mapping[str, Any] = field(default_factory=dict)
 
     @property
     def experiment(self) -> str:
@@ -257,6 +276,7 @@ class _ThresholdPlan(frame.PlanDefaults):
             device=device.identity,
             order=self.order,
             **opening.header_fields(),
+            **({"info": dict(self.info)} if self.info else {}),
         )
 
     def position(self) -> tuple[str | None, int | None]:

@@ -171,7 +171,10 @@ class ThresholdSession(SessionShell[SessionResult]):
         return SessionResult(self.writer.path, code, self.outcomes, message)
 
     def _where_text(self) -> str:
-        return f"set {self.where[0]}, trial {self.where[1]}"
+        # 1-based, as the progress line numbers trials (the fault record keeps the 0-based
+        # trial_index of the log).
+        set_id, index = self.where
+        return f"set {set_id}" + ("" if index is None else f", trial {index + 1}")
 
     def _position(self) -> tuple[str | None, int | None]:
         return self.where

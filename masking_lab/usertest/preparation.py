@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import math
+import sys
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -79,9 +80,16 @@ def stimuli_of(design: UserTestDesign) -> set[str]:
 
 
 def require_calibration(
-    design: UserTestDesign, data_dir: Path, participant: str
+    design: UserTestDesign,
+    data_dir: Path,
+    participant: str,
+    run_options: str = "--device ... --responder ...",
 ) -> dict[str, float]:
-    """The participant's unmasked AL of every stimulus the objects play, dB re 1 V."""
+    """The participant's unmasked AL of every stimulus the objects play, dB re 1 V.
+
+    ``run_options`` completes the printed ``masking-lab run`` command (the user test's own
+    ``--device`` and ``--responder``), so nothing needs retyping.
+    """
     cal = load_calibration(data_dir, participant)
     needed = stimuli_of(design)
     missing = cal.missing(needed)
@@ -93,7 +101,7 @@ def require_calibration(
             f"unmasked AL for {', '.join(missing)} (calibrated: {have}); the user test plays "
             f"its levels in dB SL. Wrote {written}, a baseline of just these stimuli: run "
             f"masking-lab run {written} --participant {participant} --data {data_dir} "
-            "--device ... --responder ..., then start the user test again"
+            f"{run_options}, then start the user test again"
         )
     return {name: float(cal.unmasked_al_db_v[name]) for name in sorted(needed)}
 
@@ -135,7 +143,7 @@ def masking_pairs(
     design: UserTestDesign, params: Path | None, data_dir: Path
 ) -> tuple[dict[tuple[str, str], MutualMasking], dict[str, Any] | None]:
     """The fitted masking of every stimulus pair, and the params file's path and hash."""
-    from masking_lab.formats.masking_params import read_masking_params
+    from masking_lab.formats.masking_params import determination_warnings, read_masking_params
     from masking_lab.rendering.outputs import measurement_protocols, write_measurement_protocol
     from masking_lab.rendering.solver import pair_from_params
 
@@ -151,6 +159,9 @@ def masking_pairs(
             "pass --params masking_params.json (written by `masking-lab fit` or `analyze`)"
         )
     doc = read_masking_params(params)
+    for mv, ev in needed:  # a poorly determined function compensates uncertainly: say so
+        for warning in determination_warnings(doc, str(params), (mv, ev)):
+            print(f"masking-lab run: warning: {warning}", file=sys.stderr)
     pairs: dict[tuple[str, str], MutualMasking] = {}
     problems: list[PairProblem] = []
     for mv, ev in needed:

@@ -30,15 +30,18 @@ continuation equals an uninterrupted run. Exit codes as for threshold sessions: 
 from __future__ import annotations
 
 import json
+import shlex
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Unpack
 
 from masking_lab.core.errors import (
+    CalibrationError,
     LogError,
     MaskingLabError,
     ProtocolError,
+    SolverError,
 )
 from masking_lab.device.base import Device
 from masking_lab.device.rig_limits import max_level_db_sl
@@ -254,8 +257,27 @@ class UserTestKind:
         check_stream_settings(options.update_hz, options.deadband_db)
         design = load_usertest(options.protocol)
         data_dir = Path(options.data_dir)
-        calibration = require_calibration(design, data_dir, participant)
-        pairs, params_record = masking_pairs(design, options.params, data_dir)
+        # Every refusal at once (calibration, masking functions), each with the command that
+        # fixes it, written with this run's own --device and --responder.
+        run_options = f"--device {shlex.quote(options.device)} --responder {options.responder}"
+        if options.device_config is not None:
+            run_options += f" --device-config {shlex.quote(str(options.device_config))}"
+        problems: list[MaskingLabError] = []
+        try:
+            calibration = require_calibration(design, data_dir, participant, run_options)
+        except CalibrationError as exc:
+            problems.append(exc)
+        try:
+            pairs, params_record = masking_pairs(design, options.params, data_dir)
+        except SolverError as exc:
+            problems.append(exc)
+        if len(problems) == 1:
+            raise problems[0]
+        if problems:
+            raise CalibrationError(
+                f"the user test cannot start yet, for {len(problems)} reasons (fix both, in "
+                "this order):\n" + "\n".join(f"{k}. {exc}" for k, exc in enumerate(problems, 1))
+            )
         rig_max = max_level_db_sl(options.device_config)
         return _UserTestPlan(
             participant=participant,

@@ -1,0 +1,583 @@
+"""The per-trial and per-participant outputs of ``analyze`` (*shell*: reads logs, writes files).
+
+:func:`write_lab_outputs` reads every analysed log once more with the general reader (it needs
+fields the analysis view leaves out: intervals, response times, onsets, the participant's
+``info``) and writes
+
+* ``trials.csv`` — one row per trial (:mod:`masking_lab.analysis.trials_table`), streamed log
+  by log so a large study never sits in memory; ``trials.parquet`` too when pyarrow is
+  installed (``pip install masking-lab[parquet]``);
+* ``psychometric.csv`` — a psychometric function per participant × completed set
+  (:mod:`masking_lab.analysis.psychometric`);
+* ``participants.tsv`` and ``participants.json`` — one row per participant with the
+  protocol's ``info`` fields from the session headers, and the sidecar describing each column
+  (BIDS / Psych-DS style);
+* ``study_status.csv`` — the participant × protocol matrix
+  (:mod:`masking_lab.analysis.study_status`);
+* figures: ``figures/shifts_<experiment>.png`` (unless ``--figures none``) and, with
+  ``--figures all``, ``figures/psychometric/<participant>_<experiment>.png``; the HTML report
+  draws every set's psychometric function itself (inline SVG, see
+  :mod:`masking_lab.analysis.report_lab`).
+
+It returns the :class:`~masking_lab.analysis.report_lab.LabSection` the reports show.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import zlib
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+
+from masking_lab.analysis.psychometric import PFFit, fit_pf
+from masking_lab.analysis.report_lab import LabSection, PFRow, pf_plot
+from masking_lab.analysis.study_status import (
+    SessionInfo,
+    outliers,
+    status_matrix,
+    unmasked_als,
+)
+from masking_lab.analysis.trials_table import TRIAL_COLUMNS, trial_rows
+from masking_lab.core.errors import LogError
+from masking_lab.core.psychometric import GUESS_3IFC
+from masking_lab.formats.csv_table import csv_text, csv_text_rows
+from masking_lab.formats.fileio import write_bytes_atomic, write_text_atomic
+from masking_lab.formats.html_report import data_uri
+from masking_lab.formats.session_log import SessionLog, read_log
+
+__all__ = ["PF_COLUMNS", "LabOutputs", "pf_row", "read_study", "write_lab_outputs"]
+
+PF_BOOTSTRAP = 200  # parametric-bootstrap data sets per psychometric function
+PF_COLUMNS = [
+    "participant",
+    "experiment",
+    "set_id",
+    "target",
+    "masker",
+    "masker_level_db_sl",
+    "level_unit",
+    "procedure",
+    "n_trials",
+    "n_levels",
+    "guess",
+    "p_target",
+    "threshold_db",
+    "threshold_ci95_low_db",
+    "threshold_ci95_high_db",
+    "slope_per_db",
+    "slope_ci95_low_per_db",
+    "slope_ci95_high_per_db",
+    "lapse",
+    "lapse_ci95_low",
+    "lapse_ci95_high",
+    "al_db",
+    "al_sd_db",
+    "al_ci95_low_db",
+    "al_ci95_high_db",
+    "deviance",
+    "deviance_df",
+    "deviance_p",
+    "n_bootstrap",
+    "status",
+    "note",
+    "session_id",
+    "log",
+]
+_UNIT_TEXT = {"db_sl": "dB SL", "db_v": "dB re 1 V"}
+
+
+@dataclass
+class SetTrials:
+    """One set attempt's trials for the psychometric fit."""
+
+    start: Mapping[str, Any]
+    levels: list[float] = field(default_factory=list)
+    correct: list[bool] = field(default_factory=list)
+
+
+@dataclass
+class LabOutputs:
+    """What :func:`write_lab_outputs` wrote and what the reports show."""
+
+    files: list[Path]
+    section: LabSection
+    warnings: list[str]
+
+
+def _set_trials(log: SessionLog) -> dict[str, SetTrials]:
+    out: dict[str, SetTrials] = {}
+    for rec in log.records:
+        sid = rec.get("set_id")
+        if rec.get("record") == "set_start" and isinstance(sid, str):
+            out.setdefault(sid, SetTrials(rec)).start = rec
+        elif rec.get("record") == "trial" and sid in out:
+            st = out[sid]
+            key = "level_db_sl" if st.start.get("level_unit") == "db_sl" else "level_db_v"
+            lv, ok = rec.get(key), rec.get("correct")
+            if isinstance(lv, int | float) and not isinstance(lv, bool) and isinstance(ok, bool):
+                st.levels.append(float(lv))
+                st.correct.append(ok)
+    return out
+
+
+def _model(start: Mapping[str, Any]) -> tuple[str, float, float]:
+    """The set's procedure kind, guess rate and the p its AL is read at."""
+    from masking_lab.procedures.staircase import implied_target_p_for
+
+    proc = start.get("procedure")
+    if isinstance(proc, Mapping):
+        try:
+            from masking_lab.procedures.quest_plus import QuestPlusSettings
+
+            s = QuestPlusSettings.from_mapping(proc)
+            return str(proc.get("kind")), float(s.guess), float(s.p_at_threshold)
+        except Exception:
+            return str(proc.get("kind")), GUESS_3IFC, 0.5 ** (1 / 3)
+    st = start.get("staircase") if isinstance(start.get("staircase"), Mapping) else {}
+    try:
+        p = implied_target_p_for(
+            int(st.get("n_up", 1)), int(st.get("n_down", 3)), float(st.get("down_up_ratio", 1.0))
+        )
+    except (TypeError, ValueError, ArithmeticError):
+        p = 0.5 ** (1 / 3)
+    return "staircase", GUESS_3IFC, p
+
+
+def pf_row(base: Mapping[str, Any], st: SetTrials, seed: int, n_boot: int = PF_BOOTSTRAP) -> dict:
+    """The ``psychometric.csv`` row of one set: the fit of its trials, λ fitted in [0, 0.1].
+
+    Examples
+    --------
+    >>> st = SetTrials({"level_unit": "db_sl"}, [0.0, 2.0, 4.0] * 10, [False, True, True] * 10)
+    >>> row = pf_row({"participant": "P1"}, st, seed=1, n_boot=0)
+    >>> row["status"], row["n_levels"], row["deviance_df"]
+    ('fitted', 3, 0)
+    """
+    kind, guess, p_target = _model(st.start)
+    fit: PFFit = fit_pf(
+        st.levels, st.correct, guess=guess, p_target=p_target, lapse=None, n_boot=n_boot,
+        seed=seed,
+    )  # fmt: skip
+
+    def ci(v: tuple[float, float] | None, i: int) -> float | None:
+        return None if v is None else v[i]
+
+    return {
+        **base,
+        "level_unit": "db_sl" if st.start.get("level_unit") == "db_sl" else "db_v",
+        "procedure": kind,
+        "n_trials": fit.n_trials,
+        "n_levels": fit.n_levels,
+        "guess": guess,
+        "p_target": p_target,
+        "threshold_db": fit.threshold_db,
+        "threshold_ci95_low_db": ci(fit.threshold_ci_db, 0),
+        "threshold_ci95_high_db": ci(fit.threshold_ci_db, 1),
+        "slope_per_db": fit.slope_per_db,
+        "slope_ci95_low_per_db": ci(fit.slope_ci_per_db, 0),
+        "slope_ci95_high_per_db": ci(fit.slope_ci_per_db, 1),
+        "lapse": fit.lapse,
+        "lapse_ci95_low": ci(fit.lapse_ci, 0),
+        "lapse_ci95_high": ci(fit.lapse_ci, 1),
+        "al_db": fit.al_db,
+        "al_sd_db": fit.al_sd_db,
+        "al_ci95_low_db": ci(fit.al_ci_db, 0),
+        "al_ci95_high_db": ci(fit.al_ci_db, 1),
+        "deviance": fit.deviance,
+        "deviance_df": max(fit.n_levels - 3, 0),
+        "deviance_p": fit.deviance_p,
+        "n_bootstrap": fit.n_boot,
+        "status": "fitted" if fit.ok else "failed",
+        "note": fit.message,
+        "_fit": fit,
+    }
+
+
+@dataclass
+class StudyLogs:
+    """The analysed logs as the per-participant outputs need them."""
+
+    sessions: list[SessionInfo] = field(default_factory=list)
+    sets: dict[tuple[str, str], SetTrials] = field(default_factory=dict)
+    info: dict[str, dict[str, Any]] = field(default_factory=dict)
+    info_fields: dict[str, dict[str, Any]] = field(default_factory=dict)
+    sessions_of: dict[str, int] = field(default_factory=dict)
+
+
+def read_study(
+    data: Path,
+    logs: Sequence[str],
+    on_log: Callable[[str, SessionLog], None] | None = None,
+) -> StudyLogs:
+    """Read the analysed logs (relative paths under ``data``) with the general reader.
+
+    ``on_log`` sees each parsed log (``analyze`` streams its trial rows from there).
+    """
+    study = StudyLogs()
+    for rel in logs:
+        try:
+            log = read_log(data / rel)
+        except LogError:
+            continue  # already reported by the analysis' own read
+        h = log.header if isinstance(log.header, Mapping) else {}
+        protocol = h.get("protocol") if isinstance(h.get("protocol"), Mapping) else {}
+        participant = str(h.get("participant", "?"))
+        order = h.get("set_order") if isinstance(h.get("set_order"), list) else []
+        study.sessions.append(
+            SessionInfo(
+                participant,
+                str(protocol.get("experiment", "?")),
+                rel,
+                tuple(str(s) for s in order),
+                log.ended,
+            )
+        )
+        study.sessions_of[participant] = study.sessions_of.get(participant, 0) + 1
+        info = h.get("info")
+        if isinstance(info, Mapping):
+            study.info.setdefault(participant, {}).update(info)
+        content = protocol.get("content") if isinstance(protocol.get("content"), Mapping) else {}
+        for spec in content.get("info") or []:
+            if isinstance(spec, Mapping) and isinstance(spec.get("name"), str):
+                study.info_fields.setdefault(spec["name"], dict(spec))
+        for sid, st in _set_trials(log).items():
+            study.sets[(rel, sid)] = st
+        if on_log is not None:
+            on_log(rel, log)
+    return study
+
+
+def write_lab_outputs(
+    data: Path,
+    out: Path,
+    logs: Sequence[str],
+    thresholds: pd.DataFrame,
+    *,
+    figures: str = "summary",
+    n_boot: int = PF_BOOTSTRAP,
+    progress: Callable[[int, int], None] | None = None,
+    trial_tables: bool = True,
+) -> LabOutputs:
+    """Write the per-trial and per-participant outputs of ``analyze`` into ``out``.
+
+    Parameters
+    ----------
+    data : Path
+        The data folder.
+    out : Path
+        The (staging) output folder.
+    logs : sequence of str
+        The analysed logs, relative to ``data``.
+    thresholds : DataFrame
+        The thresholds table (its ``status`` goes into every trial row).
+    figures : {"all", "summary", "none"}
+        ``none`` draws no figure.
+    n_boot : int
+        Bootstrap data sets per psychometric function.
+    progress : callable, optional
+        Called with (sets fitted, sets to fit).
+    trial_tables : bool
+        Write ``trials.csv``/``.parquet`` and ``psychometric.csv`` (False: only the study
+        status, ``participants.tsv`` and the shift plots).
+
+    Returns
+    -------
+    LabOutputs
+    """
+    files: list[Path] = []
+    status = {
+        (str(r[0]), str(r[1])): str(r[2])
+        for r in thresholds[["log", "set_id", "status"]].itertuples(index=False)
+    }
+    if trial_tables:
+        trials_path = out / "trials.csv"
+        parquet = _ParquetSink(out / "trials.parquet")
+        with trials_path.open("w", encoding="utf-8", newline="") as fh:
+            fh.write(",".join(TRIAL_COLUMNS) + "\n")
+
+            def on_log(rel: str, log: SessionLog) -> None:
+                rows = list(trial_rows(log, rel, status))
+                fh.write(csv_text_rows(TRIAL_COLUMNS, rows).split("\n", 1)[1])
+                parquet.add(rows)
+
+            study = read_study(data, logs, on_log)
+        files.append(trials_path)
+        files += parquet.close()
+    else:
+        study = read_study(data, logs)
+
+    # Psychometric functions of the sets whose threshold is used (completed attempts).
+    used = thresholds[thresholds["status"] == "completed"] if trial_tables else thresholds[:0]
+    pf_rows: list[dict] = []
+    for i, r in enumerate(used.itertuples(index=False)):
+        st = study.sets.get((str(r.log), str(r.set_id)))
+        if st is not None:
+            base = {
+                "participant": r.participant,
+                "experiment": r.experiment,
+                "set_id": r.set_id,
+                "target": r.target,
+                "masker": r.masker,
+                "masker_level_db_sl": r.masker_level_db_sl,
+                "session_id": r.session_id,
+                "log": r.log,
+            }
+            seed = zlib.crc32(f"{r.participant}|{r.experiment}|{r.set_id}|{r.log}".encode())
+            pf_rows.append(pf_row(base, st, seed, n_boot))
+        if progress:
+            progress(i + 1, len(used))
+    if trial_tables:
+        files.append(write_text_atomic(out / "psychometric.csv", csv_text(PF_COLUMNS, pf_rows)))
+    files += _write_participants(out, study)
+
+    matrix = status_matrix(study.sessions, thresholds)
+    status_cols = [
+        "participant", "experiment", "status", "sets_done", "sets_planned", "trials", "sessions",
+    ]  # fmt: skip
+    status_csv = csv_text(status_cols, [vars(c) for c in matrix])
+    files.append(write_text_atomic(out / "study_status.csv", status_csv))
+    flags = outliers(thresholds)
+    figure_links: list[tuple[str, str]] = []
+    if figures != "none":
+        drawn = _draw(out, study, pf_rows, thresholds, flags, figures)
+        files += [p for p, _ in drawn]
+        figure_links = [(p.relative_to(out).as_posix(), c) for p, c in drawn]
+    section = LabSection(
+        experiments=tuple(sorted({s.experiment for s in study.sessions})),
+        matrix=tuple(matrix),
+        unmasked=tuple(
+            (p, tuple(sorted(als.items()))) for p, als in sorted(unmasked_als(thresholds).items())
+        ),
+        outliers=tuple(flags),
+        pf=tuple(_pf_report_row(r, study.sets[(str(r["log"]), str(r["set_id"]))]) for r in pf_rows),
+        figures=tuple(figure_links),
+        embedded=tuple(
+            (rel, data_uri((out / rel).read_bytes()))
+            for rel, _ in figure_links
+            if rel.startswith("figures/shifts_")
+        ),
+    )
+    warnings = [
+        f"outlier: {o.participant} {o.what} = {o.value_db:.2f} dB (z {o.z:+.1f})" for o in flags
+    ]
+    return LabOutputs(files, section, warnings)
+
+
+def _pf_report_row(r: Mapping[str, Any], st: SetTrials) -> PFRow:
+    fit: PFFit = r["_fit"]
+    what = r["target"] if r["masker"] is None else f"{r['target']}|{r['masker']}"
+    lvl = "" if r["masker_level_db_sl"] is None else f" @ {r['masker_level_db_sl']:g} dB SL"
+    return PFRow(
+        participant=str(r["participant"]),
+        experiment=str(r["experiment"]),
+        set_id=str(r["set_id"]),
+        unit=_UNIT_TEXT[r["level_unit"]],
+        n_trials=fit.n_trials,
+        threshold_db=fit.threshold_db,
+        threshold_ci_db=fit.threshold_ci_db,
+        slope_per_db=fit.slope_per_db,
+        lapse=fit.lapse,
+        deviance=fit.deviance,
+        deviance_p=fit.deviance_p,
+        note=fit.message or "",
+        label=f"{what}{lvl}",
+        plot=pf_plot(st.levels, st.correct, fit),
+    )
+
+
+def _draw(
+    out: Path,
+    study: StudyLogs,
+    pf_rows: Sequence[Mapping[str, Any]],
+    thresholds: pd.DataFrame,
+    flags: Sequence[Any],
+    figures: str,
+) -> list[tuple[Path, str]]:
+    from masking_lab.analysis.figures import safe_stem
+    from masking_lab.analysis.lab_figures import pf_figure_png, shift_figure_png
+
+    drawn: list[tuple[Path, str]] = []
+    groups: dict[tuple[str, str], list[Mapping[str, Any]]] = {}
+    for r in pf_rows:
+        groups.setdefault((str(r["participant"]), str(r["experiment"])), []).append(r)
+    for (p, e), rows in sorted(groups.items()) if figures == "all" else ():
+        panels = []
+        for r in rows:
+            st = study.sets[(str(r["log"]), str(r["set_id"]))]
+            what = r["target"] if r["masker"] is None else f"{r['target']}|{r['masker']}"
+            lvl = "" if r["masker_level_db_sl"] is None else f" @ {r['masker_level_db_sl']:g} dB SL"
+            panels.append(
+                {"label": f"{what}{lvl}", "levels_db": st.levels, "correct": st.correct,
+                 "unit": r["level_unit"], "fit": r["_fit"]}
+            )  # fmt: skip
+        path = out / "figures" / "psychometric" / f"{safe_stem(f'{p}_{e}')}.png"
+        write_bytes_atomic(path, pf_figure_png(f"Psychometric functions: {p}, {e}", panels))
+        drawn.append((path, f"psychometric functions of {p} in {e}, one panel per set"))
+    done = thresholds[(thresholds["status"] == "completed") & thresholds["shift_db"].notna()]
+    flagged = set()
+    for o in flags:
+        if "(AL shift)" in o.what:
+            head, _, rest = o.what.partition(" @ ")
+            flagged.add((o.participant, head.split(" ", 1)[1], float(rest.split(" ")[0])))
+    for e, g in done.groupby("experiment", sort=True):
+        shifts = [
+            {"participant": r.participant, "mv_stimulus": r.mv_stimulus,
+             "pair": f"{r.target}|{r.masker}", "masker_level_db_sl": r.masker_level_db_sl,
+             "shift_db": r.shift_db}
+            for r in g.itertuples(index=False)
+        ]  # fmt: skip
+        path = out / "figures" / f"shifts_{safe_stem(str(e))}.png"
+        write_bytes_atomic(path, shift_figure_png(f"Individual AL shifts: {e}", shifts, flagged))
+        drawn.append((path, f"each participant's AL shift in {e} against masker level"))
+    return drawn
+
+
+def _write_participants(out: Path, study: StudyLogs) -> list[Path]:
+    """``participants.tsv`` (one row per participant) and its JSON sidecar."""
+    # The protocols' order of fields, then any other key found in a header.
+    extra = {k for v in study.info.values() for k in v} - set(study.info_fields)
+    names = [*study.info_fields, *sorted(extra)]
+    cols = ["participant_id", "n_sessions", *names]
+    lines = ["\t".join(cols)]
+    for p in sorted(study.sessions_of):
+        info = study.info.get(p, {})
+        vals = [p, str(study.sessions_of[p])] + [_tsv(info.get(n)) for n in names]
+        lines.append("\t".join(vals))
+    sidecar: dict[str, Any] = {
+        "participant_id": {"Description": "Participant code as given to masking-lab run."},
+        "n_sessions": {"Description": "Session logs of this participant in the data folder."},
+    }
+    for n in names:
+        spec = study.info_fields.get(n, {})
+        entry: dict[str, Any] = {"Description": spec.get("description") or n}
+        if spec.get("choices"):
+            entry["Levels"] = {str(c): str(c) for c in spec["choices"]}
+        if spec.get("unit"):
+            entry["Units"] = spec["unit"]
+        if spec.get("type"):
+            entry["DataType"] = spec["type"]
+        sidecar[n] = entry
+    return [
+        write_text_atomic(out / "participants.tsv", "\n".join(lines) + "\n"),
+        write_text_atomic(
+            out / "participants.json", json.dumps(sidecar, indent=2, ensure_ascii=False) + "\n"
+        ),
+    ]
+
+
+def _tsv(v: Any) -> str:
+    """A TSV cell: ``n/a`` for a missing value (BIDS), tabs and newlines replaced."""
+    if v is None or v == "":
+        return "n/a"
+    text = json.dumps(v) if isinstance(v, bool) else str(v)
+    return text.replace("\t", " ").replace("\n", " ")
+
+
+class _ParquetSink:
+    """``trials.parquet`` written in row groups when pyarrow is installed; else nothing."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.rows: list[list[Any]] = []
+        self.writer: Any = None
+        self.enabled = importlib.util.find_spec("pyarrow") is not None
+
+    def add(self, rows: list[list[Any]]) -> None:
+        if self.enabled:
+            self.rows += rows
+            if len(self.rows) >= 200_000:
+                self._flush()
+
+    def _flush(self) -> None:
+        import pyarrow as pa
+        import pyarrow.parquet as pq
+
+        cols = list(zip(*self.rows, strict=True)) if self.rows else [[] for _ in TRIAL_COLUMNS]
+        table = pa.table(
+            {
+                c: pa.array(list(v), type=_ARROW[c]())
+                for c, v in zip(TRIAL_COLUMNS, cols, strict=True)
+            }
+        )
+        if self.writer is None:
+            self.writer = pq.ParquetWriter(self.path, table.schema)
+        self.writer.write_table(table)
+        self.rows = []
+
+    def close(self) -> list[Path]:
+        if not self.enabled:
+            return []
+        if self.rows or self.writer is None:
+            self._flush()
+        self.writer.close()
+        return [self.path]
+
+
+def _arrow_types() -> dict[str, Callable[[], Any]]:
+    def t(name: str) -> Callable[[], Any]:
+        def make() -> Any:
+            import pyarrow as pa
+
+            return getattr(pa, name)()
+
+        return make
+
+    ints = {"set_position", "trial", "correct", "target_interval", "response_interval",
+            "reversal", "line"}  # fmt: skip
+    strs = {"participant", "session_id", "created_utc", "experiment", "protocol_path",
+            "set_id", "target", "masker", "procedure", "level_unit", "at_bound", "set_status",
+            "log"}  # fmt: skip
+    return {c: t("int64") if c in ints else t("string") if c in strs else t("float64")
+            for c in TRIAL_COLUMNS}  # fmt: skip
+
+
+_ARROW = _arrow_types()
+
+
+def study_at_a_glance(data: str | Path) -> tuple[LabSection, list[str]]:
+    """The study status of a data folder, read without writing anything (``masking-lab status``).
+
+    Returns the report section (matrix, unmasked ALs, outlier flags; no psychometric fits)
+    and the problems met (unreadable logs, headers without a participant), one line each.
+
+    Raises
+    ------
+    AnalysisError
+        If ``data`` is not a folder or holds no session log.
+    """
+    from masking_lab.analysis.batch import _skip_reason, find_logs
+    from masking_lab.analysis.log_reading import read_logs
+    from masking_lab.analysis.thresholds import EstimatorSettings, thresholds_table
+    from masking_lab.core.errors import AnalysisError
+
+    root = Path(data)
+    paths = find_logs(root)
+    if not paths:
+        raise AnalysisError(f"{root}: no session logs (*.jsonl) found")
+    rows: list[tuple] = []
+    logs: list[str] = []
+    problems: list[str] = []
+    for res in read_logs(paths, root, EstimatorSettings()):
+        reason = res.error or _skip_reason(res.header)
+        if reason:
+            problems.append(f"{res.rel}: {reason}")
+            continue
+        logs.append(res.rel)
+        rows.extend(res.rows)
+    thresholds = thresholds_table(rows, consume=True)
+    study = read_study(root, logs)
+    section = LabSection(
+        experiments=tuple(sorted({s.experiment for s in study.sessions})),
+        matrix=tuple(status_matrix(study.sessions, thresholds)),
+        unmasked=tuple(
+            (p, tuple(sorted(als.items()))) for p, als in sorted(unmasked_als(thresholds).items())
+        ),
+        outliers=tuple(outliers(thresholds)),
+        pf=(),
+    )
+    return section, problems

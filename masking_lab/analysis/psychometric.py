@@ -1,0 +1,415 @@
+"""A psychometric function per set, as Palamedes and psignifit report it (pure).
+
+The model is the 3IFC logistic of :mod:`masking_lab.core.psychometric` written with Palamedes'
+parameters::
+
+    p(x) = γ + (1 − γ − λ) · F(x),   F(x) = 1 / (1 + exp(−β · (x − α)))
+
+x the level in dB (the set's unit), γ the guess rate (1/3), α the **threshold** (dB, where F is
+one half: psignifit's default threshold), β the **slope** (1/dB; the logistic scale is 1/β) and
+λ the lapse rate. The AL a staircase converges on (p = its target, 0.794 for 1-up 3-down) is
+reported too (``al_db``), so it compares with ``thresholds.csv``.
+
+The point estimate is the maximum-likelihood fit, found as
+:func:`masking_lab.procedures.estimators.ml_threshold` finds it (a profile search over the
+scale, so a short track's several local maxima are all tried, then a climb from each).
+Uncertainty and goodness of fit come from a **parametric bootstrap**, as Palamedes'
+``PAL_PFML_BootstrapParametric`` and ``PAL_PFML_GoodnessOfFit`` do: ``n_boot`` data sets are
+drawn from the fitted function at the levels and counts that were run, each is refitted (a
+vectorised Fisher scoring from the fit, kept within the same bounds), and
+
+* the 95 % intervals are the 2.5 and 97.5 percentiles of the refitted parameters,
+* ``deviance`` is 2·Σ[k·ln(k/(n·p)) + (n − k)·ln((n − k)/(n·(1 − p)))] against the saturated
+  model (one p per level), and ``deviance_p`` the share of simulated deviances at least as large.
+
+Everything is seeded (``seed``): same trials, same numbers.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from masking_lab.core.errors import AnalysisError
+from masking_lab.core.psychometric import GUESS_3IFC, LEVITT_1U3D
+
+__all__ = ["PFFit", "binned", "deviance", "fit_pf", "pf_curve"]
+
+MAX_LAPSE = 0.1
+MIN_TRIALS = 10
+SCALE_BOUNDS_DB = (0.1, 20.0)  # as ml_threshold: 1/β between 0.1 and 20 dB
+_ITERATIONS = 25
+
+
+@dataclass(frozen=True)
+class PFFit:
+    """One fitted psychometric function, or why there is none.
+
+    Attributes
+    ----------
+    ok : bool
+        False when the track has no interior likelihood maximum (``message`` says why).
+    message : str or None
+        Why the fit failed, or a note (e.g. few usable bootstrap refits).
+    n_trials, n_levels : int
+        Trials and distinct levels fitted.
+    guess, p_target : float
+        γ, and the p(correct) at which ``al_db`` is read.
+    lapse_fixed : bool
+        λ was given, not fitted (then its interval is empty).
+    threshold_db, slope_per_db, lapse, al_db : float or None
+        α (dB), β (1/dB), λ, and the level at ``p_target`` (dB).
+    threshold_ci_db, slope_ci_per_db, lapse_ci, al_ci_db : tuple or None
+        95 % parametric-bootstrap percentile intervals.
+    al_sd_db : float or None
+        Bootstrap SD of ``al_db``, dB.
+    deviance, deviance_p : float or None
+        Deviance against the saturated model and its bootstrap p-value.
+    n_boot : int
+        Bootstrap refits that converged within the bounds (of those asked for).
+    """
+
+    ok: bool
+    message: str | None
+    n_trials: int
+    n_levels: int
+    guess: float
+    p_target: float
+    lapse_fixed: bool
+    threshold_db: float | None = None
+    slope_per_db: float | None = None
+    lapse: float | None = None
+    al_db: float | None = None
+    threshold_ci_db: tuple[float, float] | None = None
+    slope_ci_per_db: tuple[float, float] | None = None
+    lapse_ci: tuple[float, float] | None = None
+    al_ci_db: tuple[float, float] | None = None
+    al_sd_db: float | None = None
+    deviance: float | None = None
+    deviance_p: float | None = None
+    n_boot: int = 0
+
+
+def binned(
+    levels_db: ArrayLike, correct: ArrayLike
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Distinct levels, trials and correct answers at each (the likelihood's statistics).
+
+    Parameters
+    ----------
+    levels_db : array_like
+        Level of each trial, dB.
+    correct : array_like of bool
+        Each trial's answer.
+
+    Returns
+    -------
+    (levels_db, n, k) : three arrays
+        Sorted distinct levels (dB), trials at each and correct answers at each.
+
+    Examples
+    --------
+    >>> x, n, k = binned([2.0, 1.0, 2.0], [True, False, False])
+    >>> x.tolist(), n.tolist(), k.tolist()
+    ([1.0, 2.0], [1.0, 2.0], [0.0, 1.0])
+    """
+    x = np.asarray(levels_db, dtype=float).ravel()
+    r = np.asarray(correct, dtype=bool).ravel()
+    if x.size != r.size:
+        raise AnalysisError(f"{x.size} levels but {r.size} answers; give one per trial")
+    xu, inv = np.unique(x, return_inverse=True)
+    n = np.bincount(inv, minlength=xu.size).astype(float)
+    k = np.bincount(inv, weights=r.astype(float), minlength=xu.size)
+    return xu, n, k
+
+
+def pf_curve(
+    level_db: ArrayLike, threshold_db: float, slope_per_db: float, lapse: float, guess: float
+) -> NDArray[np.float64]:
+    """p(correct) of the fitted function at ``level_db`` (dB).
+
+    Examples
+    --------
+    >>> np.round(pf_curve([0.0, 100.0], 0.0, 1.0, 0.02, 1 / 3), 3).tolist()
+    [0.657, 0.98]
+    """
+    x = np.asarray(level_db, dtype=float)
+    f = 0.5 * (1.0 + np.tanh(0.5 * slope_per_db * (x - threshold_db)))  # logistic, no overflow
+    return guess + (1.0 - guess - lapse) * f
+
+
+def deviance(n: ArrayLike, k: ArrayLike, p: ArrayLike) -> NDArray[np.float64]:
+    """Deviance of predicted p against the saturated model (one p per level), per row.
+
+    Parameters
+    ----------
+    n, k : array_like
+        Trials and correct answers per level (last axis: levels).
+    p : array_like
+        Predicted p(correct) per level, broadcast against ``k``.
+
+    Examples
+    --------
+    >>> float(deviance([10], [5], [0.5]))
+    0.0
+    >>> round(float(deviance([10, 10], [2, 9], [0.5, 0.5])), 3)
+    11.216
+    """
+    n_ = np.asarray(n, dtype=float)
+    k_ = np.asarray(k, dtype=float)
+    p_ = np.clip(np.asarray(p, dtype=float), 1e-12, 1 - 1e-12)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        a = np.where(k_ > 0, k_ * np.log(k_ / (n_ * p_)), 0.0)
+        b = np.where(n_ - k_ > 0, (n_ - k_) * np.log((n_ - k_) / (n_ * (1 - p_))), 0.0)
+    return 2.0 * np.sum(a + b, axis=-1)
+
+
+def _al(alpha: NDArray, beta: NDArray, lam: NDArray, guess: float, p_target: float) -> NDArray:
+    q = (p_target - guess) / (1.0 - guess - lam)
+    return alpha + np.log(q / (1.0 - q)) / beta
+
+
+def _nll(x: NDArray, n: NDArray, k: NDArray, th: NDArray, guess: float) -> NDArray:
+    """Negative log-likelihood of each row's (α, log s, λ) for its counts ``k`` (rows)."""
+    z = (x[None, :] - th[:, :1]) * np.exp(-th[:, 1:2])
+    p = guess + (1.0 - guess - th[:, 2:3]) * (0.5 + 0.5 * np.tanh(0.5 * z))
+    p = np.clip(p, 1e-12, 1 - 1e-12)
+    return -(k * np.log(p) + (n - k) * np.log1p(-p)).sum(axis=1)
+
+
+def _refit(
+    x: NDArray[np.float64],
+    n: NDArray[np.float64],
+    k: NDArray[np.float64],
+    start: NDArray[np.float64],
+    bounds: NDArray[np.float64],
+    guess: float,
+    fit_lapse: bool,
+) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """Maximum-likelihood fits of many data sets at once (rows of ``k``) by Fisher scoring.
+
+    Parameters are (α, log scale, λ); ``start`` is one row or one per data set. Steps are
+    halved while the likelihood falls and clipped to ``bounds`` (rows: α, log scale, λ;
+    columns low, high); a λ held on a bound by the score is kept there (active set). Returns
+    the parameters and which rows converged inside the α and scale bounds.
+    """
+    b = k.shape[0]
+    theta = np.array(np.broadcast_to(start, (b, 3)), dtype=float)
+    n_par = 3 if fit_lapse else 2
+    cur = _nll(x, n, k, theta, guess)
+    active = np.ones(b, dtype=bool)
+    for _ in range(_ITERATIONS):
+        idx = np.flatnonzero(active)
+        if idx.size == 0:
+            break
+        th, kk = theta[idx], k[idx]
+        s = np.exp(th[:, 1:2])
+        z = (x[None, :] - th[:, :1]) / s
+        f = 0.5 + 0.5 * np.tanh(0.5 * z)
+        amp = 1.0 - guess - th[:, 2:3]
+        p = np.clip(guess + amp * f, 1e-9, 1 - 1e-9)
+        dfdz = f * (1.0 - f)
+        g = np.stack([-amp * dfdz / s, -amp * dfdz * z, -f][:n_par], axis=-1)  # dp/dθ
+        v = p * (1.0 - p)
+        score = np.einsum("bl,blp->bp", (kk - n * p) / v, g)
+        info = np.einsum("bl,blp,blq->bpq", n / v, g, g) + 1e-9 * np.eye(n_par)
+        # A parameter on a bound with the score pushing outwards is held there (active set)
+        # and the others step alone: clipping the joint step would stall the climb.
+        on = th[:, :n_par]
+        held = ((on <= bounds[:n_par, 0]) & (score < 0)) | ((on >= bounds[:n_par, 1]) & (score > 0))
+        if held.any():
+            free = (~held).astype(float)
+            info = info * free[:, :, None] * free[:, None, :] + held[:, :, None] * np.eye(n_par)
+            score = score * free
+        step = np.zeros_like(th)
+        step[:, :n_par] = np.linalg.solve(info, score[..., None])[..., 0]
+        scale = np.ones(idx.size)
+        new, val = th, cur[idx]
+        pending = np.ones(idx.size, dtype=bool)
+        for _half in range(10):
+            cand = np.clip(th + scale[:, None] * step, bounds[:, 0], bounds[:, 1])
+            cv = _nll(x, n, kk, cand, guess)
+            ok = pending & (cv <= cur[idx] + 1e-12)
+            new = np.where(ok[:, None], cand, new)
+            val = np.where(ok, cv, val)
+            pending &= ~ok
+            if not pending.any():
+                break
+            scale = np.where(pending, scale / 2, scale)
+        gain = cur[idx] - val
+        theta[idx], cur[idx] = new, val
+        active[idx] = gain > 1e-6  # log-likelihood units: far below any difference that matters
+    inside = (theta[:, 0] > bounds[0, 0] + 1e-6) & (theta[:, 0] < bounds[0, 1] - 1e-6)
+    inside &= theta[:, 1] < bounds[1, 1] - 1e-6
+    return theta, inside  # a row still climbing after _ITERATIONS sits on a flat ridge
+
+
+def _interval(values: NDArray[np.float64]) -> tuple[float, float] | None:
+    if values.size < 20:
+        return None
+    lo, hi = np.percentile(values, [2.5, 97.5])
+    return float(lo), float(hi)
+
+
+def fit_pf(
+    levels_db: ArrayLike,
+    correct: ArrayLike,
+    *,
+    guess: float = GUESS_3IFC,
+    p_target: float = LEVITT_1U3D,
+    lapse: float | None = None,
+    n_boot: int = 200,
+    seed: int = 0,
+    estimate: tuple[float, float, float] | None = None,
+) -> PFFit:
+    """Fit the psychometric function to one set's trials, with bootstrap intervals and deviance.
+
+    Parameters
+    ----------
+    levels_db : array_like
+        Level of each trial, dB (the result is in the same unit).
+    correct : array_like of bool
+        Each trial's answer.
+    guess : float
+        Guess rate γ (1/3 for 3IFC).
+    p_target : float
+        p(correct) at which ``al_db`` is read (the set's staircase target).
+    lapse : float or None
+        A fixed λ, or None to fit it within [0, 0.1].
+    n_boot : int
+        Parametric-bootstrap data sets (0: no intervals, no deviance p-value).
+    seed : int
+        Seed of the bootstrap.
+    estimate : (threshold_db, slope_per_db, lapse), optional
+        A maximum-likelihood estimate found elsewhere (e.g. the ML AL estimator's), used as
+        the point estimate the bootstrap draws from, instead of this function's own search.
+
+    Returns
+    -------
+    PFFit
+        ``ok`` False, with a message, for a track without an interior maximum (all correct,
+        all wrong, fewer than 10 trials, a threshold at the edge of the levels run).
+
+    Examples
+    --------
+    >>> rng = np.random.default_rng(1)
+    >>> x = np.repeat(np.arange(-6.0, 7.0, 2.0), 30)
+    >>> r = rng.random(x.size) < pf_curve(x, 0.0, 1.0, 0.02, 1 / 3)
+    >>> fit = fit_pf(x, r, n_boot=100)
+    >>> fit.ok, abs(fit.threshold_db) < 1.0, fit.threshold_ci_db[0] < 0.0 < fit.threshold_ci_db[1]
+    (True, True, True)
+    """
+    x_all = np.asarray(levels_db, dtype=float).ravel()
+    xu, n, k = binned(x_all, correct)
+    base = {
+        "n_trials": int(x_all.size),
+        "n_levels": int(xu.size),
+        "guess": guess,
+        "p_target": p_target,
+        "lapse_fixed": lapse is not None,
+    }
+    lo, hi = (float(xu.min()), float(xu.max())) if xu.size else (0.0, 0.0)
+    span = max(hi - lo, 1.0)
+    bounds = np.array(
+        [
+            [lo - span, hi + span],
+            [math.log(SCALE_BOUNDS_DB[0]), math.log(SCALE_BOUNDS_DB[1])],
+            [0.0, MAX_LAPSE] if lapse is None else [lapse, lapse],
+        ]
+    )
+    r = np.asarray(correct, dtype=bool).ravel()
+    if x_all.size < MIN_TRIALS:
+        return PFFit(
+            False, f"only {x_all.size} trials; the fit needs at least {MIN_TRIALS}", **base
+        )
+    if not np.isfinite(x_all).all():
+        return PFFit(False, "trial levels must be finite numbers of dB", **base)
+    if r.all() or not r.any():
+        which = "correct" if r.all() else "wrong"
+        return PFFit(False, f"every answer was {which}: the likelihood has no maximum", **base)
+    if estimate is not None:
+        start = np.array([estimate[0], math.log(1.0 / estimate[1]), estimate[2]])
+    else:
+        # Profile first, on a grid (vectorised): the best α for each of a dense set of scales at
+        # λ = 0.02. A short track's likelihood can have several local maxima along the scale, so
+        # every local minimum of the profile is climbed (jointly in α, s and a fitted λ) and the
+        # best climb is kept (as procedures.estimators.ml_threshold does).
+        lam0 = 0.02 if lapse is None else lapse
+        near = xu[:, None] + SCALE_BOUNDS_DB[0] * np.linspace(-4.0, 4.0, 9)[None, :]
+        grid_a = np.union1d(np.linspace(*bounds[0], 81), np.clip(near.ravel(), *bounds[0]))
+        grid_ls = np.linspace(bounds[1, 0], bounds[1, 1], 25)[:-1]
+        aa, ll = np.meshgrid(grid_a, grid_ls, indexing="ij")
+        grid = np.column_stack([aa.ravel(), ll.ravel(), np.full(aa.size, lam0)])
+        prof_all = _nll(xu, n, k[None, :], grid, guess).reshape(aa.shape)
+        best = np.argmin(prof_all, axis=0)
+        profile = prof_all[best, np.arange(grid_ls.size)]
+        padded = np.concatenate([[np.inf], profile, [np.inf]])
+        local = np.flatnonzero((profile <= padded[:-2]) & (profile <= padded[2:]))
+        local = local[np.argsort(profile[local])][:4]
+        starts = np.column_stack([grid_a[best[local]], grid_ls[local], np.full(local.size, lam0)])
+        if lapse is None:  # each start also from the ends of the lapse range
+            starts = np.vstack([starts, starts * [1, 1, 0], starts * [1, 1, 0] + [0, 0, MAX_LAPSE]])
+        kk = np.tile(k, (len(starts), 1))
+        th, good = _refit(xu, n, kk, starts, bounds, guess, fit_lapse=lapse is None)
+        vals = _nll(xu, n, kk, th, guess)
+        top = int(np.argmin(vals))
+        if not good[top]:
+            if th[top, 1] >= bounds[1, 1] - 1e-6:
+                msg = (
+                    f"the fitted psychometric function is flat (scale ≥ {SCALE_BOUNDS_DB[1]} dB): "
+                    "answers do not depend on level"
+                )
+            else:
+                msg = (
+                    f"the threshold runs to the edge of the search range ({th[top, 0]:.1f} dB): "
+                    "the track does not bracket a threshold"
+                )
+            return PFFit(False, msg, **base)
+        start = th[top]
+    alpha, s, lam = float(start[0]), float(math.exp(start[1])), float(start[2])
+    beta = 1.0 / s
+    p_hat = pf_curve(xu, alpha, beta, lam, guess)
+    dev = float(deviance(n, k, p_hat))
+    fields = {
+        "threshold_db": alpha,
+        "slope_per_db": beta,
+        "lapse": lam,
+        "al_db": float(_al(np.array(alpha), np.array(beta), np.array(lam), guess, p_target)),
+        "deviance": dev,
+    }
+    if n_boot <= 0:
+        return PFFit(True, None, **base, **fields)
+    rng = np.random.default_rng(seed)
+    sims = rng.binomial(n.astype(int)[None, :], p_hat[None, :], size=(n_boot, xu.size))
+    theta, good = _refit(
+        xu, n, sims.astype(float), np.array([alpha, math.log(s), lam]), bounds, guess,
+        fit_lapse=lapse is None,
+    )  # fmt: skip
+    th = theta[good]
+    a_b, beta_b, lam_b = th[:, 0], np.exp(-th[:, 1]), th[:, 2]
+    al_b = _al(a_b, beta_b, lam_b, guess, p_target)
+    p_b = pf_curve(xu[None, :], a_b[:, None], beta_b[:, None], lam_b[:, None], guess)
+    dev_b = deviance(n[None, :], sims[good], p_b)
+    n_good = int(good.sum())
+    note = None
+    if n_good < 0.9 * n_boot:
+        note = (
+            f"only {n_good} of {n_boot} bootstrap refits stayed inside the bounds: the "
+            "intervals are rough"
+        )
+    return PFFit(
+        True,
+        note,
+        **base,
+        **fields,
+        threshold_ci_db=_interval(a_b),
+        slope_ci_per_db=_interval(beta_b),
+        lapse_ci=None if lapse is not None else _interval(lam_b),
+        al_ci_db=_interval(al_b),
+        al_sd_db=float(np.std(al_b, ddof=1)) if n_good >= 20 else None,
+        deviance_p=float(np.mean(dev_b >= dev - 1e-9)) if n_good >= 20 else None,
+        n_boot=n_good,
+    )

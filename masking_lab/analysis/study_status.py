@@ -1,0 +1,247 @@
+"""The study at a glance (pure): completion matrix, unmasked ALs, outlier flags.
+
+``masking-lab status DATA`` prints it and ``analyze`` puts it in its reports:
+
+* the **participant × protocol matrix**: per participant and protocol (the header's
+  ``protocol.experiment``) ``complete`` (every set of the session's ``set_order`` has a
+  completed threshold), ``partial`` (sets and trials done so far), ``refused`` (the device
+  refused a set: it was logged as aborted with the reason and nothing more was played), or
+  ``missing`` (no log of that protocol for that participant);
+* the **unmasked ALs** per participant (completed baseline sets, dB re 1 V);
+* **outlier flags**, with the rule stated: a value further than :data:`OUTLIER_Z` standard
+  deviations from the mean of the *other* participants' values for the same cell
+  (leave-one-out z, so the value cannot hide its own deviation), for AL shifts per
+  experiment × pair × masker level and for unmasked ALs per stimulus. A median/MAD rule does
+  not suit staircase ALs: they fall on the step grid, so half a cell often shares one value
+  and the MAD collapses to 0.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+__all__ = [
+    "OUTLIER_RULE",
+    "OUTLIER_Z",
+    "CellStatus",
+    "Outlier",
+    "SessionInfo",
+    "outliers",
+    "status_matrix",
+    "unmasked_als",
+]
+
+OUTLIER_Z = 3.5
+OUTLIER_RULE = (
+    f"|x − mean| > {OUTLIER_Z} × SD, mean and SD of the other participants' values in the same "
+    "cell (leave-one-out z; needs at least 4 other participants)"
+)
+_MIN_OTHERS = 4
+
+
+@dataclass(frozen=True)
+class SessionInfo:
+    """What the matrix needs of one session log.
+
+    Attributes
+    ----------
+    participant, experiment, log : str
+        Who, which protocol, and the log (relative path).
+    set_order : tuple of str
+        The sets the session was to run.
+    ended : bool
+        The log has its ``session_end`` record.
+    """
+
+    participant: str
+    experiment: str
+    log: str
+    set_order: tuple[str, ...]
+    ended: bool
+
+
+@dataclass(frozen=True)
+class CellStatus:
+    """One participant × protocol cell of the matrix.
+
+    Attributes
+    ----------
+    participant, experiment : str
+        The cell.
+    status : {"complete", "partial", "refused", "missing"}
+        See the module docstring.
+    sets_done, sets_planned : int
+        Distinct sets with a completed threshold, and sets in the protocol's order.
+    trials : int
+        Trials logged in the participant's sessions of that protocol.
+    sessions : int
+        Logs of that protocol.
+    """
+
+    participant: str
+    experiment: str
+    status: str
+    sets_done: int
+    sets_planned: int
+    trials: int
+    sessions: int
+
+    @property
+    def text(self) -> str:
+        """The cell as the status command prints it, e.g. ``partial 3/15 sets, 212 trials``."""
+        if self.status == "missing":
+            return "missing"
+        if self.status == "complete":
+            return f"complete ({self.trials} trials)"
+        return f"{self.status} {self.sets_done}/{self.sets_planned} sets, {self.trials} trials"
+
+
+def status_matrix(sessions: Sequence[SessionInfo], thresholds: pd.DataFrame) -> list[CellStatus]:
+    """The participant × protocol matrix, participants then protocols sorted.
+
+    Parameters
+    ----------
+    sessions : sequence of SessionInfo
+        Every analysed session log.
+    thresholds : DataFrame
+        The thresholds table (columns ``participant, experiment, set_id, status, trials, log,
+        note``).
+
+    Returns
+    -------
+    list of CellStatus
+        One per participant × protocol seen anywhere in the study.
+
+    Examples
+    --------
+    >>> s = [SessionInfo("P1", "e1", "a.jsonl", ("A", "B"), True)]
+    >>> t = pd.DataFrame({"participant": ["P1"], "experiment": ["e1"], "set_id": ["A"],
+    ...                   "status": ["completed"], "trials": [50], "log": ["a.jsonl"],
+    ...                   "note": [None]})
+    >>> [c.text for c in status_matrix(s + [SessionInfo("P2", "e1", "b.jsonl", (), False)], t)]
+    ['partial 1/2 sets, 50 trials', 'partial 0/0 sets, 0 trials']
+    """
+    participants = sorted({s.participant for s in sessions})
+    experiments = sorted({s.experiment for s in sessions})
+    by_cell: dict[tuple[str, str], list[SessionInfo]] = {}
+    for s in sessions:
+        by_cell.setdefault((s.participant, s.experiment), []).append(s)
+    out = []
+    for p in participants:
+        for e in experiments:
+            logs = by_cell.get((p, e), [])
+            if not logs:
+                out.append(CellStatus(p, e, "missing", 0, 0, 0, 0))
+                continue
+            rows = thresholds[thresholds["log"].isin([s.log for s in logs])]
+            planned = set().union(*(set(s.set_order) for s in logs)) or set(rows["set_id"])
+            done = set(rows.loc[rows["status"].isin(["completed", "superseded"]), "set_id"])
+            trials = int(sum(int(t or 0) for t in rows["trials"]))
+            refused = rows["status"].eq("aborted").any()
+            if planned and planned <= done:
+                status = "complete"
+            elif refused:
+                status = "refused"
+            else:
+                status = "partial"
+            out.append(
+                CellStatus(p, e, status, len(done & planned), len(planned), trials, len(logs))
+            )
+    return out
+
+
+def unmasked_als(thresholds: pd.DataFrame) -> dict[str, dict[str, float]]:
+    """Each participant's unmasked AL per stimulus (latest completed baseline set), dB re 1 V.
+
+    Examples
+    --------
+    >>> t = pd.DataFrame({"participant": ["P1"], "target": ["EV270"], "masker": [None],
+    ...                   "status": ["completed"], "al_db_v": [-31.5]})
+    >>> unmasked_als(t)
+    {'P1': {'EV270': -31.5}}
+    """
+    rows = thresholds[(thresholds["status"] == "completed") & thresholds["masker"].isna()]
+    out: dict[str, dict[str, float]] = {}
+    for _, r in rows.iterrows():
+        if r["al_db_v"] is not None:
+            out.setdefault(str(r["participant"]), {})[str(r["target"])] = float(r["al_db_v"])
+    return out
+
+
+@dataclass(frozen=True)
+class Outlier:
+    """A value flagged by :data:`OUTLIER_RULE`.
+
+    Attributes
+    ----------
+    participant : str
+        Whose value.
+    what : str
+        The cell (``experiment target|masker @ level dB SL`` or ``unmasked AL of EV270``).
+    value_db : float
+        The value, dB.
+    others_mean_db : float
+        The other participants' mean, dB (the reference of the rule).
+    z : float
+        (value − mean of the others) / SD of the others.
+    """
+
+    participant: str
+    what: str
+    value_db: float
+    others_mean_db: float
+    z: float
+
+
+def _flag(values: Mapping[str, float], what: str) -> list[Outlier]:
+    out = []
+    for p, v in values.items():
+        others = np.array([x for q, x in values.items() if q != p], dtype=float)
+        if others.size < _MIN_OTHERS:
+            continue
+        med = float(np.mean(others))
+        mad = float(np.std(others, ddof=1))
+        if mad <= 0.0:
+            continue
+        z = (v - med) / mad
+        if abs(z) > OUTLIER_Z:
+            out.append(Outlier(p, what, float(v), med, float(z)))
+    return out
+
+
+def outliers(thresholds: pd.DataFrame) -> list[Outlier]:
+    """Values flagged by :data:`OUTLIER_RULE`: AL shifts per cell and unmasked ALs.
+
+    Examples
+    --------
+    >>> t = pd.DataFrame({"participant": [f"P{i}" for i in range(6)], "experiment": ["e"] * 6,
+    ...     "target": ["EV270"] * 6, "masker": ["MV120"] * 6, "masker_level_db_sl": [10.0] * 6,
+    ...     "status": ["completed"] * 6, "shift_db": [1.0, 1.2, 0.9, 1.1, 1.0, 9.0],
+    ...     "al_db_v": [None] * 6})
+    >>> [(o.participant, round(o.z)) for o in outliers(t)]
+    [('P5', 70)]
+    """
+    out: list[Outlier] = []
+    done = thresholds[thresholds["status"] == "completed"]
+    masked = done[done["masker"].notna() & done["shift_db"].notna()]
+    keys = ["experiment", "target", "masker", "masker_level_db_sl"]
+    for key, g in masked.groupby(keys, sort=True):
+        e, t, m, lv = key
+        vals: dict[str, Any] = dict(zip(g["participant"], g["shift_db"].astype(float), strict=True))
+        out += _flag(vals, f"{e} {t}|{m} @ {float(lv):g} dB SL (AL shift)")
+    for target, als in sorted(_by_target(unmasked_als(thresholds)).items()):
+        out += _flag(als, f"unmasked AL of {target}")
+    return out
+
+
+def _by_target(als: Mapping[str, Mapping[str, float]]) -> dict[str, dict[str, float]]:
+    out: dict[str, dict[str, float]] = {}
+    for p, per in als.items():
+        for t, v in per.items():
+            out.setdefault(t, {})[p] = v
+    return out
