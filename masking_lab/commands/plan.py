@@ -21,8 +21,8 @@ import argparse
 import math
 import sys
 from collections.abc import Callable
-from typing import Any
 from pathlib import Path
+from typing import Any
 
 from masking_lab.commands.options import command_texts
 from masking_lab.commands.progress_bars import add_progress_options
@@ -241,7 +241,6 @@ def _masking_function_plan(args: argparse.Namespace, protocol: object, out: Path
     """A protocol whose procedure measures masking functions: plan compares, for its first
     pair, the paper's route, QUEST+ per set and the functional procedure
     (planning/ramp_trade.py; docs/speed-accuracy.md section 4)."""
-    from pathlib import Path
 
     from masking_lab.formats.fileio import write_text_atomic
     from masking_lab.planning.ramp_trade import format_trade, trade_for_protocol
