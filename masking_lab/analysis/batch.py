@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING, TextIO
 
 from masking_lab.analysis.experiment import analyze_shifts, result_warnings
 from masking_lab.analysis.export import write_outputs
+from masking_lab.analysis.log_checks import duplicate_sessions, refused_sets, repeated_sessions
 from masking_lab.analysis.log_reading import read_logs
 from masking_lab.analysis.report import LogsInput, ShiftsTableInput, build_report
 from masking_lab.analysis.report_html import render_html
@@ -157,8 +158,11 @@ def _analyze_into(
     files: list[Path] = []
     tracks: list[TrackJob] = []
     rigs: list[RigUse] = []
+    analysed: set[str] = set()
     # One read per log (hashed and parsed from the same bytes), in parallel for many logs.
-    for res in read_logs(paths, data, est, progress=progress):
+    results = list(read_logs(paths, data, est, progress=progress))
+    copies = duplicate_sessions(results)
+    for res in results:
         rel = res.rel
         if res.error is not None:
             reason: str | None = res.error
@@ -166,7 +170,7 @@ def _analyze_into(
             problems += [
                 {"log": rel, "problem": pr, "action": "line ignored"} for pr in res.line_problems
             ]
-            reason = _skip_reason(res.header)
+            reason = copies.get(rel) or _skip_reason(res.header)
         if reason is not None:
             skipped.append({"path": rel, "reason": reason})
             problems.append({"log": rel, "problem": reason, "action": "file skipped"})
@@ -176,13 +180,16 @@ def _analyze_into(
                 {"log": rel, "problem": pr, "action": "records kept; check the log"}
                 for pr in res.continuity
             ]
+            problems += refused_sets(res)
             inputs.append({"path": rel, "sha256": res.sha256})
+            analysed.add(rel)
             rigs.append(rig_use(h, rel))
             if isinstance(h.get("created_utc"), str) and is_utc_stamp(h["created_utc"]):
                 created.append(h["created_utc"])
             rows.extend(res.rows)
             if settings.figures == "all":
                 tracks.append(_track_job(out, read_log(res.path), unpacked(res.rows)))
+    problems += repeated_sessions([r for r in results if r.rel in analysed])
     if not inputs:
         raise AnalysisError(
             f"{data}: none of the {len(paths)} log file(s) could be read; first problem: "
