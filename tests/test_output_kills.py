@@ -17,6 +17,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from test_render import write_params
 from test_usertest_analysis import header, trial_records, write_log
 
 from masking_lab.commands.cli import main
@@ -24,6 +25,8 @@ from masking_lab.core.errors import OutputFolderError
 from masking_lab.formats import fileio
 from masking_lab.formats.output_dir import recover_leftovers, staged_output
 from masking_lab.simulation.synthetic_logs import simulate_study
+
+PROTOCOLS = Path(__file__).resolve().parents[1] / "protocols"
 
 
 def _snapshot(folder: Path) -> dict[str, bytes] | None:
@@ -81,6 +84,19 @@ def _commands(kind: str, studies, tmp_path: Path) -> tuple[list[str], list[str],
         a, b = _shifts(tmp_path / "a.csv", 0), _shifts(tmp_path / "b.csv", 1)
         common = ["--out", str(out), "--n-boot", "100"]
         return ["fit", str(a), *common], ["fit", str(b), *common], out
+    if kind == "plan":
+        exp1 = str(PROTOCOLS / "experiment1.yaml")
+        common = ["--out", str(out), "--ml-replicates", "0"]
+        return (
+            ["plan", exp1, "--replicates", "5", *common],
+            ["plan", exp1, "--replicates", "6", *common],
+            out,
+        )
+    if kind == "render":
+        params = write_params(tmp_path / "masking_params.json")
+        scenes = [str(PROTOCOLS / "scenes" / f"{s}_smooth.yaml") for s in ("bump", "hole")]
+        common = ["--params", params, "--out", str(out), "--no-figure"]
+        return ["render", scenes[0], *common], ["render", scenes[1], *common], out
     data_a, data_b = tmp_path / "ua", tmp_path / "ub"
     for data, people in ((data_a, "AB"), (data_b, "ABC")):
         for p in people:
@@ -100,6 +116,9 @@ CASES = [  # every step for analyze; the steps that differ by command for the ot
     ("fit", True, ["moved_aside"]),
     ("usertest-report", False, ["file:2", "swapped"]),
     ("usertest-report", True, ["moved_aside"]),
+    ("plan", False, ["file:2", "swapped"]),
+    ("render", False, ["file:1", "written", "swapped"]),
+    ("render", True, ["moved_aside"]),
 ]
 
 
@@ -166,8 +185,8 @@ def _full_disk_after(monkeypatch, n_files: int) -> None:
     monkeypatch.setattr(fileio, "_write_data", write)
 
 
-@pytest.mark.parametrize("kind", ["analyze", "fit", "usertest-report"])
-@pytest.mark.parametrize("n_files", [0, 2])
+@pytest.mark.parametrize("kind", ["analyze", "fit", "usertest-report", "plan", "render"])
+@pytest.mark.parametrize("n_files", [0, 1])
 def test_a_full_disk_is_a_clean_error_with_the_previous_results_intact(
     kind, n_files, studies, tmp_path, monkeypatch, capsys
 ):

@@ -32,9 +32,12 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
     from masking_lab.core.errors import SolverError
     from masking_lab.device.rig_limits import max_level_db_sl
     from masking_lab.formats.masking_params import read_masking_params
+    from masking_lab.formats.output_dir import staged_output
     from masking_lab.rendering.outputs import (
         measurement_protocols,
         write_measurement_protocol,
@@ -71,7 +74,11 @@ def run(args: argparse.Namespace) -> int:
                 "render again"
             ) from exc
     rendering = render_scene(scene, pair, max_mv_db_sl=max_mv, max_ev_db_sl=max_ev)
-    written = write_rendering(rendering, args.out, figure=not args.no_figure)
+    # All files appear at once (the folder swapped in whole) unless --out holds other files.
+    out = Path(args.out)
+    protect = [args.scene, *([args.params] if args.params else [])]
+    with staged_output(out, protect=protect, markers=("summary.json",), shared="in_place") as st:
+        written = [out / p.name for p in write_rendering(rendering, st, figure=not args.no_figure)]
     summary = summarize(rendering)
     if pair is None:
         print(f"{scene.name}: single-channel scene, targets passed straight through")

@@ -35,6 +35,7 @@ import sys
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
+from typing import Literal
 
 from masking_lab.core.errors import MaskingLabError, OutputFolderError
 from masking_lab.formats.fileio import fsync_dir, kill_point
@@ -45,7 +46,13 @@ __all__ = ["MARKER_FILES", "recover_leftovers", "staged_output"]
 MARKER_FILES = ("report.txt", "report.html")
 
 
-def _check_replaceable(out: Path, protect: Sequence[Path]) -> bool:
+class _SharedFolder(OutputFolderError):
+    """``out`` holds an input or files that are not outputs: it cannot be swapped as a whole."""
+
+
+def _check_replaceable(
+    out: Path, protect: Sequence[Path], markers: Sequence[str] = MARKER_FILES
+) -> bool:
     """Whether ``out`` holds previous results; raise if replacing it could lose other files."""
     if out.exists() and not out.is_dir():
         raise OutputFolderError(f"--out {out}: is a file; give a folder for the outputs")
@@ -53,22 +60,28 @@ def _check_replaceable(out: Path, protect: Sequence[Path]) -> bool:
     for p in protect:
         inside = Path(p).resolve()
         if inside == resolved or resolved in inside.parents:
-            raise OutputFolderError(
+            raise _SharedFolder(
                 f"--out {out}: holds the input {p}; the output folder is replaced as a whole "
                 "when a run completes, so give a folder outside the inputs (e.g. a sibling)"
             )
     if not out.is_dir() or not any(out.iterdir()):
         return False
-    if any((out / name).is_file() for name in MARKER_FILES):
+    if any((out / name).is_file() for name in markers):
         return True
-    raise OutputFolderError(
-        f"--out {out}: holds files that are not masking-lab outputs (no report.txt); the output "
+    raise _SharedFolder(
+        f"--out {out}: holds files that are not masking-lab outputs (no {markers[0]}); the output "
         "folder is replaced as a whole when a run completes, so give a new or empty folder"
     )
 
 
 @contextmanager
-def staged_output(out: str | Path, *, protect: Sequence[str | Path] = ()) -> Iterator[Path]:
+def staged_output(
+    out: str | Path,
+    *,
+    protect: Sequence[str | Path] = (),
+    markers: Sequence[str] = MARKER_FILES,
+    shared: Literal["refuse", "in_place"] = "refuse",
+) -> Iterator[Path]:
     """A fresh folder to write into, swapped in as ``out`` when the ``with`` block completes.
 
     Parameters
@@ -78,6 +91,12 @@ def staged_output(out: str | Path, *, protect: Sequence[str | Path] = ()) -> Ite
         ``report.txt`` or ``report.html``), which are replaced as a whole.
     protect : sequence of path
         Inputs of the run; ``out`` must not contain them.
+    markers : sequence of str
+        File names that mark a folder as a previous run's outputs (default: the reports).
+    shared : {"refuse", "in_place"}
+        What to do with an ``out`` that holds an input or other files: refuse
+        (``OutputFolderError``), or yield ``out`` itself, each file then written atomically on
+        its own (``plan`` and ``render``, often pointed at a working folder).
 
     Yields
     ------
@@ -103,7 +122,14 @@ def staged_output(out: str | Path, *, protect: Sequence[str | Path] = ()) -> Ite
     """
     out = Path(out)
     recover_leftovers(out)
-    had_results = _check_replaceable(out, [Path(p) for p in protect])
+    try:
+        had_results = _check_replaceable(out, [Path(p) for p in protect], markers)
+    except _SharedFolder:
+        if shared != "in_place":
+            raise
+        with _in_place(out) as folder:
+            yield folder
+        return
     staging = out.parent / f".{out.name}.partial-{os.getpid()}"
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
@@ -146,6 +172,21 @@ def staged_output(out: str | Path, *, protect: Sequence[str | Path] = ()) -> Ite
         raise OutputFolderError(
             f"--out {out}: cannot put the new outputs in place ({exc.strerror or exc}); "
             "the previous results, if any, are left untouched"
+        ) from exc
+
+
+@contextmanager
+def _in_place(out: Path) -> Iterator[Path]:
+    """``out`` itself, with write errors made clean (files written before the error are new)."""
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        yield out
+    except OSError as exc:
+        raise OutputFolderError(
+            f"--out {out}: cannot write the outputs ({exc.strerror or exc}); the folder holds "
+            "other files too, so its outputs are written one by one: those written before the "
+            "error are new, the others are from before. Free disk space (or fix the disk) and "
+            "run again"
         ) from exc
 
 
