@@ -40,7 +40,7 @@ from masking_lab.core.errors import AnalysisError
 from masking_lab.formats.csv_table import csv_text, csv_text_rows
 from masking_lab.formats.fileio import write_text_atomic
 from masking_lab.formats.output_dir import staged_output
-from masking_lab.formats.shifts_csv import read_shifts_csv
+from masking_lab.formats.shifts_csv import levels_told_apart, read_shifts_csv
 
 if TYPE_CHECKING:
     from masking_lab.analysis.track_figures import TrackJob
@@ -233,6 +233,7 @@ def _analyze_into(
             f"{data}: no completed masked set to analyse ({len(thresholds)} sets, none with an "
             "AL shift); see report.txt for the status of each set"
         )
+    levels_told_apart(shifts, str(data))
     results = analyze_shifts(shifts, settings, has_participants=True)
     files += write_outputs(
         out,
