@@ -474,7 +474,7 @@ def run_command(argv: Sequence[str], timeout_s: float) -> tuple[str, int | None,
     try:
         with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
             code = main(list(argv))
-        return "clean", code, ""
+        return "clean", code, err.getvalue()[-600:]  # the message, for findings of oracles
     except SystemExit as exc:  # argparse usage errors
         return "clean", exc.code if isinstance(exc.code, int) else 2, ""
     except Hang:
