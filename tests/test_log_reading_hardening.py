@@ -204,6 +204,7 @@ def test_a_non_finite_level_refuses_its_set_alike_for_every_estimator(study, tmp
     i = _trial_line(log)
     _edit_line(log, i, lambda s: re.sub(r'"level_db_sl":[-0-9.e]+', f'"level_db_sl":{literal}', s))
     assert any(f"non-finite number ({literal})" in p for p in read_log(log).value_problems)
+    assert main(["validate", str(log)]) == 1
     statuses = {}
     for estimator in ("reversals", "ml"):
         out = tmp_path / estimator
