@@ -173,8 +173,7 @@ class RunnerLock:
         except OSError as exc:
             os.close(fd)
             raise LogError(
-                f"{path}: cannot lock ({exc.strerror or exc}); keep the data folder on a local "
-                "disk"
+                f"{path}: cannot lock ({exc.strerror or exc}); keep the data folder on a local disk"
             ) from exc
         return cls(path, fd)
 
