@@ -219,3 +219,15 @@ def test_a_non_finite_level_refuses_its_set_alike_for_every_estimator(study, tmp
             assert _non_finite_cells(out / name) == []
     assert statuses["reversals"] == statuses["ml"]
     assert statuses["ml"][1:] == ("", "")
+
+
+def test_resume_refuses_a_log_holding_a_non_finite_number(study, tmp_path, capsys):
+    data = _copy(study, tmp_path)
+    log = data / "P01" / "P01_baseline.jsonl"
+    i = _trial_line(log, 1)
+    _edit_line(log, i, lambda s: re.sub(r'"trial_index":\d+', '"trial_index":-Infinity', s))
+    capsys.readouterr()
+    assert main(["resume", str(log), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "non-finite number (-Infinity)" in err and "cannot be resumed" in err
+    assert "Traceback" not in err

@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Any, Generic, Protocol, TextIO, TypedDict, TypeVar
 
 from masking_lab.core.clock import Clock, RealClock, VirtualClock
-from masking_lab.core.errors import DeviceTimeModeError, MaskingLabError
+from masking_lab.core.errors import DeviceTimeModeError, LogError, MaskingLabError
 from masking_lab.device.base import Device
 from masking_lab.formats.log_lock import LogLock, RunnerLock
 from masking_lab.formats.session_log import SessionLog, SessionLogWriter, read_log
@@ -491,6 +491,11 @@ def _resume_locked(
     options: ResumeOptions,
 ) -> ResultT:
     log = read_log(path)
+    if log.value_problems:  # replaying NaN or infinite levels or indices cannot be right
+        raise LogError(
+            f"{path}: {log.value_problems[0]}; a log holding non-finite numbers was edited or "
+            "damaged and cannot be resumed: start a new session"
+        )
     header = log.header
     check_header(header, path)
     kind.check_log(header, path)
