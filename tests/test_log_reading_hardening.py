@@ -231,3 +231,15 @@ def test_resume_refuses_a_log_holding_a_non_finite_number(study, tmp_path, capsy
     err = capsys.readouterr().err
     assert "non-finite number (-Infinity)" in err and "cannot be resumed" in err
     assert "Traceback" not in err
+
+
+def test_a_bad_utf8_byte_inside_a_record_value_is_a_reported_line(study, tmp_path):
+    # msgspec raises UnicodeDecodeError (not a DecodeError) for it: found by the campaign.
+    data = _copy(study, tmp_path)
+    log = data / "P01" / "P01_baseline.jsonl"
+    raw = log.read_bytes().split(b"\n")
+    raw[2] = raw[2].replace(b'"record":"trial"', b'"record":"tri\xa6al"', 1)
+    log.write_bytes(b"\n".join(raw))
+    assert _analyze(data, tmp_path / "out") == 0
+    rows = [p for p in _problems(tmp_path / "out") if p["log"] == "P01/P01_baseline.jsonl"]
+    assert rows[0]["problem"] == "line 3: not valid UTF-8; line skipped"

@@ -100,7 +100,7 @@ def fast_parse(raw: bytes, path: str | Path) -> SessionLog | None:
         return None
     try:
         recs = ANALYSIS_DECODER.decode_lines(raw)
-    except msgspec.DecodeError:
+    except (msgspec.DecodeError, UnicodeDecodeError):  # a bad byte inside a decoded string
         return None
     if not recs or len(recs) != raw.count(b"\n") or not isinstance(recs[0], AHeader):
         return None

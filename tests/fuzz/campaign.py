@@ -76,7 +76,8 @@ def main(argv: list[str] | None = None) -> int:
                     (o.kind, o.argv, o.code, o.detail)
                     for o in trial(kind, data, work, args.timeout)
                 ]
-                accepted_per_kind[kind] += all(o[0] == "clean" and o[2] == 0 for o in outcomes)
+                # Accepted: validate (every kind's first command) passed it.
+                accepted_per_kind[kind] += outcomes[0][0] == "clean" and outcomes[0][2] == 0
             per_kind[kind] += 1
             counts["tried"] += 1
             # Per input: a finding if any command had one; else a clean error if any command
@@ -104,7 +105,7 @@ def main(argv: list[str] | None = None) -> int:
         print(finding)
     print(f"kinds: {dict(sorted(per_kind.items()))}")
     accepted = dict(sorted(accepted_per_kind.items()))
-    print(f"accepted by validate or every command (serial: not counted): {accepted}")
+    print(f"accepted by validate (serial: not counted): {accepted}")
     print(
         f"tried {counts['tried']} inputs ({counts['runs']} command runs, seed {args.seed}, "
         f"{time.monotonic() - started:.0f} s): clean errors {counts['clean_error']} / accepted "
