@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING, TextIO
 
 from masking_lab.analysis.experiment import analyze_shifts, result_warnings
 from masking_lab.analysis.export import write_outputs
+from masking_lab.analysis.log_checks import duplicate_sessions, refused_sets, repeated_sessions
 from masking_lab.analysis.log_reading import read_logs
 from masking_lab.analysis.report import LogsInput, ShiftsTableInput, build_report
 from masking_lab.analysis.report_html import render_html
@@ -39,7 +40,7 @@ from masking_lab.core.errors import AnalysisError
 from masking_lab.formats.csv_table import csv_text, csv_text_rows
 from masking_lab.formats.fileio import write_text_atomic
 from masking_lab.formats.output_dir import staged_output
-from masking_lab.formats.shifts_csv import read_shifts_csv
+from masking_lab.formats.shifts_csv import levels_told_apart, read_shifts_csv
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -164,9 +165,12 @@ def _analyze_into(
     files: list[Path] = []
     tracks: list[TrackJob] = []
     rigs: list[RigUse] = []
-    analysed: list[Path] = []
+    analysed: set[str] = set()  # rel paths, for the cross-log checks
+    analysed_logs: list[Path] = []  # paths, for the functional-procedure outputs
     # One read per log (hashed and parsed from the same bytes), in parallel for many logs.
-    for res in read_logs(paths, data, est, progress=progress):
+    results = list(read_logs(paths, data, est, progress=progress))
+    copies = duplicate_sessions(results)
+    for res in results:
         rel = res.rel
         if res.error is not None:
             reason: str | None = res.error
@@ -174,7 +178,7 @@ def _analyze_into(
             problems += [
                 {"log": rel, "problem": pr, "action": "line ignored"} for pr in res.line_problems
             ]
-            reason = _skip_reason(res.header)
+            reason = copies.get(rel) or _skip_reason(res.header)
         if reason is not None:
             skipped.append({"path": rel, "reason": reason})
             problems.append({"log": rel, "problem": reason, "action": "file skipped"})
@@ -184,14 +188,17 @@ def _analyze_into(
                 {"log": rel, "problem": pr, "action": "records kept; check the log"}
                 for pr in res.continuity
             ]
+            problems += refused_sets(res)
             inputs.append({"path": rel, "sha256": res.sha256})
+            analysed.add(rel)
             rigs.append(rig_use(h, rel))
             if isinstance(h.get("created_utc"), str) and is_utc_stamp(h["created_utc"]):
                 created.append(h["created_utc"])
             rows.extend(res.rows)
-            analysed.append(res.path)
+            analysed_logs.append(res.path)
             if settings.figures == "all":
                 tracks.append(_track_job(out, read_log(res.path), unpacked(res.rows)))
+    problems += repeated_sessions([r for r in results if r.rel in analysed])
     if not inputs:
         raise AnalysisError(
             f"{data}: none of the {len(paths)} log file(s) could be read; first problem: "
@@ -231,7 +238,9 @@ def _analyze_into(
     files += lab.files
     warnings += lab.warnings
     if shifts.empty:
-        ramp_files, ramp_problems = _functional_ramps(out, analysed, inputs, settings, created_utc)
+        ramp_files, ramp_problems = _functional_ramps(
+            out, analysed_logs, inputs, settings, created_utc
+        )
         report = build_report(
             [],
             settings,
@@ -248,6 +257,7 @@ def _analyze_into(
             f"{data}: no completed masked set to analyse ({len(thresholds)} sets, none with an "
             "AL shift); see report.txt for the status of each set"
         )
+    levels_told_apart(shifts, str(data))
     results = analyze_shifts(shifts, settings, has_participants=True)
     files += write_outputs(
         out,
@@ -262,7 +272,7 @@ def _analyze_into(
         lab=lab.section,
     )
     warnings += result_warnings(results)
-    ramp_files, ramp_problems = _functional_ramps(out, analysed, inputs, settings, created_utc)
+    ramp_files, ramp_problems = _functional_ramps(out, analysed_logs, inputs, settings, created_utc)
     return RunSummary(out, files + ramp_files, warnings + ramp_problems)
 
 

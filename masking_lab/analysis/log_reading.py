@@ -26,6 +26,7 @@ import msgspec
 from masking_lab.analysis.played_levels import played_level_problems
 from masking_lab.analysis.thresholds import EstimatorSettings, packed, session_rows
 from masking_lab.core.errors import LogError
+from masking_lab.formats.log_bytes import check_schema_version, read_log_bytes, strip_bom
 from masking_lab.formats.log_records import ANALYSIS_DECODER, AHeader
 from masking_lab.formats.session_log import SessionLog, parse_log
 
@@ -59,6 +60,13 @@ class LogResult:
         Lines not used (``"line N: ..."``).
     continuity : list[str]
         Deleted, repeated or reordered records, bad trial indices or set boundaries.
+    value_problems : list[str]
+        Records kept whose values the analysis refuses (a non-finite number): their sets are
+        ``invalid``.
+    n_bytes : int
+        Size of the log, bytes.
+    completed : bool
+        The log ends with a ``session_end`` record of status ``completed``.
     """
 
     path: Path
@@ -69,6 +77,9 @@ class LogResult:
     rows: list[tuple[Any, ...]] = field(default_factory=list)
     line_problems: list[str] = field(default_factory=list)
     continuity: list[str] = field(default_factory=list)
+    value_problems: list[str] = field(default_factory=list)
+    n_bytes: int = 0
+    completed: bool = False
 
 
 def fast_parse(raw: bytes, path: str | Path) -> SessionLog | None:
@@ -85,14 +96,16 @@ def fast_parse(raw: bytes, path: str | Path) -> SessionLog | None:
     >>> fast_parse(b'{"record":"header"}\\n{"record":"tri', "x") is None
     True
     """
+    raw = strip_bom(raw)
     if not raw.endswith(b"\n"):
         return None
     try:
         recs = ANALYSIS_DECODER.decode_lines(raw)
-    except msgspec.DecodeError:
+    except (msgspec.DecodeError, UnicodeDecodeError):  # a bad byte inside a decoded string
         return None
     if not recs or len(recs) != raw.count(b"\n") or not isinstance(recs[0], AHeader):
         return None
+    check_schema_version(recs[0], path)
     return SessionLog(Path(path), recs[0].as_dict(), recs[1:], lines=list(range(2, len(recs) + 1)))
 
 
@@ -105,13 +118,11 @@ def read_one(path: Path, rel: str, settings: EstimatorSettings) -> LogResult:
     '/nonexistent.jsonl: cannot read session log (No such file or directory)'
     """
     try:
-        raw = path.read_bytes()
-    except OSError as exc:
-        return LogResult(
-            path, rel, error=f"{path}: cannot read session log ({exc.strerror or exc})"
-        )
+        raw = read_log_bytes(path)
+        log = fast_parse(raw, path)
+    except LogError as exc:
+        return LogResult(path, rel, error=str(exc))
     digest = hashlib.sha256(raw).hexdigest()
-    log = fast_parse(raw, path)
     rows = None
     if log is not None:
         try:
@@ -133,7 +144,19 @@ def read_one(path: Path, rel: str, settings: EstimatorSettings) -> LogResult:
         rows=packed(rows or []),
         line_problems=list(log.problems),
         continuity=[*log.continuity_problems(), *played_level_problems(log.records, log.lines)],
+        value_problems=list(log.value_problems),
+        n_bytes=len(raw),
+        completed=_completed(log),
     )
+
+
+def _completed(log: SessionLog) -> bool:
+    """Whether the log ends with ``session_end`` of status ``completed`` (nothing may follow
+    it, so only the last record is looked at)."""
+    if not log.records:
+        return False
+    last = log.records[-1]
+    return last.get("record") == "session_end" and last.get("status") == "completed"
 
 
 def _read_chunk(args: tuple[list[tuple[Path, str]], EstimatorSettings]) -> list[LogResult]:

@@ -134,14 +134,27 @@ def estimate_set(records: SetRecords, settings: EstimatorSettings) -> SetEstimat
     unit_key = "level_db_sl" if start.get("level_unit") == "db_sl" else "level_db_v"
     try:
         levels, correct, flagged, index = _trial_columns(trials, unit_key)
-    except (KeyError, TypeError, ValueError) as exc:
+    except (KeyError, TypeError, ValueError, OverflowError) as exc:
         return SetEstimate(
             None, "invalid", n_trials, 0, f"a trial record lacks a usable {exc} value"
         )
+    bad = _first_non_finite(levels)
+    if bad is not None:
+        # Refused before any estimator sees it, so every estimator answers alike.
+        return SetEstimate(None, "invalid", n_trials, 0, f"trial {bad} has a non-finite level")
     logged_reversals = end.get("reversal_levels_db")
     reversals = flagged
     notes = []
-    if isinstance(logged_reversals, list) and [float(v) for v in logged_reversals] != flagged:
+    if isinstance(logged_reversals, list):
+        try:
+            logged_reversals = [float(v) for v in logged_reversals]
+        except (TypeError, ValueError, OverflowError):
+            return SetEstimate(None, "invalid", n_trials, 0, "set_end reversal levels unusable")
+        if _first_non_finite(logged_reversals) is not None:
+            return SetEstimate(
+                None, "invalid", n_trials, 0, "set_end has a non-finite reversal level"
+            )
+    if isinstance(logged_reversals, list) and logged_reversals != flagged:
         # The set_end list is the staircase's own record; flags can miss a skipped line.
         reversals = [float(v) for v in logged_reversals]
         notes.append("trial reversal flags disagree with set_end; used set_end's reversals")
@@ -183,6 +196,11 @@ def estimate_set(records: SetRecords, settings: EstimatorSettings) -> SetEstimat
         )
         if not fit.ok:
             return SetEstimate(None, "estimator_failed", n_trials, len(reversals), fit.message)
+        if not math.isfinite(float(fit.threshold_db)):  # type: ignore[arg-type]
+            return SetEstimate(
+                None, "estimator_failed", n_trials, len(reversals),
+                f"the estimate is {fit.threshold_db}",
+            )  # fmt: skip
         # Its SD and 95 % interval from a parametric bootstrap (analysis.psychometric), seeded
         # by the set so reruns give the same bytes.
         s = float(fit.scale_db)  # type: ignore[arg-type]
@@ -209,7 +227,19 @@ def estimate_set(records: SetRecords, settings: EstimatorSettings) -> SetEstimat
             boot.al_sd_db,
             boot.al_ci_db,
         )
+    if not math.isfinite(al):  # finite levels near the float limit can still overflow a mean
+        return SetEstimate(
+            None, "estimator_failed", n_trials, len(reversals), f"the estimate is {al}"
+        )
     return SetEstimate(al, "completed", n_trials, len(reversals), "; ".join(notes) or None)
+
+
+def _first_non_finite(values: list[Any]) -> int | None:
+    """Index of the first value that is not a finite number, or None."""
+    for k, v in enumerate(values):
+        if not math.isfinite(v):
+            return k
+    return None
 
 
 # A study names a handful of stimuli, thousands of times; bounded, as names come from files.
@@ -284,9 +314,9 @@ def session_rows(log: SessionLog, log_name: str, settings: EstimatorSettings) ->
             row |= {
                 "target": target,
                 "masker": masker,
-                "masker_level_db_sl": None if masker is None else float(level),
+                "masker_level_db_sl": None if masker is None else _finite(level, "masker level"),
             }
-        except (KeyError, TypeError, ValueError) as exc:
+        except (KeyError, TypeError, ValueError, OverflowError) as exc:
             rows.append(row | {"status": "invalid", "note": f"set_start unusable ({exc})"})
             continue
         est = estimate_set(records, settings)
@@ -305,10 +335,16 @@ def session_rows(log: SessionLog, log_name: str, settings: EstimatorSettings) ->
             cal = start.get("unmasked_al_db_v")
             if cal is None:
                 cal = calibration.get(target)
-            row["calibration_al_db_v"] = None if cal is None else float(cal)
+            try:
+                row["calibration_al_db_v"] = None if cal is None else _finite(cal, "calibration")
+            except (TypeError, ValueError, OverflowError) as exc:
+                rows.append(row | {"status": "invalid", "note": f"unusable calibration ({exc})"})
+                continue
             row["al_db_sl"] = est.al_db
             if est.al_db is not None and cal is not None:
-                row["al_db_v"] = est.al_db + float(cal)
+                row["al_db_v"] = est.al_db + row["calibration_al_db_v"]
+                if not math.isfinite(row["al_db_v"]):
+                    row |= {"al_db_v": None, "status": "invalid", "note": "AL overflows"}
             elif est.al_db is not None:
                 row |= {
                     "status": "no_baseline",
@@ -319,6 +355,14 @@ def session_rows(log: SessionLog, log_name: str, settings: EstimatorSettings) ->
             row["al_db_v"] = est.al_db
         rows.append(row)
     return rows
+
+
+def _finite(value: Any, what: str) -> float:
+    """``value`` as a finite float (dB), or ValueError naming ``what``."""
+    x = float(value)
+    if not math.isfinite(x):
+        raise ValueError(f"{what} {x} is not a finite number of dB")
+    return x
 
 
 def packed(rows: list[dict]) -> list[tuple]:

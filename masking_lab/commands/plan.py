@@ -269,6 +269,7 @@ def run(args: argparse.Namespace) -> int:
     from masking_lab.core.errors import AnalysisError, ProtocolError
     from masking_lab.core.psychometric import LEVITT_1U3D
     from masking_lab.formats.fileio import write_bytes_atomic, write_text_atomic
+    from masking_lab.formats.output_dir import staged_output
     from masking_lab.formats.protocol import load_protocol
     from masking_lab.planning import plan as P
     from masking_lab.planning.figures import png_bytes, speed_accuracy
@@ -434,10 +435,13 @@ def run(args: argparse.Namespace) -> int:
         titles=titles,
         comparison=comparison,
     )
-    for name, content in files.items():
-        write_text_atomic(out / name, content)
-    for name, png in pngs.items():
-        write_bytes_atomic(out / name, png)
+    # All files appear at once (the folder swapped in whole) unless --out holds other files.
+    protect = [args.protocol, *([args.ground_truth] if args.ground_truth else [])]
+    with staged_output(out, protect=protect, markers=("plan.txt",), shared="in_place") as stage:
+        for name, content in files.items():
+            write_text_atomic(stage / name, content)
+        for name, png in pngs.items():
+            write_bytes_atomic(stage / name, png)
     print(f"\nwrote {', '.join(str(out / n) for n in [*files, *figures])}", file=sys.stderr)
     return 0
 

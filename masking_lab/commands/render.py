@@ -55,9 +55,12 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
     from masking_lab.core.errors import SolverError
     from masking_lab.device.rig_limits import max_level_db_sl
     from masking_lab.formats.masking_params import determination_warnings, read_masking_params
+    from masking_lab.formats.output_dir import staged_output
     from masking_lab.rendering.outputs import (
         measurement_protocols,
         write_measurement_protocol,
@@ -117,13 +120,14 @@ def run(args: argparse.Namespace) -> int:
         from masking_lab.rendering.render import compare_strategies
 
         trade = compare_strategies(scene, pair, max_mv, max_ev)
-    written = write_rendering(
-        rendering,
-        args.out,
-        figure=not args.no_figure,
-        uncertainty=uncertainty,
-        strategies=trade,
-    )
+    # All files appear at once (the folder swapped in whole) unless --out holds other files.
+    out = Path(args.out)
+    protect = [args.scene, *([args.params] if args.params else [])]
+    with staged_output(out, protect=protect, markers=("summary.json",), shared="in_place") as st:
+        staged = write_rendering(
+            rendering, st, figure=not args.no_figure, uncertainty=uncertainty, strategies=trade
+        )
+        written = [out / p.name for p in staged]
     summary = summarize(rendering)
     if pair is None:
         print(f"{scene.name}: single-channel scene, targets passed straight through")

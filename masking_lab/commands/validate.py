@@ -251,7 +251,7 @@ def _check_log(path: str) -> str:
     from masking_lab.formats.session_log import read_log
 
     log = read_log(path)
-    problems = [*log.problems, *log.continuity_problems()]
+    problems = [*log.problems, *log.value_problems, *log.continuity_problems()]
     if problems:
         more = f" (and {len(problems) - 5} more)" if len(problems) > 5 else ""
         shown = "; ".join(problems[:5]) + more

@@ -1,9 +1,15 @@
-"""The session log's exclusive lock (*shell*): one process writes a log at a time.
+"""Session locks (*shell*): one process writes a log, one runner per participant and protocol.
 
 ``run`` and ``resume`` hold an advisory ``flock`` on the log file for the life of the session,
 so a second ``resume`` of the same log is refused at once instead of running beside the first
 and interleaving duplicate trials. The lock belongs to the open file descriptor the writer
 appends through, so it goes away with the process, however that ends (no stale lock files).
+
+They also hold a :class:`RunnerLock` on ``DATA/<participant>/.<participant>.<experiment>.lock``
+(beside the log a ``resume`` continues): a second
+``run`` (or a ``resume`` of another log) of the same participant and protocol while one is
+running would write a second log of the same sets at once, so it is refused. The lock file
+stays (empty, hidden); only the ``flock`` on it matters, and it too ends with the process.
 """
 
 from __future__ import annotations
@@ -14,7 +20,7 @@ from pathlib import Path
 
 from masking_lab.core.errors import LogError, LogLockedError
 
-__all__ = ["LogLock"]
+__all__ = ["LogLock", "RunnerLock"]
 
 
 class LogLock:
@@ -97,6 +103,77 @@ class LogLock:
             raise LogError(
                 f"{path}: cannot lock the session log ({exc.strerror or exc}); keep session "
                 "logs on a local disk"
+            ) from exc
+        return cls(path, fd)
+
+    def release(self) -> None:
+        """Close the descriptor, releasing the lock (idempotent)."""
+        if self.fd >= 0:
+            fd, self.fd = self.fd, -1
+            os.close(fd)
+
+
+class RunnerLock:
+    """The exclusive lock of one participant's sessions of one protocol (experiment).
+
+    Attributes
+    ----------
+    path : Path
+        The lock file, ``<folder>/.<participant>.<experiment>.lock``.
+    fd : int
+        Its open, locked descriptor; -1 once released.
+
+    Examples
+    --------
+    >>> import tempfile, pathlib
+    >>> data = pathlib.Path(tempfile.mkdtemp())
+    >>> lock = RunnerLock.acquire(data / "P01", "P01", "experiment1")
+    >>> RunnerLock.acquire(data / "P01", "P01", "experiment1")  # doctest: +ELLIPSIS
+    Traceback (most recent call last):
+    ...
+    masking_lab.core.errors.LogLockedError: participant P01 is already running experiment1 ...
+    >>> lock.release()
+    """
+
+    def __init__(self, path: Path, fd: int) -> None:
+        self.path = path
+        self.fd = fd
+
+    @classmethod
+    def acquire(cls, folder: str | Path, participant: str, experiment: str) -> RunnerLock:
+        """Lock ``participant``'s sessions of ``experiment`` whose logs are in ``folder``
+        (``DATA/<participant>`` for ``run``; the log's folder for ``resume``).
+
+        Raises
+        ------
+        LogLockedError
+            Another process runs this participant and protocol (a ``run`` or ``resume``).
+        LogError
+            The lock file cannot be made (the data folder is not writable).
+        """
+        folder = Path(folder)
+        path = folder / f".{participant}.{experiment}.lock"
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+            fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o666)
+        except OSError as exc:
+            raise LogError(
+                f"{path}: cannot make the session lock ({exc.strerror or exc}); choose a --data "
+                "folder you can write to"
+            ) from exc
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError as exc:
+            os.close(fd)
+            raise LogLockedError(
+                f"participant {participant} is already running {experiment} in another "
+                f"masking-lab process (lock {path}); two sessions of one protocol at once would "
+                "measure the same sets twice. Let it finish or stop it (Ctrl-C in its terminal)"
+            ) from exc
+        except OSError as exc:
+            os.close(fd)
+            raise LogError(
+                f"{path}: cannot lock ({exc.strerror or exc}); keep the data folder on a local disk"
             ) from exc
         return cls(path, fd)
 

@@ -316,6 +316,7 @@ class _Experiment(msgspec.Struct):
 class AHeader(_View, tag="header"):
     """Header fields the analysis uses (participant, experiment, ids, calibration in dB re 1 V)."""
 
+    schema_version: Any = UNSET  # refused when newer than this version reads (log_bytes)
     participant: Any = UNSET
     session_id: Any = UNSET
     created_utc: Any = UNSET
@@ -327,7 +328,16 @@ class AHeader(_View, tag="header"):
     def as_dict(self) -> dict[str, Any]:
         """The header as the dict :func:`read_log` would give, for the fields decoded."""
         out: dict[str, Any] = {"record": "header"}
-        names = ("participant", "session_id", "created_utc", "kind", "calibration", "rig", "seq")
+        names = (
+            "schema_version",
+            "participant",
+            "session_id",
+            "created_utc",
+            "kind",
+            "calibration",
+            "rig",
+            "seq",
+        )
         for name in names:
             value = getattr(self, name)
             if value is not UNSET:
@@ -396,7 +406,7 @@ class AUsertestTrial(_View, tag="usertest_trial"):
 
 
 class ASessionEnd(_View, tag="session_end"):
-    pass
+    status: Any = UNSET  # a completed session counts once per participant (analysis.batch)
 
 
 AnalysisRecord = (

@@ -31,6 +31,13 @@ from typing import Any, Literal
 import msgspec
 
 from masking_lab.core.errors import LogError, LogWriteError
+from masking_lab.formats.log_bytes import (
+    BadNumber,
+    check_schema_version,
+    loads_record,
+    read_log_bytes,
+    strip_bom,
+)
 from masking_lab.formats.log_integrity import (
     continuity_problems,
     interleaved,
@@ -102,6 +109,9 @@ class SessionLog:
         The header's line number (1 unless lines before it were unusable).
     missing_newline : bool
         The last line is a whole record without its newline (kept; reopen adds the newline).
+    value_problems : list[str]
+        Records kept whose values cannot be used (a non-finite number): the analysis refuses
+        the set holding them (``"line N: ..."``).
     """
 
     path: Path
@@ -112,6 +122,7 @@ class SessionLog:
     lines: list[int] = field(default_factory=list)
     header_line: int = 1
     missing_newline: bool = False
+    value_problems: list[str] = field(default_factory=list)
 
     def sets(self) -> dict[str, SetRecords]:
         """Records grouped by ``set_id`` in the order sets were started.
@@ -249,11 +260,13 @@ def parse_log(raw: bytes, path: str | Path) -> SessionLog:
     (1, 'A', [2])
     """
     p = Path(path)
+    raw = strip_bom(raw)
     tail = split_tail(raw)
     body = raw[: tail.complete_end] + (tail.tail + b"\n" if tail.whole_record else b"")
     lines = body.split(b"\n")
     lines.pop()  # after the last newline: empty
     problems: list[str] = []
+    value_problems: list[str] = []
     records: list[Any] = []
     numbers: list[int] = []
     header: dict[str, Any] | None = None
@@ -263,12 +276,15 @@ def parse_log(raw: bytes, path: str | Path) -> SessionLog:
             problems.append(f"line {lineno}: blank line; ignored")
             continue
         try:
-            rec = json.loads(line.decode("utf-8"))
+            rec, non_finite = loads_record(line.decode("utf-8"))
         except UnicodeDecodeError:
             problems.append(f"line {lineno}: not valid UTF-8; line skipped")
             continue
         except json.JSONDecodeError as exc:
             problems.append(f"line {lineno}: not valid JSON ({exc.msg}); line skipped")
+            continue
+        except BadNumber as exc:
+            problems.append(f"line {lineno}: {exc}; line skipped")
             continue
         except RecursionError:
             problems.append(f"line {lineno}: nested too deeply to be a log record; line skipped")
@@ -279,12 +295,21 @@ def parse_log(raw: bytes, path: str | Path) -> SessionLog:
         if not isinstance(rec.get("set_id"), str | None):
             problems.append(f"line {lineno}: set_id is not text; line skipped")
             continue
+        if non_finite is not None:
+            # Kept, so the set it belongs to is refused as a whole (analysis.thresholds), the
+            # same way for every estimator; said here so validate and resume show it too.
+            value_problems.append(
+                f"line {lineno}: a non-finite number ({non_finite}) in a {str(rec['record'])[:40]}"
+                " record; a set holding it is refused"
+            )
         if header is None:
             if rec["record"] != "header":
+                before = f" (before it, {problems[0]})" if problems else ""
                 raise LogError(
                     f"{p}: line {lineno}: the first record must be the session header, found "
-                    f"{str(rec['record'])[:40]!r}; is this a masking_lab session log?"
+                    f"{str(rec['record'])[:40]!r}{before}; is this a masking_lab session log?"
                 )
+            check_schema_version(rec, p)
             header, header_line = rec, lineno
             continue
         records.append(rec)
@@ -297,9 +322,18 @@ def parse_log(raw: bytes, path: str | Path) -> SessionLog:
             " probably a crash while writing; it is ignored"
         )
     if header is None:
-        raise LogError(f"{p}: no session header found; the file is empty or not a session log")
+        why = f" ({problems[0]})" if problems else ""
+        raise LogError(f"{p}: no session header found{why}; the file is empty or not a session log")
     return SessionLog(
-        p, header, records, truncated_tail, problems, numbers, header_line, tail.whole_record
+        p,
+        header,
+        records,
+        truncated_tail,
+        problems,
+        numbers,
+        header_line,
+        tail.whole_record,
+        value_problems,
     )
 
 
@@ -321,11 +355,7 @@ def read_log(path: str | Path) -> SessionLog:
     ([], '{"record":"set_start","set_id":"A"')
     """
     p = Path(path)
-    try:
-        raw = p.read_bytes()
-    except OSError as exc:
-        raise LogError(f"{p}: cannot read session log ({exc.strerror or exc})") from exc
-    return parse_log(raw, p)
+    return parse_log(read_log_bytes(p), p)
 
 
 class SessionLogWriter:
@@ -545,10 +575,7 @@ def _write_all(fd: int, data: bytes) -> None:
 
 
 def _read_all(lock: LogLock) -> bytes:
-    try:
-        return lock.path.read_bytes()
-    except OSError as exc:
-        raise LogError(f"{lock.path}: cannot read session log ({exc.strerror or exc})") from exc
+    return read_log_bytes(lock.path)
 
 
 def _fsync_dir(directory: Path) -> None:

@@ -9,6 +9,7 @@ comments. Every problem is reported with the file, line and column.
 from __future__ import annotations
 
 import csv
+import itertools
 import math
 from collections.abc import Mapping
 from pathlib import Path
@@ -19,7 +20,7 @@ from masking_lab.core.errors import AnalysisError
 from masking_lab.core.stimulus import is_stimulus_name, parse_stimulus
 from masking_lab.formats.reader import decode_utf8, excerpt, read_limited
 
-__all__ = ["OPTIONAL_COLUMNS", "REQUIRED_COLUMNS", "read_shifts_csv"]
+__all__ = ["OPTIONAL_COLUMNS", "REQUIRED_COLUMNS", "levels_told_apart", "read_shifts_csv"]
 
 REQUIRED_COLUMNS = ("target", "masker", "masker_level_db_sl", "shift_db")
 #: Largest magnitude of a level, shift (dB) or frequency (Hz) accepted in a row.
@@ -27,6 +28,9 @@ MAX_ABS_VALUE = 10_000.0
 #: Largest shifts CSV accepted, bytes (a paper-sized study is a few kB).
 MAX_CSV_BYTES = 16 * 1024 * 1024
 OPTIONAL_COLUMNS = ("participant", "masker_frequency_hz", "mv_frequency_hz", "experiment")
+#: Closest two different masker levels of one pair may be, dB: closer ones cannot be told apart
+#: (a fit over them is singular), so they are refused rather than fitted.
+MIN_LEVEL_SPACING_DB = 1e-6
 
 
 def read_shifts_csv(path: str | Path) -> tuple[pd.DataFrame, bool]:
@@ -74,6 +78,12 @@ def read_shifts_csv(path: str | Path) -> tuple[pd.DataFrame, bool]:
         raise AnalysisError(f"{p}: the file is empty; expected a header line and shift rows")
     rows = [_split(p, n, line) for n, line in lines]
     header = [h.strip() for h in rows[0]]
+    twice = sorted({c for c in header if header.count(c) > 1})
+    if twice:
+        raise AnalysisError(
+            f"{p}: line {lines[0][0]}: column(s) {', '.join(ascii(c)[1:-1][:40] for c in twice)}"
+            " named more than once; give each column once (which one is meant cannot be told)"
+        )
     missing = [c for c in REQUIRED_COLUMNS if c not in header]
     if missing:
         raise AnalysisError(
@@ -117,7 +127,47 @@ def read_shifts_csv(path: str | Path) -> tuple[pd.DataFrame, bool]:
         records.append(rec)
     if not records:
         raise AnalysisError(f"{p}: no data rows after the header")
-    return pd.DataFrame(records), has_participants
+    table = pd.DataFrame(records)
+    levels_told_apart(table, str(p))
+    return table, has_participants
+
+
+def levels_told_apart(shifts: pd.DataFrame, source: str) -> None:
+    """Refuse masker levels of one pair that differ by less than :data:`MIN_LEVEL_SPACING_DB`.
+
+    Parameters
+    ----------
+    shifts : DataFrame
+        Columns ``experiment, target, masker, masker_level_db_sl`` (dB SL).
+    source : str
+        Names the input in the message (a file or a data folder).
+
+    Raises
+    ------
+    AnalysisError
+        Naming the pair and the two levels.
+
+    Examples
+    --------
+    >>> t = pd.DataFrame({"experiment": ["e"] * 2, "target": ["EV270"] * 2,
+    ...                   "masker": ["MV120"] * 2, "masker_level_db_sl": [5.0, 5.0 + 1e-12]})
+    >>> levels_told_apart(t, "s.csv")
+    Traceback (most recent call last):
+    ...
+    masking_lab.core.errors.AnalysisError: s.csv: EV270|MV120 (e): masker levels 5.0 and ...
+    """
+    if shifts.empty:
+        return
+    keys = ["experiment", "target", "masker"]
+    for (experiment, target, masker), group in shifts.groupby(keys, sort=True):
+        levels = sorted(set(group["masker_level_db_sl"].astype(float)))
+        for lo, hi in itertools.pairwise(levels):
+            if hi - lo < MIN_LEVEL_SPACING_DB:
+                raise AnalysisError(
+                    f"{source}: {target}|{masker} ({experiment}): masker levels {lo!r} and {hi!r}"
+                    f" dB SL differ by less than {MIN_LEVEL_SPACING_DB:g} dB, so no fit can tell "
+                    "them apart; write one level for the cells measured at it"
+                )
 
 
 def _error(file: str, where: str, message: str) -> AnalysisError:

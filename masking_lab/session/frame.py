@@ -24,9 +24,9 @@ from pathlib import Path
 from typing import Any, Generic, Protocol, TextIO, TypedDict, TypeVar
 
 from masking_lab.core.clock import Clock, RealClock, VirtualClock
-from masking_lab.core.errors import DeviceTimeModeError, MaskingLabError
+from masking_lab.core.errors import DeviceTimeModeError, LogError, MaskingLabError
 from masking_lab.device.base import Device
-from masking_lab.formats.log_lock import LogLock
+from masking_lab.formats.log_lock import LogLock, RunnerLock
 from masking_lab.formats.session_log import SessionLog, SessionLogWriter, read_log
 from masking_lab.session.opening import (
     DeviceOpener,
@@ -383,6 +383,21 @@ def start(
         raise MaskingLabError(f"--seed must be ≥ 0, got {seed}")
     plan = kind.plan_start(options, participant, seed, frame.out)
     plan.check_responder(options.responder)
+    # One runner per participant and protocol: a second one is refused before anything opens.
+    runner = RunnerLock.acquire(Path(options.data_dir) / participant, participant, plan.experiment)
+    try:
+        return _start_locked(frame, plan, participant, seed, options)
+    finally:
+        runner.release()
+
+
+def _start_locked(
+    frame: _Frame[ResultT],
+    plan: SessionPlan[ResultT],
+    participant: str,
+    seed: int,
+    options: StartOptions,
+) -> ResultT:
     virtual = use_virtual_clock(options.device, options.responder, options.real_time)
     opening = Opening(
         participant=participant,
@@ -478,9 +493,32 @@ def _resume_locked(
     options: ResumeOptions,
 ) -> ResultT:
     log = read_log(path)
+    if log.value_problems:  # replaying NaN or infinite levels or indices cannot be right
+        raise LogError(
+            f"{path}: {log.value_problems[0]}; a log holding non-finite numbers was edited or "
+            "damaged and cannot be resumed: start a new session"
+        )
     header = log.header
     check_header(header, path)
     kind.check_log(header, path)
+    protocol = header.get("protocol")
+    experiment = protocol.get("experiment") if isinstance(protocol, dict) else None
+    runner = RunnerLock.acquire(path.parent, str(header["participant"]), str(experiment))
+    try:
+        return _resume_runner_locked(kind, frame, path, lock, options, log)
+    finally:
+        runner.release()
+
+
+def _resume_runner_locked(
+    kind: SessionKind[ResultT],
+    frame: _Frame[ResultT],
+    path: Path,
+    lock: LogLock,
+    options: ResumeOptions,
+    log: SessionLog,
+) -> ResultT:
+    header = log.header
     refuse_finished(log, path)
     plan = kind.plan_resume(header, log, path, options, frame.out)
     refuse_damaged(log, path)  # after the kind's own replay checks, which say more

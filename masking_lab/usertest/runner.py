@@ -176,9 +176,10 @@ def is_usertest_protocol(path: str | Path) -> bool:
 def is_usertest_log(path: str | Path) -> bool:
     """True if the first line of ``path`` is a user-test session header (False if unreadable)."""
     try:
-        with open(path, encoding="utf-8") as fh:
-            first = json.loads(fh.readline())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError):
+        with open(path, encoding="utf-8") as fh:  # bounded: a log may be a 2 GB sparse file
+            first = json.loads(fh.readline(8 * 1024 * 1024))
+    # ValueError: also a 5,000-digit integer (Python's int-conversion limit)
+    except (OSError, ValueError, RecursionError):
         return False  # not a user-test log; the threshold kind's reader says what is wrong
     return isinstance(first, dict) and first.get("kind") == KIND
 

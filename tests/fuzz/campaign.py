@@ -1,13 +1,16 @@
 """The fuzz campaign: mutated inputs of every file kind through every command that reads them,
-plus mutated serial frames; prints tried / clean errors / tracebacks / hangs / non-finite.
+the generators of issue 21's classes (hostile logs and CSVs, schema-driven ground truths, scenes,
+calibrations and protocols: :mod:`fuzz_hostile`), plus hostile serial frames; prints tried /
+clean errors / accepted / tracebacks / hangs / non-finite / silently wrong / validate gaps.
 
 Usage (from the repository root)::
 
-    .venv/bin/python tests/fuzz/campaign.py --n 2000 --seed 1
+    nice .venv/bin/python tests/fuzz/campaign.py --n 5000 --seed 21
 
-``--n`` counts mutated inputs (files and serial exchanges); each file goes through every
-command of its kind (``fuzz_corpus.commands``), each run counted under ``runs``. Findings are
-printed with the command and the end of the traceback; the exit status is 1 if there is any.
+``--n`` counts inputs (files, log folders and serial exchanges); each goes through every
+command of its kind, each run counted under ``runs``. Findings are printed with the command and
+the end of the traceback. The exit status is 1 if there is any finding, or if every input of a
+kind was refused (a generator that never gets past the readers tests nothing behind them).
 """
 
 from __future__ import annotations
@@ -24,7 +27,10 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from fuzz_corpus import KINDS, RandomPicker, mutate, seed, trial
+from fuzz_hostile import HOSTILE_KINDS, hostile_trial
 from fuzz_serial import serial_trial
+
+ALL_KINDS = (*KINDS, *HOSTILE_KINDS)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -38,8 +44,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--kinds",
         nargs="+",
-        default=list(KINDS),
-        choices=KINDS,
+        default=list(ALL_KINDS),
+        choices=ALL_KINDS,
         help="file kinds to mutate (serial frames: --serial-share)",
     )
     parser.add_argument("--save", type=Path, help="folder to keep the inputs of findings in")
@@ -49,6 +55,7 @@ def main(argv: list[str] | None = None) -> int:
     picker = RandomPicker(rng)
     counts: Counter[str] = Counter()
     per_kind: Counter[str] = Counter()
+    accepted_per_kind: Counter[str] = Counter()
     findings: list[str] = []
     started = time.monotonic()
     with tempfile.TemporaryDirectory(prefix="masking-fuzz-") as tmp:
@@ -58,13 +65,19 @@ def main(argv: list[str] | None = None) -> int:
                 kind = "serial"
                 status, detail = serial_trial(picker, timeout_s=args.timeout)
                 outcomes = [(status, ("serial",), 1, detail)]
+            elif (kind := args.kinds[i % len(args.kinds)]) in HOSTILE_KINDS:
+                data = b""
+                done, accepted = hostile_trial(kind, rng, work, args.timeout)
+                accepted_per_kind[kind] += accepted
+                outcomes = [(o.kind, o.argv, o.code, o.detail) for o in done]
             else:
-                kind = args.kinds[i % len(args.kinds)]
                 data = mutate(seed(kind), picker, rng.randint(1, 3))
                 outcomes = [
                     (o.kind, o.argv, o.code, o.detail)
                     for o in trial(kind, data, work, args.timeout)
                 ]
+                # Accepted: validate (every kind's first command) passed it.
+                accepted_per_kind[kind] += outcomes[0][0] == "clean" and outcomes[0][2] == 0
             per_kind[kind] += 1
             counts["tried"] += 1
             # Per input: a finding if any command had one; else a clean error if any command
@@ -73,6 +86,7 @@ def main(argv: list[str] | None = None) -> int:
             for status, cmd, code, detail in outcomes:
                 counts["runs"] += 1
                 if status != "clean":
+                    counts[f"finding_{status}"] += 1
                     worst = status
                     findings.append(f"[{status}] {kind}: {' '.join(cmd)[:120]}\n{detail[-800:]}")
                     if args.save is not None and kind != "serial":
@@ -82,17 +96,34 @@ def main(argv: list[str] | None = None) -> int:
                     worst = "clean_error"
             counts[worst] += 1
             if (i + 1) % 100 == 0:
-                print(f"  {i + 1}/{args.n} inputs, {time.monotonic() - started:.0f} s", flush=True)
-    for finding in findings[:20]:
+                so_far = ", ".join(f"{k} {v}" for k, v in sorted(counts.items()))
+                print(
+                    f"  {i + 1}/{args.n} inputs, {time.monotonic() - started:.0f} s: {so_far}",
+                    flush=True,
+                )
+    for finding in findings[:30]:
         print(finding)
     print(f"kinds: {dict(sorted(per_kind.items()))}")
+    accepted = dict(sorted(accepted_per_kind.items()))
+    print(f"accepted by validate (serial: not counted): {accepted}")
     print(
         f"tried {counts['tried']} inputs ({counts['runs']} command runs, seed {args.seed}, "
         f"{time.monotonic() - started:.0f} s): clean errors {counts['clean_error']} / accepted "
         f"{counts['accepted']} / tracebacks {counts['traceback']} / hangs {counts['hang']} / "
-        f"non-finite outputs {counts['non_finite']}"
+        f"non-finite outputs {counts['non_finite']} / silently wrong {counts['wrong']} / "
+        f"validate gaps {counts['validate_gap']}"
     )
-    return 1 if findings else 0
+    print(
+        "command runs with findings: "
+        + ", ".join(f"{k[8:]} {v}" for k, v in sorted(counts.items()) if k.startswith("finding_"))
+    )
+    refused = [k for k in per_kind if k != "serial" and not accepted_per_kind[k]]
+    if refused:
+        print(
+            f"every input was refused for: {', '.join(sorted(refused))} (the generator tests "
+            "nothing behind the readers)"
+        )
+    return 1 if findings or refused else 0
 
 
 if __name__ == "__main__":

@@ -4,7 +4,8 @@ calls the real commands and classifies what happened.
 
 An outcome is *clean* when the command ends with an exit code (0, 1, 2, 3) or an argparse usage
 error; a *traceback* when any other exception escapes ``masking_lab.commands.cli.main``; a
-*hang* when it runs past its time limit (SIGALRM); *non-finite* when a file it wrote holds NaN
+*hang* when it runs past its CPU-time limit (SIGPROF; a wall-clock bound ten times longer
+catches a run stuck waiting); *non-finite* when a file it wrote holds NaN
 or an infinity (a ``NaN``/``Infinity`` token in JSON, a ``nan``/``inf`` field in CSV).
 """
 
@@ -468,22 +469,28 @@ def run_command(argv: Sequence[str], timeout_s: float) -> tuple[str, int | None,
     def alarm(signum, frame):  # type: ignore[no-untyped-def]
         raise Hang
 
+    # The limit is CPU time (ITIMER_PROF), so a busy machine never turns a slow run into a
+    # "hang"; a run stuck waiting (no CPU used) is caught by a wall-clock bound ten times longer.
     previous = signal.signal(signal.SIGALRM, alarm)
-    signal.setitimer(signal.ITIMER_REAL, timeout_s)
+    previous_prof = signal.signal(signal.SIGPROF, alarm)
+    signal.setitimer(signal.ITIMER_PROF, timeout_s)
+    signal.setitimer(signal.ITIMER_REAL, 10 * timeout_s)
     out, err = io.StringIO(), io.StringIO()
     try:
         with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
             code = main(list(argv))
-        return "clean", code, ""
+        return "clean", code, err.getvalue()[-600:]  # the message, for findings of oracles
     except SystemExit as exc:  # argparse usage errors
         return "clean", exc.code if isinstance(exc.code, int) else 2, ""
     except Hang:
-        return "hang", None, f"no end within {timeout_s:g} s"
+        return "hang", None, f"no end within {timeout_s:g} s of CPU ({10 * timeout_s:g} s wall)"
     except BaseException:  # any other escape is the finding
         return "traceback", None, traceback.format_exc(limit=-4)
     finally:
         signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.setitimer(signal.ITIMER_PROF, 0)
         signal.signal(signal.SIGALRM, previous)
+        signal.signal(signal.SIGPROF, previous_prof)
 
 
 _CSV_BAD = re.compile(r"(?:^|,)\s*[-+]?(?:nan|inf|infinity)\s*(?:,|$)", re.IGNORECASE | re.M)

@@ -84,8 +84,12 @@ def serial_trial(p: Picker, timeout_s: float = 15.0) -> tuple[str, str]:
     def alarm(signum, frame):  # type: ignore[no-untyped-def]
         raise Hang
 
+    # CPU time (ITIMER_PROF) bounds a spinning exchange whatever the machine's load; a wait
+    # with no reply is bounded by a wall clock ten times longer.
     previous = signal.signal(signal.SIGALRM, alarm)
-    signal.setitimer(signal.ITIMER_REAL, timeout_s)
+    previous_prof = signal.signal(signal.SIGPROF, alarm)
+    signal.setitimer(signal.ITIMER_PROF, timeout_s)
+    signal.setitimer(signal.ITIMER_REAL, 10 * timeout_s)
     device = None
     try:
         device = SerialDevice(peer.port, parse_device_config(RIG, "rig"), VirtualClock())
@@ -99,7 +103,9 @@ def serial_trial(p: Picker, timeout_s: float = 15.0) -> tuple[str, str]:
         return "traceback", f"{target}: {traceback.format_exc(limit=-3)}"
     finally:
         signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.setitimer(signal.ITIMER_PROF, 0)
         signal.signal(signal.SIGALRM, previous)
+        signal.signal(signal.SIGPROF, previous_prof)
         if device is not None:
             with contextlib.suppress(DeviceError):
                 device.close()
