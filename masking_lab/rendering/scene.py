@@ -148,7 +148,7 @@ class GeometrySpec:
         w = self.width_mm
         h = self.height_profile_mm(x_mm)
         if self.shape in ("bump", "hole"):
-            return -z / w**2 * h
+            return -(z / w) * (h / w)  # not z / w**2: w**2 overflows or underflows first
         if self.shape == "ascending":
             return np.where(z <= 0.0, h / w, 0.0)
         return np.where(z >= 0.0, -h / w, 0.0)
