@@ -64,6 +64,7 @@ def test_plan_on_a_functional_protocol_prints_the_trade(tmp_path, capsys):
         replicates=2,
         seed=1,
         out=str(tmp_path / "plan"),
+        force=False,
         scheduler="synchronous",
     )
     assert run(args) == 0

@@ -43,7 +43,7 @@ from masking_lab.analysis.study_status import (
     unmasked_als,
 )
 from masking_lab.analysis.trials_table import TRIAL_COLUMNS, trial_rows
-from masking_lab.core.errors import LogError
+from masking_lab.core.errors import LogError, MaskingLabError
 from masking_lab.core.psychometric import GUESS_3IFC
 from masking_lab.formats.csv_table import csv_text, csv_text_rows
 from masking_lab.formats.fileio import write_bytes_atomic, write_text_atomic
@@ -131,12 +131,15 @@ def _model(start: Mapping[str, Any]) -> tuple[str, float, float]:
 
     proc = start.get("procedure")
     if isinstance(proc, Mapping):
-        try:
-            from masking_lab.procedures.quest_plus import QuestPlusSettings
+        # the registry rebuilds any kind's settings; a kind without a guess rate or threshold
+        # point (or unreadable settings) is read as a 3IFC track at the 1-up-3-down point
+        from masking_lab.procedures.registry import settings_from_start
 
-            s = QuestPlusSettings.from_mapping(proc)
-            return str(proc.get("kind")), float(s.guess), float(s.p_at_threshold)
-        except Exception:
+        try:
+            s = settings_from_start(start, None)
+            guess = float(getattr(s, "guess", GUESS_3IFC))
+            return str(proc.get("kind")), guess, float(getattr(s, "p_at_threshold", 0.5 ** (1 / 3)))
+        except (MaskingLabError, TypeError, ValueError):
             return str(proc.get("kind")), GUESS_3IFC, 0.5 ** (1 / 3)
     st = start.get("staircase") if isinstance(start.get("staircase"), Mapping) else {}
     try:

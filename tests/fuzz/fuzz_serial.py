@@ -15,7 +15,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tests/: hardenin
 
 import contextlib
 
-from hardening_support import RIG, ScriptedPeer, raw_frame, short_plan, standard
+from hardening_support import QUICK_RIG, ScriptedPeer, raw_frame, short_plan, standard
 
 from masking_lab.core.clock import VirtualClock
 from masking_lab.core.errors import DeviceError
@@ -92,7 +92,10 @@ def serial_trial(p: Picker, timeout_s: float = 15.0) -> tuple[str, str]:
     signal.setitimer(signal.ITIMER_REAL, 10 * timeout_s)
     device = None
     try:
-        device = SerialDevice(peer.port, parse_device_config(RIG, "rig"), VirtualClock())
+        # a garbled reply is discarded and never answered again: in virtual time the host then
+        # waits out the config's hang guard (no wall-clock reply timeout), here 0.3 s
+        rig = parse_device_config(QUICK_RIG, "rig")
+        device = SerialDevice(peer.port, rig, VirtualClock())
         device.play_trial(PLAN, 1.0)
         return "clean", ""
     except DeviceError:
