@@ -73,7 +73,8 @@ def test_a_data_folder_that_is_a_file_is_a_clean_error_and_nothing_is_played(tmp
         "--data", str(not_a_folder),
     )  # fmt: skip
     assert res.returncode == 2 and "Traceback" not in res.stderr
-    assert "cannot make the folder for the session log (Not a directory)" in res.stderr
+    # the first thing run creates under --data is its session lock (one runner at a time)
+    assert "(Not a directory); choose a --data folder you can write to" in res.stderr
     assert "choose a --data folder" in res.stderr
     demo = _cli("demo", "--out", str(not_a_folder), "--participants", "2")
     assert demo.returncode == 2 and "Traceback" not in demo.stderr

@@ -86,7 +86,8 @@ def _commands(kind: str, studies, tmp_path: Path) -> tuple[list[str], list[str],
         return ["fit", str(a), *common], ["fit", str(b), *common], out
     if kind == "plan":
         exp1 = str(PROTOCOLS / "experiment1.yaml")
-        common = ["--out", str(out), "--ml-replicates", "0"]
+        # --force: each run replaces the plan already in --out (else plan refuses it)
+        common = ["--out", str(out), "--ml-replicates", "0", "--force"]
         return (
             ["plan", exp1, "--replicates", "5", *common],
             ["plan", exp1, "--replicates", "6", *common],

@@ -269,7 +269,14 @@ def _schema_trial(
 # render's answer for a scene playing a pair the (seed) parameters lack: a fact about the two
 # files together, which validating the scene alone cannot know; render writes the protocols
 # that measure the pair, as designed.
-_CROSS_FILE = "Measure the pair"
+# Likewise a calibration whose ALs put a protocol's level below what the rig's converter and
+# attenuator steps can play: that needs calibration, protocol and rig config together, and run
+# refuses it before the first trial, as designed.
+_CROSS_FILE = ("Measure the pair", "refused before the first trial")
+
+
+def _cross_file(detail: str) -> bool:
+    return any(reason in detail for reason in _CROSS_FILE)
 
 
 def _validate_then(
@@ -291,7 +298,9 @@ def _validate_then(
         found = non_finite_files(work, before)
         if found:
             status, detail = "non_finite", ", ".join(found)
-        elif accepted and gap_is_finding and code == 2 and _CROSS_FILE not in detail:
+        elif (
+            accepted and gap_is_finding and code == 2 and not any(c in detail for c in _CROSS_FILE)
+        ):
             status, detail = "validate_gap", f"validate accepted it, {using[0]} said: {detail}"
     outcomes.append(Outcome(status, (using[0], kind), code, detail))
     return outcomes, accepted
