@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from masking_lab.core.clock import Clock
-from masking_lab.core.errors import MaskingLabError
+from masking_lab.core.errors import LogError, MaskingLabError
 from masking_lab.device.base import Device
 from masking_lab.formats.session_log import SessionLogWriter, SyncPolicy
 from masking_lab.session.shell import Closable, close_quietly
@@ -152,8 +152,20 @@ class ResponderContext:
         """
         obs = self.simulated_observer or observer_record(None)
         source = str(obs.get("ground_truth_path") or "")
+        seed = obs.get("population_seed")
+        # the header is data: a simulated observer without its truth or seed cannot be rebuilt
+        if (
+            not isinstance(obs.get("truth"), dict)
+            or isinstance(seed, bool)
+            or not isinstance(seed, int)
+        ):
+            raise LogError(
+                "the log header's simulated_observer lacks its 'truth' mapping or integer "
+                "'population_seed', so the simulated participant cannot be rebuilt; the header "
+                "was edited: restore it from a backup or start a new session"
+            )
         truth = ground_truth_from_dict(obs["truth"], source or "the ground truth")
-        return truth, int(obs["population_seed"]), source
+        return truth, seed, source
 
 
 # --------------------------------------------------------------------------------------------

@@ -113,7 +113,14 @@ def check_trials(path: Path, protocol: Protocol, existing: Mapping[str, SetRecor
                     f"but replaying the logged responses gives {level}; the log does not "
                     f"match its {settings.kind} settings and cannot be resumed"
                 )
-            state = state.update(bool(t["correct"]))
+            correct = t.get("correct")
+            if not isinstance(correct, bool):
+                raise LogError(
+                    f"{path}: set {set_id}, trial {t.get('trial_index')}: 'correct' is "
+                    f"{correct!r}, not true or false; the log has been edited and cannot be "
+                    "resumed"
+                )
+            state = state.update(correct)
 
 
 def position(log: SessionLog) -> tuple[str | None, int | None]:
