@@ -1,7 +1,7 @@
 """Coverage of the Bayesian procedures' 95 % intervals when the observer is not the model
 (the table in docs/procedures.md).
 
-    OMP_NUM_THREADS=1 python tools/coverage.py [--tracks 60] [--seed 0]
+    OMP_NUM_THREADS=1 python benchmarks/coverage.py [--tracks 60] [--seed 0]
 
 Observers with the psychometric scale the protocols assume (1.5 dB), half and twice it, and a
 lapse of 0.02 or 0.08. For each procedure setting, the share of tracks whose central 95 %
