@@ -1,7 +1,8 @@
 """The trade table of docs/speed-accuracy.md: trials per participant for one masking function at
 the paper's precision, by the paper's route, QUEST+ per set and the functional procedure.
 
-    OMP_NUM_THREADS=1 python benchmarks/ramp_trade.py [--replicates 60] [--seed 0] [--scheduler local]
+    OMP_NUM_THREADS=1 python benchmarks/ramp_trade.py [--replicates 60] [--seed 0] \
+        [--scheduler local]
 
 Simulated participants with the ground truth's EV270-by-MV120 ramp (a = -7.442 dB,
 b = 0.711 dB/dB), logistic scale 1.5 dB, lapse 0.02; every route from the same calibration
