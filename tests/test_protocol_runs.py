@@ -27,6 +27,8 @@ from hypothesis import strategies as st
 from runner_support import FAST_TIMING, write_calibration
 
 from masking_lab.core.errors import ProtocolError
+from masking_lab.device.config import load_device_config
+from masking_lab.device.level_check import level_problems
 from masking_lab.device.rig_limits import max_level_db_sl
 from masking_lab.formats.protocol import load_protocol
 from masking_lab.formats.schemas import load_schema
@@ -202,8 +204,13 @@ def _outcome(data: dict[str, Any]) -> str:
         path = folder / "p.yaml"
         path.write_text(yaml.safe_dump(data, sort_keys=False), encoding="utf-8")
         try:
-            load_protocol(path, max_level_db_sl=LIMITS)
+            protocol = load_protocol(path, max_level_db_sl=LIMITS)
         except ProtocolError:
+            return "refused"
+        # what `validate --device-config` checks, with this participant's ALs: every level must
+        # play within 1 dB on the rig run opens (the reference rig)
+        rig = load_device_config(None)
+        if level_problems(protocol, rig.converters, CAL, rig.limits.max_drive_v):
             return "refused"
         write_calibration(folder / "data", "S01", CAL)
         result = run_session(
