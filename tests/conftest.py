@@ -14,3 +14,29 @@ from hypothesis import settings
 settings.register_profile("repeatable", derandomize=True, print_blob=True)
 settings.register_profile("explore", derandomize=False, print_blob=True)
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "repeatable"))
+
+
+# The files with the longest tests, longest first. pytest-xdist hands tests to its workers in
+# collection order, so these start at once and the many short tests fill in around them;
+# collected last, one of them would run alone on one core at the end while the others idle.
+SLOW_FIRST = (  # from `--durations` of a full run
+    "test_demo_rerun.py",
+    "test_log_records.py",
+    "test_demo.py",
+    "test_quest_plus_study.py",
+    "test_output_kills.py",
+    "test_log_reading_hardening.py",
+    "test_pooling_lr.py",
+    "test_plan.py",
+    "test_lab_outputs.py",
+    "test_functional_study.py",
+    "test_html_report.py",
+    "test_fuzz_regressions.py",
+    "test_analysis.py",
+)
+
+
+def pytest_collection_modifyitems(config, items) -> None:
+    """Move the tests of SLOW_FIRST's files to the front (stable: same order on every worker)."""
+    rank = {name: i for i, name in enumerate(SLOW_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))
