@@ -225,7 +225,7 @@ class DeviceConfig:
             ``ratio``) or None, ``transducer`` and ``measured_gain`` (a list of
             ``{"frequency_hz", "v_out_per_v_in"}`` sorted by frequency; empty if not measured)
             and ``converter`` (``bits``, ``full_scale_v``, ``attenuator_steps_db``,
-            ``min_lsb``) or None.
+            ``min_lsb``, ``linear_codes``) or None.
 
         Examples
         --------
@@ -249,6 +249,7 @@ class DeviceConfig:
                     "full_scale_v": conv.full_scale_v,
                     "attenuator_steps_db": list(conv.steps_db),
                     "min_lsb": conv.min_lsb,
+                    "linear_codes": conv.linear_codes,
                 }
             )
         return {"name": self.name, "config": self.path, "channels": channels}
@@ -461,6 +462,7 @@ def _converter(
         full_scale_v=float(spec["full_scale_v"]),
         steps_db=steps,
         min_lsb=float(spec.get("min_lsb", DEFAULT_MIN_LSB)),
+        linear_codes=int(spec["linear_codes"]) if "linear_codes" in spec else None,
     )
 
 

@@ -91,6 +91,10 @@ class FirmwareEmulator(EmulatorCommands):
         Converter full scale of both channels at the amplifier input, V peak.
     att_db : tuple of int
         Attenuator steps the board switches, dB, ascending, first 0 (HELLO ``att``).
+    linear_codes : int, optional
+        Largest |code| around mid-scale the output stage plays linearly, both channels (HELLO
+        ``lin``); None = the reference DAC's fraction 1798/2048 of the half range (1798 codes
+        at 12 bits), as the host build and the STM32 image.
     overdrive : float
         Fault injection for tests: scale every rendered sample by this factor after the level
         checks, so the per-sample limit check (``FAULT code=LIMIT``) can be exercised.
@@ -110,6 +114,7 @@ class FirmwareEmulator(EmulatorCommands):
         bits: int = 12,
         fsv_v: float = 10.0,
         att_db: tuple[int, ...] = (0, 20, 40),
+        linear_codes: int | None = None,
         overdrive: float = 1.0,
     ) -> None:
         self.config = config or default_device_config()
@@ -122,7 +127,10 @@ class FirmwareEmulator(EmulatorCommands):
         }
         self.checker = Checker(
             {ch: round(v * ONE) for ch, v in self.limits.items()},
-            {ch: Converter(int(bits), round(fsv_v * ONE)) for ch in CHANNELS},
+            {
+                ch: Converter(int(bits), round(fsv_v * ONE), int(linear_codes or 0))
+                for ch in CHANNELS
+            },
             att_db,
             round(self.config.waveform.sample_rate_hz),
         )
