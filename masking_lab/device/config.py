@@ -249,9 +249,10 @@ class DeviceConfig:
                     "full_scale_v": conv.full_scale_v,
                     "attenuator_steps_db": list(conv.steps_db),
                     "min_lsb": conv.min_lsb,
-                    "linear_codes": conv.linear_codes,
                 }
             )
+            if conv is not None and conv.linear_codes is not None:
+                record["converter"]["linear_codes"] = conv.linear_codes
         return {"name": self.name, "config": self.path, "channels": channels}
 
 
