@@ -382,9 +382,26 @@ class Port:
                 return got
             got.append(f)
 
+    def _alive(self, within: float) -> bool:
+        """Does the device answer a fresh PING now (its reply seen within ``within`` s)?"""
+        probe = SENTINEL_SEQ - 2
+        self.ser.write(proto.encode_command(probe, "PING"))
+        marker = f"{probe} OK".encode()
+        deadline = time.monotonic() + within
+        while time.monotonic() < deadline:
+            self.buf += self.ser.read(max(1, self.ser.in_waiting))
+            if marker in self.buf:
+                return True
+        return False
+
     def _stalled(self, got: list, waited: float, silent: float, cpu0: float | None) -> str:
         cpu1 = cpu_seconds(self.pid)
-        if self.pid is not None and cpu1 is None:
+        if self.pid is not None and cpu1 is not None and self._alive(min(silent, 10.0)):
+            state = (
+                "it answers a fresh PING, so it is alive and the batch's sentinel was lost on "
+                "the way (bytes dropped: device RX overflow?)"
+            )
+        elif self.pid is not None and cpu1 is None:
             state = "its process has exited"
         elif cpu0 is not None and cpu1 is not None:
             used = cpu1 - cpu0

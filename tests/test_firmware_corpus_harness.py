@@ -20,7 +20,7 @@ import time
 import tty
 
 import pytest
-from adversarial_corpus import Port, cpu_seconds
+from adversarial_corpus import SENTINEL_SEQ, Port, cpu_seconds
 from firmware_support import start
 
 from masking_lab.device import protocol as proto
@@ -36,8 +36,11 @@ def _silent_pty() -> tuple[int, str]:
     return master, path
 
 
-def _slow_device(master: int, delay_s: float, stop: threading.Event) -> None:
-    """Answer every command line on ``master`` with OK after ``delay_s``, one at a time."""
+def _slow_device(
+    master: int, delay_s: float, stop: threading.Event, lose: int | None = None
+) -> None:
+    """Answer every command line on ``master`` with OK after ``delay_s``, one at a time;
+    the command numbered ``lose`` is never answered (its bytes lost on the way)."""
     buf = b""
     while not stop.is_set():
         ready, _, _ = select.select([master], [], [], 0.05)
@@ -46,29 +49,52 @@ def _slow_device(master: int, delay_s: float, stop: threading.Event) -> None:
         while b"\n" in buf:
             line, _, buf = buf.partition(b"\n")
             time.sleep(delay_s)  # a device that is slow, but makes progress
-            os.write(master, proto.encode_ok(proto.decode(line + b"\n").seq))
+            seq = proto.decode(line + b"\n").seq
+            if seq != lose:
+                os.write(master, proto.encode_ok(seq))
 
 
-def test_a_slow_but_progressing_device_is_waited_for_past_the_silence_limit():
+def _fake(delay_s: float, lose: int | None = None):
     master, slave = os.openpty()
     tty.setraw(master)
     tty.setraw(slave)
-    path = os.ttyname(slave)
     stop = threading.Event()
-    server = threading.Thread(target=_slow_device, args=(master, 0.3, stop), daemon=True)
+    server = threading.Thread(target=_slow_device, args=(master, delay_s, stop, lose), daemon=True)
     server.start()
+
+    def close() -> None:
+        stop.set()
+        server.join()
+        os.close(master)
+        os.close(slave)
+
+    return os.ttyname(slave), close
+
+
+def test_a_slow_but_progressing_device_is_waited_for_past_the_silence_limit():
+    path, close = _fake(0.3)
     port = Port(path, "slow")
     try:
-        # 12 answers 0.3 s apart: longer in all than the 2 s silence limit, never silent as long
+        # 11 answers 0.3 s apart: longer in all than the 2 s silence limit, never silent as long
         frames = port.batch([proto.encode_command(k, "PING") for k in range(1, 12)], 2.0)
         assert [f.seq for f in frames] == list(range(1, 12))
         assert len(port.stalls) == 1 and port.stalls[0] < 2.0
     finally:
-        stop.set()
-        server.join()
         port.close()
-        os.close(master)
-        os.close(slave)
+        close()
+
+
+def test_a_device_alive_but_missing_the_sentinel_is_reported_as_losing_bytes():
+    path, close = _fake(0.0, lose=SENTINEL_SEQ)
+    port = Port(path, "qemu", os.getpid())  # a live process behind the pty
+    try:
+        with pytest.raises(TimeoutError) as info:
+            port.batch([proto.encode_command(1, "PING")], SILENCE_S)
+        assert "(1 answers of this batch read); it answers a fresh PING" in str(info.value)
+        assert "sentinel was lost on the way" in str(info.value)
+    finally:
+        port.close()
+        close()
 
 
 def test_a_starved_process_is_reported_as_starved():
