@@ -125,3 +125,11 @@ def test_a_level_beyond_the_linear_range_at_every_step_is_refused_before_sending
 
 def test_unplayable_survives_a_level_no_step_plays_linearly():
     assert unplayable(REF, [9.0]) == [(9.0, float("inf"))]
+
+
+def test_the_emulator_refuses_a_linear_range_its_converter_cannot_have():
+    from masking_lab.device.emulator import FirmwareEmulator
+
+    with pytest.raises(ValueError, match=r"linear_codes=2048 must be .* in 1\.\.2047"):
+        FirmwareEmulator(linear_codes=2048)
+    assert FirmwareEmulator(linear_codes=1500).checker.converters["EV"].lin == 1500

@@ -125,6 +125,12 @@ class FirmwareEmulator(EmulatorCommands):
         self.limits = {
             ch: min(HARD_MAX_DRIVE_V, self.config.limits.max_drive_v[ch]) for ch in CHANNELS
         }
+        top = (1 << (int(bits) - 1)) - 1
+        if linear_codes is not None and not 1 <= linear_codes <= top:
+            raise ValueError(
+                f"linear_codes={linear_codes} must be a whole number of codes in 1..{top} "
+                f"for a {bits}-bit converter (omit it for the reference 1798/2048 of the range)"
+            )
         self.checker = Checker(
             {ch: round(v * ONE) for ch, v in self.limits.items()},
             {
