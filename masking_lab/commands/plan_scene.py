@@ -110,10 +110,16 @@ def run_scene(args: argparse.Namespace, out: Path) -> int:
     from masking_lab.formats.masking_params import read_masking_params
     from masking_lab.formats.output_dir import staged_output
     from masking_lab.formats.protocol import parse_protocol
-    from masking_lab.planning.scene_budget import Observers, budget_table, participant_errors
+    from masking_lab.planning.scene_budget import (
+        BudgetRow,
+        Observers,
+        budget_table,
+        participant_errors,
+    )
     from masking_lab.planning.scene_needs import function_needs, measure_ranges, provisional_pair
     from masking_lab.planning.scene_protocols import masker_levels, measurement_protocol
     from masking_lab.planning.scene_report import (
+        FUNCTION_FIELDS,
         ScenePlan,
         format_scene_plan,
         function_rows,
@@ -235,8 +241,10 @@ def run_scene(args: argparse.Namespace, out: Path) -> int:
     print(text, end="")
     files = {
         "plan.txt": text,
-        "plan_functions.csv": rows_csv(function_rows(needs)),
-        "plan_budgets.csv": rows_csv([r.as_dict() for r in rows]),
+        "plan_functions.csv": rows_csv(function_rows(needs), FUNCTION_FIELDS),
+        "plan_budgets.csv": rows_csv(
+            [r.as_dict() for r in rows], list(BudgetRow.__dataclass_fields__)
+        ),
         "report.html": scene_plan_html(plan, title=f"masking-lab plan: scene {scene.name}"),
     }
     for name, doc in docs.items():

@@ -92,8 +92,9 @@ def measurement_protocol(
     >>> n = FunctionNeed("MV180", "EV270", (9.4, 19.5), "missing", None, 0, 0, "missing",
     ...                  1.3, 1.06)
     >>> doc = measurement_protocol(n, 9.0, 20.0)
-    >>> doc["target"], doc["procedure"]["masker_min_db_sl"], doc["procedure"]["masker_step_db"]
-    ('MV180', 9.0, 3.666667)
+    >>> proc = doc["procedure"]
+    >>> doc["target"], proc["masker_min_db_sl"], round(proc["masker_step_db"], 3)
+    ('MV180', 9.0, 3.667)
     >>> [s["masker_level_db_sl"] for s in measurement_protocol(
     ...     n, 9.0, 20.0, procedure="quest_plus")["sets"]]
     [9.0, 12.666667, 16.333333, 20.0]
@@ -121,7 +122,7 @@ def measurement_protocol(
         proc.update(
             masker_min_db_sl=float(lo),
             masker_max_db_sl=float(hi),
-            masker_step_db=levels[1] - levels[0],
+            masker_step_db=(hi - lo) / (len(levels) - 1),
             max_level_db=max_level,
             intercept_min_db=float(
                 min(proc["intercept_min_db"], math.floor(need.intercept_db - 10))

@@ -16,6 +16,7 @@ from masking_lab.planning.scene_budget import BudgetRow
 from masking_lab.planning.scene_needs import FunctionNeed
 
 __all__ = [
+    "FUNCTION_FIELDS",
     "SECTION_TITLES",
     "ScenePlan",
     "format_scene_plan",
@@ -29,6 +30,21 @@ SECTION_TITLES = (
     "Stimulus pairs and masker ranges",
     "Measurement protocols",
     "Rendering error by measurement budget",
+)
+
+
+FUNCTION_FIELDS = (
+    "direction",
+    "target",
+    "masker",
+    "used_min_db_sl",
+    "used_max_db_sl",
+    "fitted_min_db_sl",
+    "fitted_max_db_sl",
+    "status",
+    "below_fitted_db",
+    "above_fitted_db",
+    "entry_status",
 )
 
 
@@ -113,19 +129,21 @@ def function_rows(needs: Sequence[FunctionNeed]) -> list[dict[str, Any]]:
     return out
 
 
-def rows_csv(rows: Sequence[Mapping[str, Any]]) -> str:
-    """CSV text; empty fields for None, floats to 6 significant digits.
+def rows_csv(rows: Sequence[Mapping[str, Any]], fields: Sequence[str] = ()) -> str:
+    """CSV text; empty fields for None, floats to 6 significant digits; with no rows, the
+    header of ``fields`` alone.
 
     Examples
     --------
     >>> print(rows_csv([{"a": 1.23456789, "b": None}]), end="")
     a,b
     1.23457,
+    >>> rows_csv([], ["a", "b"])
+    'a,b\\n'
     """
     buf = io.StringIO()
-    if not rows:
-        return ""
-    w = csv.DictWriter(buf, fieldnames=list(rows[0]), lineterminator="\n")
+    names = list(rows[0]) if rows else list(fields)
+    w = csv.DictWriter(buf, fieldnames=names, lineterminator="\n")
     w.writeheader()
     for r in rows:
         w.writerow(

@@ -1,0 +1,291 @@
+"""`masking-lab plan --scene`: the masking functions a scene needs and the masker ranges it plays,
+the protocols that measure what is missing or extrapolated (they validate and run on the
+simulated device), the rendering error per budget, the report files and clean refusals."""
+
+from __future__ import annotations
+
+import csv
+import json
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from params_support import masking_entry
+from runner_support import write_calibration
+
+from masking_lab.commands.cli import main
+from masking_lab.core.errors import SolverError
+from masking_lab.core.masking import MaskingFunction
+from masking_lab.formats.masking_params import write_masking_params
+from masking_lab.formats.protocol import load_protocol
+from masking_lab.planning.scene_budget import Observers, budget_table, participant_errors
+from masking_lab.planning.scene_needs import (
+    FunctionNeed,
+    function_needs,
+    measure_ranges,
+    provisional_pair,
+)
+from masking_lab.planning.scene_protocols import masker_levels, measurement_protocol
+from masking_lab.planning.scene_report import SECTION_TITLES
+from masking_lab.rendering.scene import load_scene
+
+ROOT = Path(__file__).resolve().parents[1]
+SCENES = ROOT / "protocols" / "scenes"
+RAMPS = {
+    "MV270": ((1.480, 1.113), (-2.240, 0.602)),
+    "MV180": ((1.304, 1.062), (-5.927, 0.658)),
+}
+# Small and quick: the budget numbers are checked through the API below.
+QUICK = ["--tracks", "3", "--studies", "10", "--participants", "2,4", "--trials", "12"]
+
+
+def _params(path: Path, ramps=RAMPS, fitted_range=(5.0, 25.0)) -> str:
+    functions = []
+    for mv, ((a, b), (c, d)) in ramps.items():
+        for entry in (masking_entry(mv, "EV270", a, b), masking_entry("EV270", mv, c, d)):
+            entry["fitted_range_db_sl"] = list(fitted_range)
+            functions.append(entry)
+    doc = {
+        "schema_version": 1,
+        "software_version": "test",
+        "created_utc": "2024-01-01T00:00:00Z",
+        "provenance": {"source": "fit", "inputs": [], "settings": {}},
+        "functions": functions,
+    }
+    write_masking_params(path, doc)
+    return str(path)
+
+
+def _plan(scene: str, out: Path, *extra: str) -> int:
+    return main(["plan", "--scene", str(SCENES / scene), "--out", str(out), *QUICK, *extra])
+
+
+def _functions_csv(out: Path) -> dict[tuple[str, str], dict[str, str]]:
+    with open(out / "plan_functions.csv", encoding="utf-8") as fh:
+        return {(r["target"], r["masker"]): r for r in csv.DictReader(fh)}
+
+
+def test_missing_stimulus_is_named_and_its_protocols_validate_and_run(tmp_path, capsys):
+    # The user test's coarse texture (MV120am40) with parameters from experiments I and II only.
+    params = _params(tmp_path / "masking_params.json")
+    out = tmp_path / "plan"
+    assert _plan("bump_coarse.yaml", out, "--params", params) == 0
+    text = capsys.readouterr().out
+    assert "EV270 masked by MV120am40" in text and "MV120am40 masked by EV270" in text
+    assert text.count("missing (no entry)") == 2
+    rows = _functions_csv(out)
+    assert {r["status"] for r in rows.values()} == {"missing"}
+    written = sorted(out.glob("measure_*.yaml"))
+    assert [p.name.split("_")[1:4] for p in written] == [
+        ["EV270", "by", "MV120am40"],
+        ["MV120am40", "by", "EV270"],
+    ]
+    data = tmp_path / "data"
+    write_calibration(data, "S01", {"EV270": -18.0, "MV120am40": -24.0})
+    for path in written:
+        assert path.name in text
+        assert main(["validate", str(path)]) == 0
+        protocol = load_protocol(path)
+        spec = protocol.sets[0]
+        target, masker = spec.target.name, spec.masker.name
+        used = rows[(target, masker)]
+        # The protocol covers the used masker range, rounded outward to whole dB.
+        assert spec.settings.masker_min_db_sl == np.floor(float(used["used_min_db_sl"]))
+        assert spec.settings.masker_max_db_sl == np.ceil(float(used["used_max_db_sl"]))
+        assert spec.settings.kind == "functional_ramp" and spec.settings.max_trials == 12
+        argv = ["run", str(path), "--participant", "S01", "--device", "sim", "--responder"]
+        argv += ["sim", "--data", str(data), "--seed", "3", "--no-progress"]
+        assert main(argv) == 0
+        log = next((data / "S01").glob(f"{protocol.experiment}-S01-*.jsonl"))
+        records = [json.loads(line) for line in log.read_text(encoding="utf-8").splitlines()]
+        levels = [r["masker_level_db_sl"] for r in records if r.get("record") == "trial"]
+        assert len(levels) == 12
+        assert min(levels) >= spec.settings.masker_min_db_sl
+        assert max(levels) <= spec.settings.masker_max_db_sl
+
+
+def test_a_fully_covered_scene_has_nothing_to_measure(tmp_path, capsys):
+    params = _params(tmp_path / "p.json", fitted_range=(0.0, 40.0))
+    out = tmp_path / "plan"
+    assert _plan("bump_rough.yaml", out, "--params", params) == 0
+    text = capsys.readouterr().out
+    assert "nothing to measure" in text
+    assert text.count("present, within the fitted range") == 2
+    assert not list(out.glob("measure_*.yaml"))
+    assert (out / "plan_budgets.csv").read_text(encoding="utf-8").startswith("participants,")
+    assert len((out / "plan_budgets.csv").read_text(encoding="utf-8").splitlines()) == 1
+    assert "with the parameters as fitted (no new measurement)" in text
+
+
+def test_an_extrapolated_masker_is_measured_over_exactly_the_missing_range(tmp_path, capsys):
+    # The reference rig's 30 dB SL of MV masks EV beyond the 5-25 dB SL the ramp was fitted on.
+    params = _params(tmp_path / "p.json")
+    out = tmp_path / "plan"
+    assert _plan("bump_rough.yaml", out, "--params", params, "--procedure", "quest_plus") == 0
+    text = capsys.readouterr().out
+    assert "extrapolated: 5.0 dB above the fitted range" in text
+    rows = _functions_csv(out)
+    assert rows[("EV270", "MV180")]["status"] == "extrapolated"
+    assert float(rows[("EV270", "MV180")]["above_fitted_db"]) == pytest.approx(5.0)
+    assert rows[("MV180", "EV270")]["status"] == "within"
+    (written,) = out.glob("measure_*.yaml")
+    assert written.name == "measure_EV270_by_MV180_25-30dB.yaml"
+    protocol = load_protocol(written)
+    assert [s.masker_level_db_sl for s in protocol.sets] == [25.0, 30.0]
+    assert {s.settings.kind for s in protocol.sets} == {"quest_plus"}
+    assert (
+        main(
+            [
+                "validate",
+                str(written),
+                "--device-config",
+                str(ROOT / "protocols" / "devices" / "default.yaml"),
+            ]
+        )
+        == 0
+    )
+
+
+def test_measure_ranges_and_protocols_follow_the_need():
+    def need(status, used, fitted, below=0.0, above=0.0):
+        return FunctionNeed(
+            "EV270", "MV180", used, status, fitted, below, above, "fitted", -5.9, 0.66
+        )
+
+    assert measure_ranges(need("within", (6.0, 20.0), (5.0, 25.0))) == []
+    # Both sides beyond: one range each, widened into the fitted range to two levels.
+    both = need("extrapolated", (1.2, 27.5), (5.0, 25.0), below=3.8, above=2.5)
+    assert measure_ranges(both) == [(1.0, 6.0), (23.0, 28.0)]
+    # A masker that barely varies still gets a ramp's worth of levels; never below 0 dB SL.
+    assert measure_ranges(need("missing", (12.0, 12.0), None)) == [(7.0, 12.0)]
+    assert measure_ranges(need("missing", (-3.0, 1.0), None)) == [(0.0, 5.0)]
+    assert masker_levels(0.0, 20.0) == [0.0, 5.0, 10.0, 15.0, 20.0]
+    with pytest.raises(SolverError, match="choose one of"):
+        measurement_protocol(both, 20.0, 28.0, procedure="staircase")
+
+
+def _bump_rough_truth():
+    scene = load_scene(SCENES / "bump_rough.yaml")
+    prior = {
+        ("MV180", "EV270"): MaskingFunction("MV180", "EV270", 1.304, 1.062),
+        ("EV270", "MV180"): MaskingFunction("EV270", "MV180", -5.927, 0.658),
+    }
+    inputs = provisional_pair(None, prior, mv="MV180", ev="EV270")
+    _, needs = function_needs(scene, inputs, max_mv_db_sl=30.0, max_ev_db_sl=30.0)
+    return scene, inputs, needs
+
+
+def _measured(needs, trials, seed, tracks=10):
+    rng = np.random.default_rng(seed)
+    out = {}
+    for n in needs:
+        ((lo, hi),) = measure_ranges(n)
+        doc = measurement_protocol(n, lo, hi, procedure="quest_plus", trials=max(trials))
+        key = "g" if n.target.startswith("EV") else "f"
+        out[key] = participant_errors(
+            doc["procedure"],
+            "quest_plus",
+            (n.intercept_db, n.slope),
+            trials,
+            tracks=tracks,
+            observers=Observers(),
+            rng=rng,
+            masker_levels_db_sl=masker_levels(lo, hi),
+        )
+    return out
+
+
+def test_rendering_error_falls_with_the_budget_and_is_seeded():
+    scene, inputs, needs = _bump_rough_truth()
+    assert [n.status for n in needs] == ["missing", "missing"]
+    trials = (20, 80)
+    kw = dict(
+        participants=(2, 8, 32),
+        trials=trials,
+        studies=30,
+        seconds_per_trial=9.3,
+        max_mv_db_sl=30.0,
+        max_ev_db_sl=30.0,
+        gamut_map="clip",
+    )
+    rows, floor = budget_table(
+        scene, inputs.pair, _measured(needs, trials, 1), {}, rng=np.random.default_rng(2), **kw
+    )
+    table = np.array([[r.rms_db, r.rms_p90_db, r.max_db, r.measurement_rms_db] for r in rows])
+    assert np.isfinite(table).all() and np.isfinite(list(floor.values())).all()
+    by = {(r.participants, r.trials): r for r in rows}
+    for t in trials:
+        meas = [by[(n, t)].measurement_rms_db for n in (2, 8, 32)]
+        # Four times the participants halves the measurement error's SD (common random numbers).
+        assert meas[0] > meas[1] > meas[2] > 0
+        assert meas[2] / meas[0] == pytest.approx(0.25, rel=0.5)
+    assert by[(32, 80)].rms_db < by[(2, 20)].rms_db
+    # No budget beats the ramps known exactly by more than the spread of a few studies.
+    assert min(r.rms_db for r in rows) > floor["rms_db"] - 0.05
+    assert by[(32, 80)].hours == pytest.approx(32 * 80 * 2 * 9.3 / 3600)
+    again, _ = budget_table(
+        scene, inputs.pair, _measured(needs, trials, 1), {}, rng=np.random.default_rng(2), **kw
+    )
+    assert [r.as_dict() for r in again] == [r.as_dict() for r in rows]
+
+
+def test_report_html_has_the_text_reports_headings_and_folders_follow_plans_rule(
+    tmp_path, monkeypatch, capsys
+):
+    monkeypatch.chdir(tmp_path)
+    scene = str(SCENES / "bump_rough.yaml")
+    argv = ["plan", "--scene", scene, *QUICK, "--params", _params(tmp_path / "p.json")]
+    assert main(argv) == 0
+    assert main(argv) == 0
+    first, second = tmp_path / "plan_out", tmp_path / "plan_out-2"
+    text = (first / "plan.txt").read_text(encoding="utf-8")
+    html = (first / "report.html").read_text(encoding="utf-8")
+    headings = re.findall(r"<h2[^>]*>(.*?)</h2>", html)
+    assert headings == list(SECTION_TITLES)
+    assert all(f"\n{t}\n{'-' * len(t)}\n" in text for t in SECTION_TITLES)
+    assert (second / "plan.txt").read_text(encoding="utf-8") == text  # seeded
+    assert main([*argv, "--out", str(first)]) == 2
+    assert "pass --force" in capsys.readouterr().err
+    assert main([*argv, "--out", str(first), "--force"]) == 0
+
+
+def test_single_channel_scene_needs_nothing(tmp_path, capsys):
+    doc = yaml.safe_load((SCENES / "bump_rough.yaml").read_text(encoding="utf-8"))
+    doc["texture"] = None
+    path = tmp_path / "bump.yaml"
+    path.write_text(yaml.safe_dump(doc), encoding="utf-8")
+    assert main(["plan", "--scene", str(path), "--out", str(tmp_path / "o"), *QUICK]) == 0
+    text = capsys.readouterr().out
+    assert "single-channel scene" in text and "nothing to measure" in text
+
+
+def test_bad_inputs_are_clean_errors_naming_the_file(tmp_path, capsys):
+    params = _params(tmp_path / "p.json")
+    out = str(tmp_path / "o")
+    missing = str(tmp_path / "nope.yaml")
+    assert main(["plan", "--scene", missing, "--out", out]) == 2
+    assert "nope.yaml" in capsys.readouterr().err
+    assert main(["plan", "--scene", str(SCENES / "bump_rough.yaml"), "--params", missing]) == 2
+    assert "nope.yaml" in capsys.readouterr().err
+    not_params = str(SCENES / "bump_rough.yaml")
+    assert main(["plan", "--scene", not_params, "--params", not_params, "--out", out]) == 2
+    assert "bump_rough.yaml" in capsys.readouterr().err
+    # A protocol is not a scene.
+    assert main(["plan", "--scene", str(ROOT / "protocols" / "experiment1.yaml")]) == 2
+    assert "experiment1.yaml" in capsys.readouterr().err
+    # The scene's pair is neither fitted nor known to the ground truth.
+    gt = yaml.safe_load((ROOT / "protocols" / "simulation" / "ground_truth.yaml").read_text())
+    gt["masking"] = [m for m in gt["masking"] if "MV120am40" not in (m["target"], m["masker"])]
+    gt_path = tmp_path / "truth.yaml"
+    gt_path.write_text(yaml.safe_dump(gt), encoding="utf-8")
+    argv = ["plan", "--scene", str(SCENES / "hole_coarse.yaml"), "--params", params]
+    assert main([*argv, "--ground-truth", str(gt_path), "--out", out]) == 2
+    err = capsys.readouterr().err
+    assert "truth.yaml" in err and "MV120am40" in err and "Traceback" not in err
+    # Neither or both of PROTOCOL and --scene.
+    assert main(["plan", "--out", out]) == 2
+    assert main(["plan", str(ROOT / "protocols" / "experiment1.yaml"), "--scene", not_params]) == 2
+    assert "not both" in capsys.readouterr().err
+    assert not Path(out).exists()
