@@ -289,3 +289,45 @@ def test_bad_inputs_are_clean_errors_naming_the_file(tmp_path, capsys):
     assert main(["plan", str(ROOT / "protocols" / "experiment1.yaml"), "--scene", not_params]) == 2
     assert "not both" in capsys.readouterr().err
     assert not Path(out).exists()
+
+
+# ---------------------------------------------------------------------------------------------
+# Issue 19 items 1-2 as the demo reports them: the gamut and the trade in the closing summary.
+
+
+def test_demo_summary_shows_the_gamut_and_the_mapping_trade(tmp_path):
+    from masking_lab.demo_summary import ChannelRow, DemoSummary, _mapping, summary_text
+    from masking_lab.rendering.pair import MutualMasking
+    from masking_lab.rendering.render import compare_strategies, render_scene, summarize
+
+    scene = load_scene(SCENES / "bump_rough.yaml")
+    pair = MutualMasking(0.93, 1.061, -6.49, 0.649, mv="MV180", ev="EV270")
+    rendering = summarize(
+        render_scene(scene, pair, max_mv_db_sl=30.0, max_ev_db_sl=30.0, gamut_map="clip")
+    )
+    rendering["gamut_mapping"]["strategies"] = compare_strategies(scene, pair, 30.0, 30.0)
+    channel = ChannelRow("MV", "MV180", (20.0, 30.0), 3.0, 0, 919, 0, 30.0)
+    m = DemoSummary(
+        tmp_path,
+        2,
+        6,
+        30,
+        30,
+        900,
+        "sim",
+        None,
+        (),
+        ("bump_rough", "MV180", "EV270", 0.69),
+        (channel,),
+        0,
+        **_mapping(rendering),
+    )
+    text = summary_text(m)
+    assert "figure4.png, gamut.png)" in text
+    line = next(ln for ln in text.splitlines() if "perceptual gamut" in ln)
+    # The outline of docs/solver.md for these ramps and the reference rig's 30 dB SL.
+    assert "(-0.9, 0.0), (9.1, 0.0), (29.1, -13.0), (-2.8, 17.0), (-22.8, 30.0)" in line
+    moved = rendering["gamut_mapping"]["points_moved"]
+    assert moved > 800 and f"{moved} of 919 targets lay outside it" in line
+    assert "gamut mapping (rendered with clip)" in text
+    assert all(s in text for s in ("clip", "scale", "compress", "none"))
