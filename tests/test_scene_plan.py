@@ -331,3 +331,16 @@ def test_demo_summary_shows_the_gamut_and_the_mapping_trade(tmp_path):
     assert moved > 800 and f"{moved} of 919 targets lay outside it" in line
     assert "gamut mapping (rendered with clip)" in text
     assert all(s in text for s in ("clip", "scale", "compress", "none"))
+
+
+def test_no_non_finite_number_reaches_the_plan_files():
+    from masking_lab.planning.scene_budget import BudgetRow
+    from masking_lab.planning.scene_report import ScenePlan, format_scene_plan, rows_csv
+
+    # A budget whose every study lost every point (b·d ≥ 1 throughout) has no error to show.
+    row = BudgetRow(5, 30, 60, 0.8, float("nan"), float("nan"), float("inf"), float("nan"), 1.0)
+    csv_text = rows_csv([row.as_dict()])
+    assert "nan" not in csv_text.lower() and "inf" not in csv_text.lower()
+    assert csv_text.splitlines()[1] == "5,30,60,0.8,,,,,1"
+    text = format_scene_plan(ScenePlan(["h"], "", [], [], [row], None, None, []))
+    assert "nan" not in text.lower() and "inf" not in text.lower()

@@ -253,6 +253,20 @@ def _rms(x: NDArray[np.float64]) -> float:
     return float(np.sqrt(np.mean(x**2))) if x.size else math.nan
 
 
+def _max_abs(x: NDArray[np.float64]) -> float:
+    x = x[np.isfinite(x)]
+    return float(np.max(np.abs(x))) if x.size else math.nan
+
+
+def _mean(values: Sequence[float], q: float | None = None) -> float:
+    """Mean (or the ``q``-th percentile) of the finite values; NaN, without a warning, if none."""
+    x = np.asarray(values, dtype=float)
+    x = x[np.isfinite(x)]
+    if not x.size:
+        return math.nan
+    return float(np.mean(x) if q is None else np.percentile(x, q))
+
+
 def budget_table(
     scene: Scene,
     truth: MutualMasking,
@@ -300,7 +314,7 @@ def budget_table(
     err0, _, _ = scene_error(scene, truth, truth, **kw)
     mv_t, ev_t = scene.targets()[1:]
     reference = (mv_t + _unfold(err0, mv_t, ev_t, 0), ev_t + _unfold(err0, mv_t, ev_t, 1))
-    floor = {"rms_db": _rms(err0), "max_db": float(np.nanmax(np.abs(err0)))}
+    floor = {"rms_db": _rms(err0), "max_db": _max_abs(err0)}
     base = {"f": np.array([truth.a_db, truth.b]), "g": np.array([truth.c_db, truth.d])}
     z = {k: rng.standard_normal((studies, 2)) for k in ("f", "g")}
     n_measured = len(measured)
@@ -327,21 +341,20 @@ def budget_table(
                     warnings.simplefilter("ignore", RuntimeWarning)
                     err, dref, share = scene_error(scene, est, truth, reference=reference, **kw)
                 rms.append(_rms(err))
-                mx.append(float(np.nanmax(np.abs(err))) if np.isfinite(err).any() else math.nan)
+                mx.append(_max_abs(err))
                 meas.append(_rms(dref) if dref is not None else math.nan)
                 lost.append(share)
-            rms_a = np.array(rms)
             rows.append(
                 BudgetRow(
                     participants=int(n),
                     trials=int(t),
                     trials_per_participant=int(t) * n_measured,
                     hours=n * t * n_measured * seconds_per_trial / 3600,
-                    rms_db=float(np.nanmean(rms_a)),
-                    rms_p90_db=float(np.nanpercentile(rms_a, 90)),
-                    max_db=float(np.nanmean(mx)),
-                    measurement_rms_db=float(np.nanmean(meas)),
-                    unrendered_share=float(np.mean(lost)),
+                    rms_db=_mean(rms),
+                    rms_p90_db=_mean(rms, 90),
+                    max_db=_mean(mx),
+                    measurement_rms_db=_mean(meas),
+                    unrendered_share=_mean(lost),
                 )
             )
     return rows, floor

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import csv
 import io
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -148,11 +149,20 @@ def rows_csv(rows: Sequence[Mapping[str, Any]], fields: Sequence[str] = ()) -> s
     for r in rows:
         w.writerow(
             {
-                k: "" if v is None else (f"{v:.6g}" if isinstance(v, float) else v)
+                k: "" if v is None else (_csv_float(v) if isinstance(v, float) else v)
                 for k, v in r.items()
             }
         )
     return buf.getvalue()
+
+
+def _csv_float(v: float) -> str:
+    """6 significant digits; empty for a non-finite number (none may reach a file)."""
+    return f"{v:.6g}" if math.isfinite(v) else ""
+
+
+def _f(v: float, digits: int = 2) -> str:
+    return f"{v:.{digits}f}" if math.isfinite(v) else "—"
 
 
 def _function_lines(plan: ScenePlan) -> list[str]:
@@ -193,8 +203,8 @@ def _budget_table_lines(plan: ScenePlan) -> list[str]:
     for r in plan.rows:
         lines.append(
             f"{r.participants:>12d} {r.trials:>9d} {r.trials_per_participant:>12d} "
-            f"{r.hours:>6.1f} {r.rms_db:>9.2f} {r.rms_p90_db:>8.2f} {r.max_db:>9.2f} "
-            f"{r.measurement_rms_db:>10.2f}"
+            f"{r.hours:>6.1f} {_f(r.rms_db):>9} {_f(r.rms_p90_db):>8} {_f(r.max_db):>9} "
+            f"{_f(r.measurement_rms_db):>10}"
         )
     return lines
 
@@ -204,12 +214,12 @@ def _budget_summary(plan: ScenePlan) -> list[str]:
     if plan.as_fitted is not None:
         lines.append(
             "with the parameters as fitted (no new measurement): RMS "
-            f"{plan.as_fitted['rms_db']:.2f} dB, max {plan.as_fitted['max_db']:.2f} dB"
+            f"{_f(plan.as_fitted['rms_db'])} dB, max {_f(plan.as_fitted['max_db'])} dB"
         )
     if plan.floor is not None:
         lines.append(
             "with the ramps known exactly (no budget does better): RMS "
-            f"{plan.floor['rms_db']:.2f} dB, max {plan.floor['max_db']:.2f} dB"
+            f"{_f(plan.floor['rms_db'])} dB, max {_f(plan.floor['max_db'])} dB"
         )
     if not lines and not plan.rows:
         lines.append("single-channel scene: its targets pass straight through, error 0 dB")
