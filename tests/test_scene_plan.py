@@ -344,3 +344,13 @@ def test_no_non_finite_number_reaches_the_plan_files():
     assert csv_text.splitlines()[1] == "5,30,60,0.8,,,,,1"
     text = format_scene_plan(ScenePlan(["h"], "", [], [], [row], None, None, []))
     assert "nan" not in text.lower() and "inf" not in text.lower()
+
+
+def test_an_unmapped_scene_measures_only_what_the_rig_can_play():
+    scene, inputs, _ = _bump_rough_truth()
+    # Unmapped, bump_rough asks for ~62 dB SL of MV; the rig plays at most its 30 dB SL.
+    r, needs = function_needs(scene, inputs, max_mv_db_sl=30.0, max_ev_db_sl=30.0, gamut_map="none")
+    assert np.nanmax(r.mv_input_db_sl) > 50
+    assert max(n.used_range_db_sl[1] for n in needs) == 30.0
+    _, unrated = function_needs(scene, inputs, max_mv_db_sl=None, max_ev_db_sl=None)
+    assert unrated[0].used_range_db_sl[1] > 50  # no rating, nothing caps it

@@ -258,10 +258,15 @@ def function_needs(
     ev_plays = np.isfinite(r.ev_target_db_sl)
     both = mv_plays & ev_plays
     needs = []
-    for target, masker, masker_input, ab, fitted_range in (
-        (pair.ev, pair.mv, r.mv_input_db_sl, (pair.c_db, pair.d), pair.g_fitted_range_db_sl),
-        (pair.mv, pair.ev, r.ev_input_db_sl, (pair.a_db, pair.b), pair.f_fitted_range_db_sl),
-    ):
+    for target, masker, masker_input, rating, ab, fitted_range in (
+        (pair.ev, pair.mv, r.mv_input_db_sl, max_mv_db_sl, (pair.c_db, pair.d),
+         pair.g_fitted_range_db_sl),
+        (pair.mv, pair.ev, r.ev_input_db_sl, max_ev_db_sl, (pair.a_db, pair.b),
+         pair.f_fitted_range_db_sl),
+    ):  # fmt: skip
+        if rating is not None:
+            # Unmapped (--gamut-map none), an input above the rating plays at the rating.
+            masker_input = np.minimum(masker_input, rating)
         used = _used_range(masker_input, both)
         key = (target, masker)
         present = key in inputs.fitted
