@@ -354,3 +354,16 @@ def test_an_unmapped_scene_measures_only_what_the_rig_can_play():
     assert max(n.used_range_db_sl[1] for n in needs) == 30.0
     _, unrated = function_needs(scene, inputs, max_mv_db_sl=None, max_ev_db_sl=None)
     assert unrated[0].used_range_db_sl[1] > 50  # no rating, nothing caps it
+
+
+@pytest.mark.parametrize("scene", ["ascending_coarse", "descending_coarse", "hole_coarse"])
+def test_every_coarse_user_test_object_names_the_missing_texture(scene, tmp_path, capsys):
+    params = _params(tmp_path / "p.json")
+    out = tmp_path / "plan"
+    assert _plan(f"{scene}.yaml", out, "--params", params, "--trials", "10") == 0
+    text = capsys.readouterr().out
+    assert text.count("missing (no entry)") == 2 and "MV120am40" in text
+    written = sorted(out.glob("measure_*.yaml"))
+    assert len(written) == 2
+    for path in written:
+        assert main(["validate", str(path)]) == 0
