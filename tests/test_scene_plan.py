@@ -244,6 +244,7 @@ def test_report_html_has_the_text_reports_headings_and_folders_follow_plans_rule
     html = (first / "report.html").read_text(encoding="utf-8")
     headings = re.findall(r"<h2[^>]*>(.*?)</h2>", html)
     assert headings == list(SECTION_TITLES)
+    assert "data:image/png;base64," in html and (first / "plan_budgets.png").exists()
     assert all(f"\n{t}\n{'-' * len(t)}\n" in text for t in SECTION_TITLES)
     assert (second / "plan.txt").read_text(encoding="utf-8") == text  # seeded
     assert main([*argv, "--out", str(first)]) == 2
@@ -367,3 +368,24 @@ def test_every_coarse_user_test_object_names_the_missing_texture(scene, tmp_path
     assert len(written) == 2
     for path in written:
         assert main(["validate", str(path)]) == 0
+
+
+def test_the_budget_figure_is_legible_and_embedded(tmp_path):
+    from masking_lab.formats.png_figure import small_texts
+    from masking_lab.planning.figures import png_bytes
+    from masking_lab.planning.scene_budget import BudgetRow
+    from masking_lab.planning.scene_figure import budget_figure
+
+    rows = [
+        BudgetRow(n, t, 2 * t, n * t * 2 * 9.3 / 3600, 1 / n + 0.5, 1.2 / n + 0.5, 2.0, 0.4, 0.0)
+        for n in (5, 10)
+        for t in (30, 90)
+    ]
+    fig = budget_figure(rows, {"rms_db": 0.5, "max_db": 2.0}, title="bump_coarse")
+    assert png_bytes(fig).startswith(b"\x89PNG")
+    assert small_texts(fig) == []
+    assert {t.get_text() for t in fig.axes[0].get_legend().get_texts()} == {
+        "5 participants",
+        "10 participants",
+        "ramps known exactly",
+    }

@@ -106,7 +106,7 @@ def run_scene(args: argparse.Namespace, out: Path) -> int:
 
     from masking_lab.core.errors import ProtocolError, SolverError
     from masking_lab.device.config import load_device_config
-    from masking_lab.formats.fileio import write_text_atomic
+    from masking_lab.formats.fileio import write_bytes_atomic, write_text_atomic
     from masking_lab.formats.masking_params import read_masking_params
     from masking_lab.formats.output_dir import staged_output
     from masking_lab.formats.protocol import parse_protocol
@@ -245,8 +245,18 @@ def run_scene(args: argparse.Namespace, out: Path) -> int:
         "plan_budgets.csv": rows_csv(
             [r.as_dict() for r in rows], list(BudgetRow.__dataclass_fields__)
         ),
-        "report.html": scene_plan_html(plan, title=f"masking-lab plan: scene {scene.name}"),
     }
+    pngs = {}
+    if rows:
+        from masking_lab.planning.figures import png_bytes
+        from masking_lab.planning.scene_figure import budget_figure
+
+        pngs["plan_budgets.png"] = png_bytes(
+            budget_figure(rows, floor, title=f"{scene.name}: rendering error against the budget")
+        )
+    files["report.html"] = scene_plan_html(
+        plan, title=f"masking-lab plan: scene {scene.name}", figures=pngs
+    )
     for name, doc in docs.items():
         body = yaml.safe_dump(doc, sort_keys=False, allow_unicode=True)
         content = f"# Written by masking-lab plan --scene {scene.name}.\n{body}"
@@ -256,7 +266,9 @@ def run_scene(args: argparse.Namespace, out: Path) -> int:
     with staged_output(out, protect=protect, markers=("plan.txt",), shared="in_place") as stage:
         for name, content in files.items():
             write_text_atomic(stage / name, content)
-    print(f"\nwrote {', '.join(str(out / n) for n in files)}", file=sys.stderr)
+        for name, png in pngs.items():
+            write_bytes_atomic(stage / name, png)
+    print(f"\nwrote {', '.join(str(out / n) for n in [*files, *pngs])}", file=sys.stderr)
     return 0
 
 

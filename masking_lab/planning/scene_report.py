@@ -12,7 +12,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from masking_lab.formats.html_report import render_page
+from masking_lab.formats.html_report import data_uri, render_page
 from masking_lab.planning.scene_budget import BudgetRow
 from masking_lab.planning.scene_needs import FunctionNeed
 
@@ -243,8 +243,11 @@ def format_scene_plan(plan: ScenePlan) -> str:
     return text + "\n"
 
 
-def scene_plan_html(plan: ScenePlan, *, title: str) -> str:
-    """The plan as one self-contained HTML page with :data:`SECTION_TITLES` as headings."""
+def scene_plan_html(
+    plan: ScenePlan, *, title: str, figures: Mapping[str, bytes] | None = None
+) -> str:
+    """The plan as one self-contained HTML page with :data:`SECTION_TITLES` as headings;
+    ``figures`` (name → PNG) are embedded under the budgets' table."""
     return render_page(
         "scene_plan.html.j2",
         {
@@ -259,5 +262,6 @@ def scene_plan_html(plan: ScenePlan, *, title: str) -> str:
             "protocol_lines": _protocol_lines(plan),
             "rows": plan.rows,
             "budget_notes": _budget_summary(plan),
+            "figures": [(name, data_uri(png)) for name, png in (figures or {}).items()],
         },
     )
