@@ -389,3 +389,41 @@ def test_the_budget_figure_is_legible_and_embedded(tmp_path):
         "10 participants",
         "ramps known exactly",
     }
+
+
+def test_fault_paths_of_the_pure_parts_are_clean_errors():
+    from masking_lab.core.errors import AnalysisError
+
+    bad = {"functions": [{"target": "MV180", "masker": "EV270", "intercept_db": 1.0,
+                          "slope": -1.0, "status": "fitted"}]}  # fmt: skip
+    prior = {("EV270", "MV180"): MaskingFunction("EV270", "MV180", -5.9, 0.66)}
+    with pytest.raises(SolverError, match=r"p\.json: masking slope b .* must be ≥ 0"):
+        provisional_pair(bad, prior, mv="MV180", ev="EV270", params_source="p.json")
+    need = FunctionNeed("EV270", "MV180", (5, 9), "missing", None, 0, 0, "missing", -5.9, 0.66)
+    with pytest.raises(SolverError, match="need 0 ≤ lo < hi"):
+        measurement_protocol(need, 9.0, 9.0)
+    doc = measurement_protocol(need, 5.0, 10.0, procedure="quest_plus")
+    with pytest.raises(AnalysisError, match="at least two masker levels"):
+        participant_errors(
+            doc["procedure"], "quest_plus", (-5.9, 0.66), [20], tracks=3,
+            observers=Observers(), rng=np.random.default_rng(0), masker_levels_db_sl=[5.0],
+        )  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    "option", [["--participants", "0"], ["--trials", "3,x"], ["--tracks", "2"], ["--studies", "5"]]
+)
+def test_bad_budget_options_are_refused_by_the_parser(option, tmp_path, capsys):
+    scene = str(SCENES / "bump_rough.yaml")
+    with pytest.raises(SystemExit) as exc:
+        main(["plan", "--scene", scene, "--out", str(tmp_path / "o"), *option])
+    assert exc.value.code == 2
+    assert option[0] in capsys.readouterr().err
+
+
+def test_a_missing_ground_truth_file_is_named(tmp_path, capsys):
+    missing = str(tmp_path / "truth.yaml")
+    argv = ["plan", "--scene", str(SCENES / "bump_rough.yaml"), "--ground-truth", missing]
+    assert main([*argv, "--out", str(tmp_path / "o")]) == 2
+    assert "truth.yaml" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()

@@ -197,7 +197,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--device-config",
         metavar="FILE",
         help="rig config whose converters are checked against every set's level range: a "
-        "floor below the rig's resolution is flagged (default: protocols/devices/default.yaml)",
+        "floor below the rig's resolution is flagged; with --scene, its channels' "
+        "max_level_db_sl are the ratings (default: protocols/devices/default.yaml)",
     )
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument(
