@@ -427,3 +427,17 @@ def test_a_missing_ground_truth_file_is_named(tmp_path, capsys):
     assert main([*argv, "--out", str(tmp_path / "o")]) == 2
     assert "truth.yaml" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
+
+
+def test_the_rig_config_sets_the_ratings_and_so_the_ranges(tmp_path, capsys):
+    from usertest_support import write_rig
+
+    # A rig rated at 20 dB SL keeps bump_rough's maskers within the 5-25 dB SL fitted on.
+    rig = write_rig(tmp_path, max_level_db_sl=20.0)
+    params = _params(tmp_path / "p.json")
+    out = tmp_path / "plan"
+    assert _plan("bump_rough.yaml", out, "--params", params, "--device-config", str(rig)) == 0
+    text = capsys.readouterr().out
+    assert "rated MV 20, EV 20 dB SL" in text and "nothing to measure" in text
+    rows = _functions_csv(out)
+    assert max(float(r["used_max_db_sl"]) for r in rows.values()) <= 20.0
