@@ -441,3 +441,23 @@ def test_the_rig_config_sets_the_ratings_and_so_the_ranges(tmp_path, capsys):
     assert "rated MV 20, EV 20 dB SL" in text and "nothing to measure" in text
     rows = _functions_csv(out)
     assert max(float(r["used_max_db_sl"]) for r in rows.values()) <= 20.0
+
+
+def test_an_unfitted_entry_counts_as_missing_and_says_why():
+    from masking_lab.planning.scene_report import status_text
+
+    scene = load_scene(SCENES / "bump_rough.yaml")
+    params = {
+        "functions": [
+            masking_entry("MV180", "EV270", 1.304, 1.062),
+            masking_entry("EV270", "MV180", 0.0, 0.0, status="insufficient_data"),
+        ]
+    }
+    prior = {("EV270", "MV180"): MaskingFunction("EV270", "MV180", -5.927, 0.658)}
+    inputs = provisional_pair(params, prior, mv="MV180", ev="EV270")
+    assert inputs.pair.c_db == -5.927  # the prior's ramp predicts the inputs
+    _, needs = function_needs(scene, inputs, max_mv_db_sl=30.0, max_ev_db_sl=30.0)
+    assert [status_text(n) for n in needs] == [
+        "missing (status insufficient_data)",
+        "present, within the fitted range",
+    ]
