@@ -461,3 +461,28 @@ def test_an_unfitted_entry_counts_as_missing_and_says_why():
         "missing (status insufficient_data)",
         "present, within the fitted range",
     ]
+
+
+# ---------------------------------------------------------------------------------------------
+# Issue 19.2 on the paper's scenes: every strategy within the ratings, clip the closest.
+
+PAPER_RAMPS = {**RAMPS, "MV120am40": ((-0.387, 0.939), (-7.442, 0.711))}
+
+
+@pytest.mark.parametrize("path", sorted(SCENES.glob("*.yaml")), ids=lambda p: p.stem)
+def test_each_strategy_on_the_papers_scenes(path):
+    from masking_lab.rendering.pair import MutualMasking
+    from masking_lab.rendering.render import compare_strategies
+
+    scene = load_scene(path)
+    ((mv, ev),) = scene.stimulus_pairs()
+    (a, b), (c, d) = PAPER_RAMPS[mv]
+    trade = compare_strategies(scene, MutualMasking(a, b, c, d, mv=mv, ev=ev), 30.0, 30.0)
+    json.dumps(trade, allow_nan=False)
+    for name in ("clip", "scale", "compress"):
+        assert trade[name]["share_within_ratings"] == 1.0, name
+        assert trade[name]["points_without_a_level"] == 0, name
+    # Clip moves each point to the nearest renderable pair, so no strategy that renders every
+    # point comes closer to the intent (RMS over points and both channels).
+    for name in ("scale", "compress"):
+        assert trade["clip"]["rms_error_db"] <= trade[name]["rms_error_db"] + 1e-9, name
