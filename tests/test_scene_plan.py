@@ -486,3 +486,18 @@ def test_each_strategy_on_the_papers_scenes(path):
     # point comes closer to the intent (RMS over points and both channels).
     for name in ("scale", "compress"):
         assert trade["clip"]["rms_error_db"] <= trade[name]["rms_error_db"] + 1e-9, name
+
+
+def test_functions_not_remeasured_carry_their_exported_standard_errors():
+    scene, inputs, _ = _bump_rough_truth()
+    kw = dict(
+        participants=(1,), trials=(1,), studies=40, seconds_per_trial=9.3, max_mv_db_sl=30.0,
+        max_ev_db_sl=30.0, gamut_map="clip",
+    )  # fmt: skip
+    exact, floor = budget_table(scene, inputs.pair, {}, {}, rng=np.random.default_rng(0), **kw)
+    assert exact[0].rms_db == pytest.approx(floor["rms_db"], abs=1e-12)
+    assert exact[0].measurement_rms_db == pytest.approx(0.0, abs=1e-12)
+    spread = {"f": (0.5, 0.05), "g": (0.5, 0.05)}
+    known, _ = budget_table(scene, inputs.pair, {}, spread, rng=np.random.default_rng(0), **kw)
+    assert known[0].measurement_rms_db > 0.1
+    assert known[0].hours == 0.0 and known[0].trials_per_participant == 0
