@@ -501,3 +501,18 @@ def test_functions_not_remeasured_carry_their_exported_standard_errors():
     known, _ = budget_table(scene, inputs.pair, {}, spread, rng=np.random.default_rng(0), **kw)
     assert known[0].measurement_rms_db > 0.1
     assert known[0].hours == 0.0 and known[0].trials_per_participant == 0
+
+
+def test_a_long_path_is_resampled_for_the_budgets(tmp_path, capsys):
+    doc = yaml.safe_load((SCENES / "bump_coarse.yaml").read_text(encoding="utf-8"))
+    doc["path"]["n_points"] = 20_000
+    path = tmp_path / "long.yaml"
+    path.write_text(yaml.safe_dump(doc), encoding="utf-8")
+    out = tmp_path / "o"
+    argv = ["plan", "--scene", str(path), "--out", str(out), *QUICK]
+    assert main([*argv, "--params", _params(tmp_path / "p.json")]) == 0
+    text = capsys.readouterr().out
+    assert "budgets evaluated on 2000 of the scene's 20000 points" in text
+    with open(out / "plan_budgets.csv", encoding="utf-8") as fh:
+        rows = list(csv.DictReader(fh))
+    assert len(rows) == 2 and all(float(r["rms_db"]) > 0 for r in rows)
