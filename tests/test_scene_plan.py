@@ -516,3 +516,12 @@ def test_a_long_path_is_resampled_for_the_budgets(tmp_path, capsys):
     with open(out / "plan_budgets.csv", encoding="utf-8") as fh:
         rows = list(csv.DictReader(fh))
     assert len(rows) == 2 and all(float(r["rms_db"]) > 0 for r in rows)
+
+
+def test_force_replaces_the_whole_plan_no_stale_protocol_left(tmp_path, capsys):
+    params = _params(tmp_path / "p.json")
+    out = tmp_path / "plan"
+    assert _plan("bump_coarse.yaml", out, "--params", params, "--trials", "10") == 0
+    assert len(list(out.glob("measure_*.yaml"))) == 2
+    assert _plan("bump_rough.yaml", out, "--params", params, "--force") == 0
+    assert [p.name for p in out.glob("measure_*.yaml")] == ["measure_EV270_by_MV180_25-30dB.yaml"]
