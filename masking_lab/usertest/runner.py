@@ -338,7 +338,7 @@ class _UserTestPlan(frame.PlanDefaults):
 
     participant: str
     design: UserTestDesign
-    objects: Mapping[tuple[str, str], Rendering]
+    objects: dict[tuple[str, str], Rendering]  # mapped in place once the device is open
     pairs: Mapping[tuple[str, str], MutualMasking]
     params_record: dict[str, Any] | None
     calibration: dict[str, float]
@@ -381,8 +381,8 @@ class _UserTestPlan(frame.PlanDefaults):
             # lower), now that the device's drive limit is known. In place: the responder's
             # context already holds this mapping.
             mapped = _objects(self.design, self.pairs, self.limits, self.gamut_map)
-            self.objects.clear()  # type: ignore[attr-defined]  # a dict, typed Mapping for readers
-            self.objects.update(mapped)  # type: ignore[attr-defined]  # (as above)
+            self.objects.clear()
+            self.objects.update(mapped)
         self.over = exceedances(self.design, self.objects, self.limits)
         refuse_or_warn(self.over, self.allow_clipping, self.participant, out)
 
