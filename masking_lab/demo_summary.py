@@ -387,9 +387,9 @@ def _param_row(f: Mapping[str, Any], truth: GroundTruth, participants: Sequence[
     a_ci = tuple(f["intercept_ci_db"]) if f.get("intercept_ci_db") else None
     b_ci = tuple(f["slope_ci"]) if f.get("slope_ci") else None
     try:
-        ta, tb = sample_truth(truth, participants, pairs, levels)  # type: ignore[arg-type]
+        ta, tb = sample_truth(truth, participants, pairs, [float(v) for v in levels])
     except (KeyError, AttributeError, MaskingLabError, ValueError):
-        return ParamRow(key, pooled_txt, "fitted", "", a, b, a_ci, b_ci)  # type: ignore[arg-type]
+        return ParamRow(key, pooled_txt, "fitted", "", a, b, a_ci, b_ci)
     inside_a = a_ci is not None and a_ci[0] <= ta <= a_ci[1]
     inside_b = b_ci is not None and b_ci[0] <= tb <= b_ci[1]
     verdict = (
@@ -397,7 +397,7 @@ def _param_row(f: Mapping[str, Any], truth: GroundTruth, participants: Sequence[
         if inside_a and inside_b
         else ("a only" if inside_a else ("b only" if inside_b else "no"))
     )
-    return ParamRow(key, pooled_txt, "fitted", "", a, b, a_ci, b_ci, (ta, tb), verdict)  # type: ignore[arg-type]
+    return ParamRow(key, pooled_txt, "fitted", "", a, b, a_ci, b_ci, (ta, tb), verdict)
 
 
 def _param_text(r: ParamRow) -> str:

@@ -258,10 +258,10 @@ def _analyze_into(
             "AL shift); see report.txt for the status of each set"
         )
     levels_told_apart(shifts, str(data))
-    results = analyze_shifts(shifts, settings, has_participants=True)
+    experiments = analyze_shifts(shifts, settings, has_participants=True)
     files += write_outputs(
         out,
-        results,
+        experiments,
         settings,
         source="analyze",
         inputs=inputs,
@@ -271,7 +271,7 @@ def _analyze_into(
         thresholds=thresholds,
         lab=lab.section,
     )
-    warnings += result_warnings(results)
+    warnings += result_warnings(experiments)
     ramp_files, ramp_problems = _functional_ramps(out, analysed_logs, inputs, settings, created_utc)
     return RunSummary(out, files + ramp_files, warnings + ramp_problems)
 

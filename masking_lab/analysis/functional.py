@@ -86,7 +86,7 @@ def _quantiles(grid: np.ndarray, weights: np.ndarray) -> tuple[float, float]:
     values = np.unique(grid)
     mass = np.array([weights[grid == v].sum() for v in values])
     cdf = np.cumsum(mass) / mass.sum()
-    return tuple(float(np.interp(q, cdf, values)) for q in (0.025, 0.975))  # type: ignore[return-value]
+    return float(np.interp(0.025, cdf, values)), float(np.interp(0.975, cdf, values))
 
 
 def ramp_posterior(
@@ -308,12 +308,12 @@ def _paper_route(target: str, masker: str, ps: Sequence[RampPosterior]) -> Group
         masker,
         "paper_route",
         "functional_ramp",
-        fit.intercept_db,
-        fit.slope,
+        fit.intercept_db if fit.intercept_db is not None else math.nan,
+        fit.slope if fit.slope is not None else math.nan,
         fit.intercept_se_db if fit.intercept_se_db is not None else math.nan,
         fit.slope_se if fit.slope_se is not None else math.nan,
-        tuple(fit.intercept_ci_db) if fit.intercept_ci_db is not None else nan,  # type: ignore[arg-type]
-        tuple(fit.slope_ci) if fit.slope_ci is not None else nan,  # type: ignore[arg-type]
+        fit.intercept_ci_db if fit.intercept_ci_db is not None else nan,
+        fit.slope_ci if fit.slope_ci is not None else nan,
         None,
         None,
         len(ps),

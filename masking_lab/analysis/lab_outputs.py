@@ -141,7 +141,8 @@ def _model(start: Mapping[str, Any]) -> tuple[str, float, float]:
             return str(proc.get("kind")), guess, float(getattr(s, "p_at_threshold", 0.5 ** (1 / 3)))
         except (MaskingLabError, TypeError, ValueError):
             return str(proc.get("kind")), GUESS_3IFC, 0.5 ** (1 / 3)
-    st = start.get("staircase") if isinstance(start.get("staircase"), Mapping) else {}
+    raw_st = start.get("staircase")
+    st = raw_st if isinstance(raw_st, Mapping) else {}
     try:
         p = implied_target_p_for(
             int(st.get("n_up", 1)), int(st.get("n_down", 3)), float(st.get("down_up_ratio", 1.0))
@@ -228,9 +229,10 @@ def read_study(
         except LogError:
             continue  # already reported by the analysis' own read
         h = log.header if isinstance(log.header, Mapping) else {}
-        protocol = h.get("protocol") if isinstance(h.get("protocol"), Mapping) else {}
+        raw_protocol, raw_order = h.get("protocol"), h.get("set_order")
+        protocol = raw_protocol if isinstance(raw_protocol, Mapping) else {}
         participant = str(h.get("participant", "?"))
-        order = h.get("set_order") if isinstance(h.get("set_order"), list) else []
+        order = raw_order if isinstance(raw_order, list) else []
         study.sessions.append(
             SessionInfo(
                 participant,
@@ -244,7 +246,8 @@ def read_study(
         info = h.get("info")
         if isinstance(info, Mapping):
             study.info.setdefault(participant, {}).update(info)
-        content = protocol.get("content") if isinstance(protocol.get("content"), Mapping) else {}
+        raw_content = protocol.get("content")
+        content = raw_content if isinstance(raw_content, Mapping) else {}
         for spec in content.get("info") or []:
             if isinstance(spec, Mapping) and isinstance(spec.get("name"), str):
                 study.info_fields.setdefault(spec["name"], dict(spec))
@@ -427,14 +430,15 @@ def _draw(
         if "(AL shift)" in o.what:
             head, _, rest = o.what.partition(" @ ")
             flagged.add((o.participant, head.split(" ", 1)[1], float(rest.split(" ")[0])))
-    for e, g in done.groupby("experiment", sort=True):
+    for experiment, g in done.groupby("experiment", sort=True):
         shifts = [
             {"participant": r.participant, "mv_stimulus": r.mv_stimulus,
              "pair": f"{r.target}|{r.masker}", "masker_level_db_sl": r.masker_level_db_sl,
              "shift_db": r.shift_db}
             for r in g.itertuples(index=False)
         ]  # fmt: skip
-        path = out / "figures" / f"shifts_{safe_stem(str(e))}.png"
+        e = str(experiment)
+        path = out / "figures" / f"shifts_{safe_stem(e)}.png"
         write_bytes_atomic(path, shift_figure_png(f"Individual AL shifts: {e}", shifts, flagged))
         drawn.append((path, f"each participant's AL shift in {e} against masker level"))
     return drawn
@@ -500,7 +504,9 @@ class _ParquetSink:
         import pyarrow as pa
         import pyarrow.parquet as pq
 
-        cols = list(zip(*self.rows, strict=True)) if self.rows else [[] for _ in TRIAL_COLUMNS]
+        cols: list[Sequence[Any]] = (
+            list(zip(*self.rows, strict=True)) if self.rows else [[] for _ in TRIAL_COLUMNS]
+        )
         table = pa.table(
             {
                 c: pa.array(list(v), type=_ARROW[c]())

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -122,14 +123,20 @@ def binned(
         raise AnalysisError(f"{x.size} levels but {r.size} answers; give one per trial")
     xu, inv = np.unique(x, return_inverse=True)
     n = np.bincount(inv, minlength=xu.size).astype(float)
-    k = np.bincount(inv, weights=r.astype(float), minlength=xu.size)
+    k = np.asarray(np.bincount(inv, weights=r.astype(float), minlength=xu.size), dtype=np.float64)
     return xu, n, k
 
 
 def pf_curve(
-    level_db: ArrayLike, threshold_db: float, slope_per_db: float, lapse: float, guess: float
+    level_db: ArrayLike,
+    threshold_db: float | NDArray[np.float64],
+    slope_per_db: float | NDArray[np.float64],
+    lapse: float | NDArray[np.float64],
+    guess: float,
 ) -> NDArray[np.float64]:
     """p(correct) of the fitted function at ``level_db`` (dB).
+
+    Threshold (dB), slope (per dB) and lapse may be arrays; they broadcast against the levels.
 
     Examples
     --------
@@ -304,7 +311,7 @@ def fit_pf(
     """
     x_all = np.asarray(levels_db, dtype=float).ravel()
     xu, n, k = binned(x_all, correct)
-    base = {
+    base: dict[str, Any] = {
         "n_trials": int(x_all.size),
         "n_levels": int(xu.size),
         "guess": guess,
@@ -339,7 +346,9 @@ def fit_pf(
         # best climb is kept (as procedures.estimators.ml_threshold does).
         lam0 = 0.02 if lapse is None else lapse
         near = xu[:, None] + SCALE_BOUNDS_DB[0] * np.linspace(-4.0, 4.0, 9)[None, :]
-        grid_a = np.union1d(np.linspace(*bounds[0], 81), np.clip(near.ravel(), *bounds[0]))
+        grid_a = np.union1d(
+            np.linspace(bounds[0, 0], bounds[0, 1], 81), np.clip(near.ravel(), *bounds[0])
+        )
         grid_ls = np.linspace(bounds[1, 0], bounds[1, 1], 25)[:-1]
         aa, ll = np.meshgrid(grid_a, grid_ls, indexing="ij")
         grid = np.column_stack([aa.ravel(), ll.ravel(), np.full(aa.size, lam0)])
@@ -373,7 +382,7 @@ def fit_pf(
     beta = 1.0 / s
     p_hat = pf_curve(xu, alpha, beta, lam, guess)
     dev = float(deviance(n, k, p_hat))
-    fields = {
+    fields: dict[str, Any] = {
         "threshold_db": alpha,
         "slope_per_db": beta,
         "lapse": lam,

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -232,7 +232,7 @@ def fit_ramp(x: ArrayLike, shifts: ArrayLike, *, ci_level: float = 0.95) -> Ramp
     if xv.size != y.size:
         raise AnalysisError(f"got {xv.size} masker levels but {y.size} shifts")
     fitted_range = (float(xv.min()), float(xv.max())) if xv.size else (0.0, 0.0)
-    base = dict(
+    base: dict[str, Any] = dict(  # the fields every outcome shares; RampFit checks the rest
         intercept_se_db=None,
         slope_se=None,
         intercept_ci_db=None,
@@ -258,7 +258,7 @@ def fit_ramp(x: ArrayLike, shifts: ArrayLike, *, ci_level: float = 0.95) -> Ramp
                 f"{_levels_text(xv) or 'none'} dB SL — measure more levels or pool this pair "
                 "with another"
             ),
-            **base,  # type: ignore[arg-type]
+            **base,
         )
     a, b = ramp_least_squares(xv, y)
     pred = np.maximum(0.0, a + b * xv)
@@ -281,7 +281,7 @@ def fit_ramp(x: ArrayLike, shifts: ArrayLike, *, ci_level: float = 0.95) -> Ramp
                 f"no masking between {fitted_range[0]:g} and {fitted_range[1]:g} dB SL; the "
                 "exported ramp is 0 there and says nothing about higher masker levels"
             ),
-            **{**base, "r2": r2, "adj_r2": adj},  # type: ignore[arg-type]
+            **{**base, "r2": r2, "adj_r2": adj},
         )
     active = (a + b * xv) > _TINY
     active_levels = np.unique(xv[active])
@@ -315,7 +315,7 @@ def fit_ramp(x: ArrayLike, shifts: ArrayLike, *, ci_level: float = 0.95) -> Ramp
             "adj_r2_active": adj_active,
             "knee_db_sl": None if knee is None else float(knee),
             "n_active_levels": int(active_levels.size),
-        },  # type: ignore[arg-type]
+        },
     )
     return _with_asymptotic(fit, xv[active], sse, n)
 
@@ -334,7 +334,7 @@ def _with_asymptotic(fit: RampFit, x_active: NDArray[np.float64], sse: float, n:
     cov = (sse / dof) * np.linalg.inv(J.T @ J)
     se_a, se_b = math.sqrt(max(cov[0, 0], 0.0)), math.sqrt(max(cov[1, 1], 0.0))
     t = float(stats.t.ppf(0.5 + fit.ci_level / 2.0, dof))
-    a, b = float(fit.intercept_db), float(fit.slope)  # type: ignore[arg-type]
+    a, b = float(fit.intercept_db), float(fit.slope)  # type: ignore[arg-type]  # fitted: set
     return replace(
         fit,
         intercept_se_db=se_a,

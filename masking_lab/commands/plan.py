@@ -25,11 +25,14 @@ import math
 import sys
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from masking_lab.commands.options import command_texts
 from masking_lab.commands.plan_scene import add_scene_options, run_scene
 from masking_lab.commands.progress_bars import add_progress_options
+
+if TYPE_CHECKING:  # `--help` must not import the protocol layer
+    from masking_lab.formats.protocol import Protocol
 
 
 def _checked(
@@ -235,10 +238,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(handler=run)
 
 
-def _places_masker(protocol: object) -> bool:
+def _places_masker(protocol: Protocol) -> bool:
     from masking_lab.procedures.registry import kind_of
 
-    return any(kind_of(s.settings).places_masker for s in protocol.sets)  # type: ignore[attr-defined]
+    return any(kind_of(s.settings).places_masker for s in protocol.sets)
 
 
 #: Simulated participants per route for a functional protocol (each track is ~1 s of CPU).

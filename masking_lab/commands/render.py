@@ -88,12 +88,12 @@ def run(args: argparse.Namespace) -> int:
             for warning in determination_warnings(params, args.params, (mv, ev)):
                 print(f"masking-lab render: warning: {warning}", file=sys.stderr)
         except MissingMaskingError as exc:
-            written = " and ".join(
+            protocols = " and ".join(
                 str(write_measurement_protocol(doc, args.out, writer="render"))
                 for doc in measurement_protocols(exc.problems, writer="render")
             )
             raise SolverError(
-                f"{exc}\n  wrote {written}: the protocol(s) that measure just this pair, one per "
+                f"{exc}\n  wrote {protocols}: the protocol(s) that measure just this pair, one per "
                 f"masking direction. Check them with `masking-lab validate`, run them after the "
                 "participants' baseline, analyse them together with the rest of the study, and "
                 "render again"

@@ -19,6 +19,8 @@ import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
+from masking_lab.core.stimulus import Channel, as_channel
+
 ONE = 1_000_000  # micro-units per unit (µs per s, µV per V, µHz per Hz)
 MAX_TRIAL_US = 60_000_000
 MAX_AHEAD_VT_US = 86_400 * ONE  # TRIAL_MAX_AHEAD_VT_US of firmware/core/trial.h
@@ -147,7 +149,7 @@ class Converter:
 class Part:
     """One tone of a PLAY, checked: channel, µHz, µV, attenuator step, levels."""
 
-    channel: str
+    channel: Channel
     carrier_uhz: int
     envelope_uhz: int
     amp_uv: int
@@ -242,12 +244,12 @@ class Checker:
         return v
 
     @staticmethod
-    def channel(fields: Mapping[str, str], key: str) -> str:
+    def channel(fields: Mapping[str, str], key: str) -> Channel:
         """Field ``key`` as ``EV``/``MV``; ArgsError otherwise."""
         ch = fields.get(key)
         if ch not in ("EV", "MV"):
             raise ArgsError(f"{key} is not EV or MV")
-        return ch
+        return as_channel(ch, key)
 
     def amplitude(self, fields: Mapping[str, str], key: str) -> int:
         """An amplitude field, µV ≥ 0 (its limit is checked later)."""
@@ -274,7 +276,7 @@ class Checker:
                 return k
         raise ArgsError(f"{key} is not one of the board's attenuation steps (HELLO att)")
 
-    def stream(self, fields: Mapping[str, str], *, setup: bool) -> tuple[str, int, int, int]:
+    def stream(self, fields: Mapping[str, str], *, setup: bool) -> tuple[Channel, int, int, int]:
         """SETUP (``setup``) or AMP fields: (channel, carrier µHz, envelope µHz, amp µV)."""
         ch = self.channel(fields, "ch")
         car = env = 0

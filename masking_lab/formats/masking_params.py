@@ -205,6 +205,7 @@ def load_masking_params(path: str | Path) -> dict[tuple[str, str], MaskingParams
             slope_se=f["slope_se"],
             intercept_ci_db=_pair(f["intercept_ci_db"]),
             slope_ci=_pair(f["slope_ci"]),
+            # the schema (checked above) requires this pair: _pair never returns None for it
             fitted_range_db_sl=_pair(f["fitted_range_db_sl"]),  # type: ignore[arg-type]
             knee_db_sl=f["knee_db_sl"],
             adj_r2=f["adj_r2"],

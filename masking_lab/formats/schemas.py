@@ -137,7 +137,8 @@ def describe(error: jsonschema.ValidationError) -> str:
     if v == "pattern":
         return f"{excerpt(inst)} does not match the pattern {want}"
     if v == "additionalProperties" and isinstance(inst, dict):
-        known = set(error.schema.get("properties", {}))
+        schema = error.schema if isinstance(error.schema, Mapping) else {}
+        known = set(schema.get("properties", {}))
         extra = [excerpt(k) for k in inst if k not in known][:3]
         return f"unknown key(s) {', '.join(extra)}; known keys: {', '.join(sorted(known))}"
     if v == "required":

@@ -140,7 +140,7 @@ def display_geometry(
     section = getattr(config, "display", None) if config is not None else None
     source = getattr(config, "path", None) or "the device config"
     explicit = {"width_mm": width_mm, "width_px": width_px, "height_px": height_px}
-    values = {
+    values: dict[str, Any] = {  # Any: from the config; DisplayGeometry checks each value
         key: value if value is not None else getattr(section, key, None)
         for key, value in explicit.items()
     }

@@ -77,18 +77,31 @@ ResponderFactory = Callable[[str, Any], Any]
 
 
 class StartOptions(Protocol):
-    """What every ``run`` states, whatever the session kind (the kind's options add more)."""
+    """What every ``run`` states, whatever the session kind (the kind's options add more).
 
-    participant: str
-    device: str
-    responder: str
-    data_dir: Path
-    seed: int | None
-    real_time: bool
-    ground_truth: Path | None
-    device_config: Path | None
-    progress: bool | None
-    participant_tty: str | None
+    Read-only properties, so that a frozen dataclass of options satisfies the protocol.
+    """
+
+    @property
+    def participant(self) -> str: ...
+    @property
+    def device(self) -> str: ...
+    @property
+    def responder(self) -> str: ...
+    @property
+    def data_dir(self) -> Path: ...
+    @property
+    def seed(self) -> int | None: ...
+    @property
+    def real_time(self) -> bool: ...
+    @property
+    def ground_truth(self) -> Path | None: ...
+    @property
+    def device_config(self) -> Path | None: ...
+    @property
+    def progress(self) -> bool | None: ...
+    @property
+    def participant_tty(self) -> str | None: ...
 
 
 @dataclass(frozen=True)
@@ -237,7 +250,10 @@ class Opened:
 class SessionPlan(Protocol[ResultT]):
     """One session kind's plan for one process, made before any device or window opens."""
 
-    experiment: str
+    @property
+    def experiment(self) -> str:
+        """The experiment id the log's file name and header carry."""
+        ...
 
     def context(self, opening: Opening) -> Any:
         """What the responder factory gets (the kind's context object)."""
@@ -288,7 +304,10 @@ class PlanDefaults:
 class SessionKind(Protocol[ResultT]):
     """A kind of session (threshold, user test): its responders and how it plans a session."""
 
-    responders: tuple[str, ...]
+    @property
+    def responders(self) -> tuple[str, ...]:
+        """The responder names the kind accepts."""
+        ...
 
     def responder_error(self, name: str) -> str:
         """The message for an unknown responder name."""

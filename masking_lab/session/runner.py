@@ -276,8 +276,11 @@ class _ThresholdPlan(frame.PlanDefaults):
             device=device.identity,
             order=self.order,
             **opening.header_fields(),
-            **({"info": dict(self.info)} if self.info else {}),
+            **self._info_field(),
         )
+
+    def _info_field(self) -> dict[str, Any]:
+        return {"info": dict(self.info)} if self.info else {}
 
     def position(self) -> tuple[str | None, int | None]:
         return self.stopped_at
@@ -314,7 +317,7 @@ def _default_responder(name: str, context: SessionContext) -> Responder:
     if name == "psychopy":
         from masking_lab.responders import psychopy_window
 
-        return psychopy_window.make_responder(context)  # type: ignore[attr-defined]
+        return psychopy_window.make_responder(context)
     raise MaskingLabError(f"responder {name!r}: choose one of {', '.join(RESPONDERS)}")
 
 
