@@ -14,6 +14,11 @@ import argparse
 import sys
 from dataclasses import replace
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from masking_lab.planning.scene_budget import BudgetRow
+    from masking_lab.planning.scene_needs import FunctionNeed
 
 __all__ = ["BUDGET_POINTS", "add_scene_options", "run_scene"]
 
@@ -157,7 +162,9 @@ def run_scene(args: argparse.Namespace, out: Path) -> int:
         f"{args.gamut_map}; seed {args.seed}",
     ]
     stimuli = scene.stimulus_pairs()
-    needs, protocols, docs, rows, floor, as_fitted, notes = [], [], {}, [], None, None, []
+    needs: list[FunctionNeed] = []
+    rows: list[BudgetRow] = []
+    protocols, docs, floor, as_fitted, notes = [], {}, None, None, []
     pair_line = ""
     if stimuli:
         mv, ev = stimuli[0]

@@ -145,14 +145,14 @@ def participant_errors(
     if levels.size < 2:
         raise AnalysisError("QUEST+ per set needs at least two masker levels to fit a ramp")
     caps = {t: max(1, t // levels.size) for t in want}
-    settings = QuestPlusSettings.from_mapping(
+    qp_settings = QuestPlusSettings.from_mapping(
         {**procedure, "max_trials": max(caps.values()), "kind": "quest_plus"}
     )
     means = []
     for x in levels:
         thr = calib + np.array([float(ramp(x, ai, b)) for ai in intercepts])
         sim = simulate_quest_plus(
-            settings, thr, scale_db=observers.scale_db, lapse=observers.lapse, rng=rng
+            qp_settings, thr, scale_db=observers.scale_db, lapse=observers.lapse, rng=rng
         )
         means.append(sim)
     result = {}
@@ -310,7 +310,11 @@ def budget_table(
         One :class:`BudgetRow` per budget (participants outer), and the error with the ramps
         known exactly (``rms_db``, ``max_db``): what no budget can beat.
     """
-    kw = {"max_mv_db_sl": max_mv_db_sl, "max_ev_db_sl": max_ev_db_sl, "gamut_map": gamut_map}
+    kw: dict[str, Any] = {
+        "max_mv_db_sl": max_mv_db_sl,
+        "max_ev_db_sl": max_ev_db_sl,
+        "gamut_map": gamut_map,
+    }
     err0, _, _ = scene_error(scene, truth, truth, **kw)
     mv_t, ev_t = scene.targets()[1:]
     reference = (mv_t + _unfold(err0, mv_t, ev_t, 0), ev_t + _unfold(err0, mv_t, ev_t, 1))

@@ -118,7 +118,7 @@ def measurement_protocol(
     name = protocol_name(need, lo, hi)
     if procedure == "functional":
         tpl = _template("experiment1_functional.yaml")
-        proc = dict(tpl["procedure"])
+        proc: dict[str, Any] = dict(tpl["procedure"])
         proc.update(
             masker_min_db_sl=float(lo),
             masker_max_db_sl=float(hi),
@@ -133,7 +133,7 @@ def measurement_protocol(
             slope_max=float(max(proc["slope_max"], round(need.slope + 0.5, 2))),
             max_trials=int(trials),
         )
-        sets = [{"id": need.masker, "masker": need.masker}]
+        sets: list[dict[str, Any]] = [{"id": need.masker, "masker": need.masker}]
         how = f"one functional_ramp track of {trials} trials over the range"
         order: dict[str, Any] = {"randomize": True}
     else:
