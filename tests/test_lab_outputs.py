@@ -274,3 +274,13 @@ def test_the_report_links_every_figure_it_wrote(analyzed):
     assert written
     for rel in written:
         assert f'href="{rel}"' in html and rel in text
+
+
+def test_the_figures_section_lists_only_figures(analyzed):
+    # It once listed thresholds.csv and problems.csv as "staircase tracks of one session".
+    text = (analyzed / "report.txt").read_text()
+    section = text.split("\nFigures\n-------\n", 1)[1].split("\n\n", 1)[0]
+    listed = [line.strip().split(":", 1)[0] for line in section.splitlines() if line.strip()]
+    assert listed
+    for rel in listed:
+        assert rel.endswith(".png") and (analyzed / rel).is_file(), rel
