@@ -140,3 +140,14 @@ def test_a_second_plan_writes_plan_out_2_and_an_explicit_out_needs_force(
     assert main([*args, "--out", "plan_out"]) == 2
     assert "--force" in capsys.readouterr().err
     assert main([*args, "--out", "plan_out", "--force"]) == 0
+
+
+def test_the_staircase_table_explains_a_star_only_when_it_has_one(questplus_plan, staircase_plan):
+    def pooled(plan: Path) -> str:
+        text = (plan / "plan.txt").read_text()
+        return text.split("Speed and accuracy of each setting", 1)[1].split("\n\n", 1)[0]
+
+    # QUEST+: its row is in the procedures table; the staircase table stars nothing.
+    assert "*" not in pooled(questplus_plan)
+    star = pooled(staircase_plan)
+    assert "* this protocol." in star and star.count("*") == 2  # one starred row, its footnote

@@ -106,8 +106,10 @@ def format_table(result: PlanResult) -> str:
             f"{_num(ml.get('bias_db'), '+8.2f')}{_num(ml.get('sd_db'), '6.2f')}"
             f"{_num(z * ml.get('worst_sd_db', math.nan), '8.2f')}"
         )
+    # A QUEST+ protocol has no row here (its row is in the procedures table): no star to explain.
+    own = "* this protocol. " if any(r.get("own") for r in result.table) else ""
     lines.append(
-        f"* this protocol. Pooled over sets: bias is averaged, SD is the root-mean-square "
+        f"{own}Pooled over sets: bias is averaged, SD is the root-mean-square "
         f"within-set SD, ±{z:g}SD uses the worst set. AL = sessions ending with a threshold; "
         "ceil = ceiling or floor; cap = trial cap."
     )
