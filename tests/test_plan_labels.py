@@ -151,3 +151,10 @@ def test_the_staircase_table_explains_a_star_only_when_it_has_one(questplus_plan
     assert "*" not in pooled(questplus_plan)
     star = pooled(staircase_plan)
     assert "* this protocol." in star and star.count("*") == 2  # one starred row, its footnote
+
+
+def test_rows_without_an_al_show_no_efficiency_in_the_html(questplus_plan):
+    # SD ≤ 0.4 dB runs into the protocol's 80-trial cap: no AL, so no efficiency (was "— %").
+    html = (questplus_plan / "report.html").read_text()
+    assert "— %" not in html
+    assert re.search(r"<td>\d+ %</td>", html)  # the rows with an AL keep theirs
