@@ -158,14 +158,16 @@ class Run:
         self.proc = subprocess.Popen(
             argv,
             env={**os.environ, "DISPLAY": display},
-            stdout=subprocess.PIPE,
+            stdout=subprocess.DEVNULL,
             stderr=subprocess.PIPE,
             text=True,
             cwd=tmp_path,
         )
         self.lines: queue.Queue[str] = queue.Queue()
         self.err: list[str] = []
-        threading.Thread(target=self._read, daemon=True).start()
+        # The one reader of stderr (communicate() would race it for lines).
+        self.reader = threading.Thread(target=self._read, daemon=True)
+        self.reader.start()
 
     def _read(self) -> None:
         for line in self.proc.stderr:
@@ -189,9 +191,11 @@ class Run:
     def type(self, text: str) -> None:
         xdotool(self.display, "type", "--delay", "40", text)
 
-    def finish(self) -> tuple[int, str, str]:
-        out, _ = self.proc.communicate(timeout=120)
-        return self.proc.returncode, out, "".join(self.err)
+    def finish(self) -> tuple[int, str]:
+        """Exit code and all of stderr, once the process has ended."""
+        self.proc.wait(timeout=120)
+        self.reader.join(timeout=120)
+        return self.proc.returncode, "".join(self.err)
 
 
 def test_the_window_asks_checks_and_logs_the_participant_fields(x_display, tmp_path):  # noqa: F811
@@ -227,7 +231,7 @@ def test_the_window_asks_checks_and_logs_the_participant_fields(x_display, tmp_p
     finally:
         if run.proc.poll() is None:
             run.proc.kill()
-    code, _, err = run.finish()
+    code, err = run.finish()
     assert code == 130, err
     (log,) = (run.data / "S1").glob("*.jsonl")
     header = json.loads(log.read_text().splitlines()[0])
@@ -244,7 +248,7 @@ def test_escape_in_the_form_stops_before_anything_is_logged(x_display, tmp_path)
         xdotool(x_display, "mousemove", "640", "400")
         run.type("45")
         run.keys("Return", "Escape")
-        code, _, err = run.finish()
+        code, err = run.finish()
     finally:
         if run.proc.poll() is None:
             run.proc.kill()
