@@ -266,3 +266,24 @@ def _lock_free(data: Path) -> bool:
     lock = RunnerLock.acquire(data / "S1", "S1", "baseline")
     lock.release()
     return True
+
+
+class NoFormWindow:
+    """A stand-in participant window without a form (e.g. a lab's own responder factory)."""
+
+    closed = False
+
+    def close(self) -> None:
+        self.closed = True
+
+
+def test_a_window_without_a_form_refuses_missing_fields_and_closes_it(tmp_path):
+    from masking_lab.session.runner import RunOptions, run_session
+
+    window = NoFormWindow()
+    data = tmp_path / "data"
+    options = RunOptions(_protocol(tmp_path), "S1", responder="psychopy", data_dir=data)
+    with pytest.raises(ProtocolError, match=r"missing required age, handedness: give --info"):
+        run_session(options, make_responder=lambda *_: window)
+    assert window.closed
+    assert not list(data.rglob("*.jsonl"))
