@@ -5,6 +5,7 @@ sections, and a second plan never replaces the first one's folder."""
 from __future__ import annotations
 
 import csv
+import html
 import re
 from pathlib import Path
 
@@ -158,3 +159,13 @@ def test_rows_without_an_al_show_no_efficiency_in_the_html(questplus_plan):
     html = (questplus_plan / "report.html").read_text()
     assert "— %" not in html
     assert re.search(r"<td>\d+ %</td>", html)  # the rows with an AL keep theirs
+
+
+def test_the_html_per_set_table_says_whose_rows_they_are(questplus_plan, staircase_plan):
+    for plan, whose in (
+        (questplus_plan, "the paper's staircase beside this protocol"),
+        (staircase_plan, "this protocol's setting"),
+    ):
+        title = f"Per set, {whose} (4,4,4,2 dB, 11/8)"
+        assert f"{title}:" in (plan / "plan.txt").read_text()
+        assert f"<caption>{title}</caption>" in html.unescape((plan / "report.html").read_text())

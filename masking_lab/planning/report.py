@@ -116,6 +116,14 @@ def format_table(result: PlanResult) -> str:
     return "\n".join(lines)
 
 
+def per_set_caption(result: PlanResult) -> str:
+    """What the per-set rows are: the protocol's own staircase, or the paper's beside it."""
+    steps = ",".join(f"{v:g}" for v in result.protocol_schedule.step_sizes_db)
+    mine = any(r.get("own") for r in result.table)
+    whose = "this protocol's setting" if mine else "the paper's staircase beside this protocol"
+    return f"Per set, {whose} ({steps} dB, {result.protocol_rule.label})"
+
+
 def format_per_set(result: PlanResult, *, only_own: bool) -> str:
     """Per-set rows for the protocol's own setting (or every setting)."""
     own_rule, own_sched = result.protocol_rule, result.protocol_schedule
@@ -130,9 +138,7 @@ def format_per_set(result: PlanResult, *, only_own: bool) -> str:
             and r["rule"] == own_rule.label
         )
     ]
-    mine = any(r.get("own") for r in result.table)
-    whose = "this protocol's setting" if mine else "the paper's staircase beside this protocol"
-    title = f"Per set, {whose} ({steps} dB, {own_rule.label}):" if only_own else "Per set:"
+    title = f"{per_set_caption(result)}:" if only_own else "Per set:"
     lines = [
         title,
         f"{'set':<12}{'schedule':<16}{'rule':<7}{'estimator':<15}{'trials':>7}{'p90':>5}"
