@@ -204,10 +204,12 @@ def _analyze_into(
             f"{data}: none of the {len(paths)} log file(s) could be read; first problem: "
             f"{problems[0]['log']}: {problems[0]['problem']}"
         )
+    track_files: list[Path] = []
     if tracks:
         from masking_lab.analysis.track_figures import draw_tracks
 
-        files += draw_tracks(tracks, workers=min(4, os.cpu_count() or 1))
+        track_files = draw_tracks(tracks, workers=min(4, os.cpu_count() or 1))
+        files += track_files
     thresholds = thresholds_table(rows, unmasked_al=settings.unmasked_al, consume=True)
     shifts = shifts_long(thresholds)
     created_utc = settings.created_utc or (max(created) if created else EPOCH_UTC)
@@ -232,8 +234,9 @@ def _analyze_into(
     )
     warnings = [f"{p['log']}: {p['problem']} ({p['action']})" for p in problems]
     warnings += report_inputs.rig_warnings
+    # Only the track figures are listed as such (files also holds thresholds.csv, problems.csv).
     lab = _lab_outputs(
-        data, out, [i["path"] for i in inputs], thresholds, settings, files, fit_progress
+        data, out, [i["path"] for i in inputs], thresholds, settings, track_files, fit_progress
     )
     files += lab.files
     warnings += lab.warnings

@@ -389,8 +389,15 @@ def fit_pf(
         "al_db": float(_al(np.array(alpha), np.array(beta), np.array(lam), guess, p_target)),
         "deviance": dev,
     }
+    # A step in the answers drives the scale to its lower limit: β is then a lower bound only.
+    steep = (
+        f"β at its limit ({1.0 / SCALE_BOUNDS_DB[0]:g}/dB): no level fell on the rising part, so "
+        "the slope is only a lower bound"
+        if s <= SCALE_BOUNDS_DB[0] * (1.0 + 1e-6)
+        else None
+    )
     if n_boot <= 0:
-        return PFFit(True, None, **base, **fields)
+        return PFFit(True, steep, **base, **fields)
     rng = np.random.default_rng(seed)
     sims = rng.binomial(n.astype(int)[None, :], p_hat[None, :], size=(n_boot, xu.size))
     theta, good = _refit(
@@ -403,12 +410,13 @@ def fit_pf(
     p_b = pf_curve(xu[None, :], a_b[:, None], beta_b[:, None], lam_b[:, None], guess)
     dev_b = deviance(n[None, :], sims[good], p_b)
     n_good = int(good.sum())
-    note = None
+    note = steep
     if n_good < 0.9 * n_boot:
-        note = (
+        rough = (
             f"only {n_good} of {n_boot} bootstrap refits stayed inside the bounds: the "
             "intervals are rough"
         )
+        note = rough if note is None else f"{note}; {rough}"
     return PFFit(
         True,
         note,

@@ -303,6 +303,18 @@ class PsychoPyWindowResponder:
 
     # -- Responder protocol -------------------------------------------------------------------
 
+    def ask_info(self, fields: Any, given: dict[str, str]) -> dict[str, str]:
+        """Ask the protocol's participant fields not in ``given`` in this window (before set 1).
+
+        See :func:`masking_lab.responders.window_form.ask_in_window`; Esc raises
+        KeyboardInterrupt.
+        """
+        from masking_lab.responders.window_form import ask_in_window
+
+        text_px = self._px(self.look.text_mm)
+        kw = {"text_px": text_px, "colour": TEXT}
+        return ask_in_window(self.win, self._visual, self._event, fields, given, self._flip, **kw)
+
     def start_set(self, info: SetInfo) -> None:
         """Show the instructions for a set; with ``wait_for_start``, wait for the space bar."""
         self._set = info

@@ -267,6 +267,11 @@ class SessionPlan(Protocol[ResultT]):
         """Checks that need the opened device (limits, watchdog); raise to close it again."""
         ...
 
+    def ask_participant(self, responder: Any, out: ProgressLine) -> None:
+        """Questions asked through the opened responder before the log exists (the window's
+        participant form); KeyboardInterrupt stops the start with nothing logged."""
+        ...
+
     def header(self, opening: Opening, device: Device) -> dict[str, Any]:
         """The log header of a new session."""
         ...
@@ -295,6 +300,9 @@ class PlanDefaults:
 
     def check_device(self, device: Device, out: ProgressLine) -> None:
         """The frame's checks of the opened device are enough."""
+
+    def ask_participant(self, responder: Any, out: ProgressLine) -> None:
+        """Nothing is asked through the responder."""
 
     def resume_message(self, path: Path) -> str:
         """``resuming <path>``."""
@@ -431,6 +439,7 @@ def _start_locked(
     device, responder, opening = _open_in_device_time(frame, plan, opening, options)
     with close_on_failure(device, responder):
         plan.check_device(device, frame.out)
+        plan.ask_participant(responder, frame.out)  # before the log: Esc leaves nothing behind
         header = plan.header(opening, device)
         writer = create_log(
             Path(options.data_dir),
