@@ -312,8 +312,16 @@ class PsychoPyWindowResponder:
         from masking_lab.responders.window_form import ask_in_window
 
         text_px = self._px(self.look.text_mm)
-        kw = {"text_px": text_px, "colour": TEXT}
-        return ask_in_window(self.win, self._visual, self._event, fields, given, self._flip, **kw)
+        return ask_in_window(
+            self.win,
+            self._visual,
+            self._event,
+            fields,
+            given,
+            self._flip,
+            text_px=text_px,
+            colour=TEXT,
+        )
 
     def start_set(self, info: SetInfo) -> None:
         """Show the instructions for a set; with ``wait_for_start``, wait for the space bar."""
