@@ -34,7 +34,16 @@ from typing import Any
 
 import pandas as pd
 
-from masking_lab.analysis.psychometric import PFFit, fit_pf
+from masking_lab.analysis.pf_table import (
+    PF_BOOTSTRAP,
+    PF_COLUMNS,
+    SetTrials,
+    fit_all,
+    pf_job,
+    pf_row,
+    set_trials,
+)
+from masking_lab.analysis.psychometric import PFFit
 from masking_lab.analysis.report_lab import LabSection, PFRow, pf_plot
 from masking_lab.analysis.study_status import (
     SessionInfo,
@@ -43,61 +52,23 @@ from masking_lab.analysis.study_status import (
     unmasked_als,
 )
 from masking_lab.analysis.trials_table import TRIAL_COLUMNS, trial_rows
-from masking_lab.core.errors import LogError, MaskingLabError
-from masking_lab.core.psychometric import GUESS_3IFC
+from masking_lab.core.errors import LogError
 from masking_lab.formats.csv_table import csv_text, csv_text_rows
 from masking_lab.formats.fileio import write_bytes_atomic, write_text_atomic
 from masking_lab.formats.html_report import data_uri
 from masking_lab.formats.session_log import SessionLog, read_log
 
-__all__ = ["PF_COLUMNS", "LabOutputs", "pf_row", "read_study", "write_lab_outputs"]
-
-PF_BOOTSTRAP = 200  # parametric-bootstrap data sets per psychometric function
-PF_COLUMNS = [
-    "participant",
-    "experiment",
-    "set_id",
-    "target",
-    "masker",
-    "masker_level_db_sl",
-    "level_unit",
-    "procedure",
-    "n_trials",
-    "n_levels",
-    "guess",
-    "p_target",
-    "threshold_db",
-    "threshold_ci95_low_db",
-    "threshold_ci95_high_db",
-    "slope_per_db",
-    "slope_ci95_low_per_db",
-    "slope_ci95_high_per_db",
-    "lapse",
-    "lapse_ci95_low",
-    "lapse_ci95_high",
-    "al_db",
-    "al_sd_db",
-    "al_ci95_low_db",
-    "al_ci95_high_db",
-    "deviance",
-    "deviance_df",
-    "deviance_p",
-    "n_bootstrap",
-    "status",
-    "note",
-    "session_id",
-    "log",
+__all__ = [
+    "PF_COLUMNS",
+    "LabOutputs",
+    "fit_all",
+    "pf_job",
+    "pf_row",
+    "read_study",
+    "write_lab_outputs",
 ]
+
 _UNIT_TEXT = {"db_sl": "dB SL", "db_v": "dB re 1 V"}
-
-
-@dataclass
-class SetTrials:
-    """One set attempt's trials for the psychometric fit."""
-
-    start: Mapping[str, Any]
-    levels: list[float] = field(default_factory=list)
-    correct: list[bool] = field(default_factory=list)
 
 
 @dataclass
@@ -107,98 +78,6 @@ class LabOutputs:
     files: list[Path]
     section: LabSection
     warnings: list[str]
-
-
-def _set_trials(log: SessionLog) -> dict[str, SetTrials]:
-    out: dict[str, SetTrials] = {}
-    for rec in log.records:
-        sid = rec.get("set_id")
-        if rec.get("record") == "set_start" and isinstance(sid, str):
-            out.setdefault(sid, SetTrials(rec)).start = rec
-        elif rec.get("record") == "trial" and sid in out:
-            st = out[sid]
-            key = "level_db_sl" if st.start.get("level_unit") == "db_sl" else "level_db_v"
-            lv, ok = rec.get(key), rec.get("correct")
-            if isinstance(lv, int | float) and not isinstance(lv, bool) and isinstance(ok, bool):
-                st.levels.append(float(lv))
-                st.correct.append(ok)
-    return out
-
-
-def _model(start: Mapping[str, Any]) -> tuple[str, float, float]:
-    """The set's procedure kind, guess rate and the p its AL is read at."""
-    from masking_lab.procedures.staircase import implied_target_p_for
-
-    proc = start.get("procedure")
-    if isinstance(proc, Mapping):
-        # the registry rebuilds any kind's settings; a kind without a guess rate or threshold
-        # point (or unreadable settings) is read as a 3IFC track at the 1-up-3-down point
-        from masking_lab.procedures.registry import settings_from_start
-
-        try:
-            s = settings_from_start(start, None)
-            guess = float(getattr(s, "guess", GUESS_3IFC))
-            return str(proc.get("kind")), guess, float(getattr(s, "p_at_threshold", 0.5 ** (1 / 3)))
-        except (MaskingLabError, TypeError, ValueError):
-            return str(proc.get("kind")), GUESS_3IFC, 0.5 ** (1 / 3)
-    st = start.get("staircase") if isinstance(start.get("staircase"), Mapping) else {}
-    try:
-        p = implied_target_p_for(
-            int(st.get("n_up", 1)), int(st.get("n_down", 3)), float(st.get("down_up_ratio", 1.0))
-        )
-    except (TypeError, ValueError, ArithmeticError):
-        p = 0.5 ** (1 / 3)
-    return "staircase", GUESS_3IFC, p
-
-
-def pf_row(base: Mapping[str, Any], st: SetTrials, seed: int, n_boot: int = PF_BOOTSTRAP) -> dict:
-    """The ``psychometric.csv`` row of one set: the fit of its trials, λ fitted in [0, 0.1].
-
-    Examples
-    --------
-    >>> st = SetTrials({"level_unit": "db_sl"}, [0.0, 2.0, 4.0] * 10, [False, True, True] * 10)
-    >>> row = pf_row({"participant": "P1"}, st, seed=1, n_boot=0)
-    >>> row["status"], row["n_levels"], row["deviance_df"]
-    ('fitted', 3, 0)
-    """
-    kind, guess, p_target = _model(st.start)
-    fit: PFFit = fit_pf(
-        st.levels, st.correct, guess=guess, p_target=p_target, lapse=None, n_boot=n_boot,
-        seed=seed,
-    )  # fmt: skip
-
-    def ci(v: tuple[float, float] | None, i: int) -> float | None:
-        return None if v is None else v[i]
-
-    return {
-        **base,
-        "level_unit": "db_sl" if st.start.get("level_unit") == "db_sl" else "db_v",
-        "procedure": kind,
-        "n_trials": fit.n_trials,
-        "n_levels": fit.n_levels,
-        "guess": guess,
-        "p_target": p_target,
-        "threshold_db": fit.threshold_db,
-        "threshold_ci95_low_db": ci(fit.threshold_ci_db, 0),
-        "threshold_ci95_high_db": ci(fit.threshold_ci_db, 1),
-        "slope_per_db": fit.slope_per_db,
-        "slope_ci95_low_per_db": ci(fit.slope_ci_per_db, 0),
-        "slope_ci95_high_per_db": ci(fit.slope_ci_per_db, 1),
-        "lapse": fit.lapse,
-        "lapse_ci95_low": ci(fit.lapse_ci, 0),
-        "lapse_ci95_high": ci(fit.lapse_ci, 1),
-        "al_db": fit.al_db,
-        "al_sd_db": fit.al_sd_db,
-        "al_ci95_low_db": ci(fit.al_ci_db, 0),
-        "al_ci95_high_db": ci(fit.al_ci_db, 1),
-        "deviance": fit.deviance,
-        "deviance_df": max(fit.n_levels - 3, 0),
-        "deviance_p": fit.deviance_p,
-        "n_bootstrap": fit.n_boot,
-        "status": "fitted" if fit.ok else "failed",
-        "note": fit.message,
-        "_fit": fit,
-    }
 
 
 @dataclass
@@ -248,7 +127,7 @@ def read_study(
         for spec in content.get("info") or []:
             if isinstance(spec, Mapping) and isinstance(spec.get("name"), str):
                 study.info_fields.setdefault(spec["name"], dict(spec))
-        for sid, st in _set_trials(log).items():
+        for sid, st in set_trials(log).items():
             study.sets[(rel, sid)] = st
         if on_log is not None:
             on_log(rel, log)
@@ -316,8 +195,8 @@ def write_lab_outputs(
 
     # Psychometric functions of the sets whose threshold is used (completed attempts).
     used = thresholds[thresholds["status"] == "completed"] if trial_tables else thresholds[:0]
-    pf_rows: list[dict] = []
-    for i, r in enumerate(used.itertuples(index=False)):
+    wanted: list[tuple[dict, SetTrials, int]] = []
+    for r in used.itertuples(index=False):
         st = study.sets.get((str(r.log), str(r.set_id)))
         if st is not None:
             base = {
@@ -331,9 +210,13 @@ def write_lab_outputs(
                 "log": r.log,
             }
             seed = zlib.crc32(f"{r.participant}|{r.experiment}|{r.set_id}|{r.log}".encode())
-            pf_rows.append(pf_row(base, st, seed, n_boot))
-        if progress:
-            progress(i + 1, len(used))
+            wanted.append((base, st, seed))
+    # Every fit at once (batched, in parallel for many sets): the same numbers as one by one.
+    fits = fit_all([pf_job(st, seed, n_boot) for _, st, seed in wanted], progress=progress)
+    pf_rows = [
+        pf_row(base, st, seed, n_boot, fit)
+        for (base, st, seed), fit in zip(wanted, fits, strict=True)
+    ]
     if trial_tables:
         files.append(write_text_atomic(out / "psychometric.csv", csv_text(PF_COLUMNS, pf_rows)))
     files += _write_participants(out, study)
