@@ -28,9 +28,9 @@ import importlib.util
 import json
 import zlib
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TextIO
 
 import pandas as pd
 
@@ -41,22 +41,19 @@ from masking_lab.analysis.pf_table import (
     fit_all,
     pf_job,
     pf_row,
-    set_trials,
 )
 from masking_lab.analysis.psychometric import PFFit
 from masking_lab.analysis.report_lab import LabSection, PFRow, pf_plot
+from masking_lab.analysis.study_reading import StudyLogs, read_parts
 from masking_lab.analysis.study_status import (
-    SessionInfo,
     outliers,
     status_matrix,
     unmasked_als,
 )
-from masking_lab.analysis.trials_table import TRIAL_COLUMNS, trial_rows
-from masking_lab.core.errors import LogError
-from masking_lab.formats.csv_table import csv_text, csv_text_rows
+from masking_lab.analysis.trials_table import TRIAL_COLUMNS
+from masking_lab.formats.csv_table import csv_text
 from masking_lab.formats.fileio import write_bytes_atomic, write_text_atomic
 from masking_lab.formats.html_report import data_uri
-from masking_lab.formats.session_log import SessionLog, read_log
 
 __all__ = [
     "PF_COLUMNS",
@@ -80,57 +77,30 @@ class LabOutputs:
     warnings: list[str]
 
 
-@dataclass
-class StudyLogs:
-    """The analysed logs as the per-participant outputs need them."""
-
-    sessions: list[SessionInfo] = field(default_factory=list)
-    sets: dict[tuple[str, str], SetTrials] = field(default_factory=dict)
-    info: dict[str, dict[str, Any]] = field(default_factory=dict)
-    info_fields: dict[str, dict[str, Any]] = field(default_factory=dict)
-    sessions_of: dict[str, int] = field(default_factory=dict)
-
-
 def read_study(
     data: Path,
     logs: Sequence[str],
-    on_log: Callable[[str, SessionLog], None] | None = None,
+    set_status: Mapping[tuple[str, str], str] | None = None,
+    *,
+    trials_csv: TextIO | None = None,
+    parquet: _ParquetSink | None = None,
 ) -> StudyLogs:
     """Read the analysed logs (relative paths under ``data``) with the general reader.
 
-    ``on_log`` sees each parsed log (``analyze`` streams its trial rows from there).
+    With ``trials_csv`` (and ``parquet``), each log's trial rows are written there as it comes
+    in (``set_status``: ``(log, set_id)`` → status), so a large study never sits in memory.
+    Many logs are read in parallel (:func:`~masking_lab.analysis.study_reading.read_parts`).
     """
     study = StudyLogs()
-    for rel in logs:
-        try:
-            log = read_log(data / rel)
-        except LogError:
+    rows = parquet is not None and parquet.enabled
+    for part in read_parts(data, logs, set_status, csv=trials_csv is not None, rows=rows):
+        if part is None:
             continue  # already reported by the analysis' own read
-        h = log.header if isinstance(log.header, Mapping) else {}
-        protocol = h.get("protocol") if isinstance(h.get("protocol"), Mapping) else {}
-        participant = str(h.get("participant", "?"))
-        order = h.get("set_order") if isinstance(h.get("set_order"), list) else []
-        study.sessions.append(
-            SessionInfo(
-                participant,
-                str(protocol.get("experiment", "?")),
-                rel,
-                tuple(str(s) for s in order),
-                log.ended,
-            )
-        )
-        study.sessions_of[participant] = study.sessions_of.get(participant, 0) + 1
-        info = h.get("info")
-        if isinstance(info, Mapping):
-            study.info.setdefault(participant, {}).update(info)
-        content = protocol.get("content") if isinstance(protocol.get("content"), Mapping) else {}
-        for spec in content.get("info") or []:
-            if isinstance(spec, Mapping) and isinstance(spec.get("name"), str):
-                study.info_fields.setdefault(spec["name"], dict(spec))
-        for sid, st in set_trials(log).items():
-            study.sets[(rel, sid)] = st
-        if on_log is not None:
-            on_log(rel, log)
+        study.add(part)
+        if trials_csv is not None:
+            trials_csv.write(part.trials_csv)
+        if rows:
+            parquet.add(part.trial_rows or [])  # type: ignore[union-attr]
     return study
 
 
@@ -181,13 +151,7 @@ def write_lab_outputs(
         parquet = _ParquetSink(out / "trials.parquet")
         with trials_path.open("w", encoding="utf-8", newline="") as fh:
             fh.write(",".join(TRIAL_COLUMNS) + "\n")
-
-            def on_log(rel: str, log: SessionLog) -> None:
-                rows = list(trial_rows(log, rel, status))
-                fh.write(csv_text_rows(TRIAL_COLUMNS, rows).split("\n", 1)[1])
-                parquet.add(rows)
-
-            study = read_study(data, logs, on_log)
+            study = read_study(data, logs, status, trials_csv=fh, parquet=parquet)
         files.append(trials_path)
         files += parquet.close()
     else:

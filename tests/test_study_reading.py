@@ -1,0 +1,45 @@
+"""The second read of `analyze` spread over processes (issue 22): the same parts, in the same
+order, as one process reading the logs itself, and an unreadable log is passed over."""
+
+from __future__ import annotations
+
+import pytest
+
+from masking_lab.analysis import study_reading
+from masking_lab.analysis.study_reading import StudyLogs, read_parts
+from masking_lab.simulation.synthetic_logs import simulate_study
+
+
+@pytest.fixture(scope="module")
+def logs(tmp_path_factory):
+    root = tmp_path_factory.mktemp("study")
+    simulate_study(root, n_participants=2, seed=3, baseline_start_above_db=10.0)
+    (root / "P01" / "torn.jsonl").write_bytes(b'{"record":"header","partic')
+    (root / "P02" / "gone.jsonl").mkdir()  # a folder named like a log: unreadable
+    rels = sorted(p.relative_to(root).as_posix() for p in root.rglob("*.jsonl"))
+    return root, rels
+
+
+def test_parts_read_in_processes_are_the_parts_read_in_process(logs, monkeypatch):
+    root, rels = logs
+    status = {(rel, "A"): "completed" for rel in rels}
+    serial = list(read_parts(root, rels, status, csv=True, rows=True, workers=1))
+    monkeypatch.setattr(study_reading, "_CHUNK", 2)
+    parallel = list(read_parts(root, rels, status, csv=True, rows=True, workers=2))
+    assert parallel == serial
+    assert [p is None for p in serial].count(True) == 2  # the torn header, the folder
+    assert sum(len(p.trials_csv.splitlines()) for p in serial if p) > 100
+    assert all(p.trials_csv.count("\n") == len(p.trial_rows) for p in serial if p)
+
+
+def test_a_study_gathers_sessions_sets_and_info_in_log_order(logs):
+    root, rels = logs
+    study = StudyLogs()
+    for part in read_parts(root, rels, workers=1):
+        if part is not None:
+            study.add(part)
+    unreadable = ("gone.jsonl", "torn.jsonl")
+    assert [s.log for s in study.sessions] == [r for r in rels if not r.endswith(unreadable)]
+    assert study.sessions_of == {"P01": 3, "P02": 3}
+    assert {log for log, _ in study.sets} <= set(rels) and len(study.sets) > 20
+    assert all(st.levels and len(st.levels) == len(st.correct) for st in study.sets.values())
