@@ -24,7 +24,6 @@ It returns the :class:`~masking_lab.analysis.report_lab.LabSection` the reports 
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import zlib
 from collections.abc import Callable, Mapping, Sequence
@@ -44,7 +43,7 @@ from masking_lab.analysis.pf_table import (
 )
 from masking_lab.analysis.psychometric import PFFit
 from masking_lab.analysis.report_lab import LabSection, PFRow, pf_plot
-from masking_lab.analysis.study_reading import StudyLogs, read_parts
+from masking_lab.analysis.study_reading import ParquetSink, StudyLogs, read_parts
 from masking_lab.analysis.study_status import (
     outliers,
     status_matrix,
@@ -83,7 +82,7 @@ def read_study(
     set_status: Mapping[tuple[str, str], str] | None = None,
     *,
     trials_csv: TextIO | None = None,
-    parquet: _ParquetSink | None = None,
+    parquet: ParquetSink | None = None,
 ) -> StudyLogs:
     """Read the analysed logs (relative paths under ``data``) with the general reader.
 
@@ -99,8 +98,8 @@ def read_study(
         study.add(part)
         if trials_csv is not None:
             trials_csv.write(part.trials_csv)
-        if rows:
-            parquet.add(part.trial_rows or [])  # type: ignore[union-attr]
+        if rows and part.trial_batch is not None:
+            parquet.add(part.trial_batch)  # type: ignore[union-attr]
     return study
 
 
@@ -148,7 +147,7 @@ def write_lab_outputs(
     }
     if trial_tables:
         trials_path = out / "trials.csv"
-        parquet = _ParquetSink(out / "trials.parquet")
+        parquet = ParquetSink(out / "trials.parquet")
         with trials_path.open("w", encoding="utf-8", newline="") as fh:
             fh.write(",".join(TRIAL_COLUMNS) + "\n")
             study = read_study(data, logs, status, trials_csv=fh, parquet=parquet)
@@ -326,67 +325,6 @@ def _tsv(v: Any) -> str:
         return "n/a"
     text = json.dumps(v) if isinstance(v, bool) else str(v)
     return text.replace("\t", " ").replace("\n", " ")
-
-
-class _ParquetSink:
-    """``trials.parquet`` written in row groups when pyarrow is installed; else nothing."""
-
-    def __init__(self, path: Path) -> None:
-        self.path = path
-        self.rows: list[list[Any]] = []
-        self.writer: Any = None
-        self.enabled = importlib.util.find_spec("pyarrow") is not None
-
-    def add(self, rows: list[list[Any]]) -> None:
-        if self.enabled:
-            self.rows += rows
-            if len(self.rows) >= 200_000:
-                self._flush()
-
-    def _flush(self) -> None:
-        import pyarrow as pa
-        import pyarrow.parquet as pq
-
-        cols = list(zip(*self.rows, strict=True)) if self.rows else [[] for _ in TRIAL_COLUMNS]
-        table = pa.table(
-            {
-                c: pa.array(list(v), type=_ARROW[c]())
-                for c, v in zip(TRIAL_COLUMNS, cols, strict=True)
-            }
-        )
-        if self.writer is None:
-            self.writer = pq.ParquetWriter(self.path, table.schema)
-        self.writer.write_table(table)
-        self.rows = []
-
-    def close(self) -> list[Path]:
-        if not self.enabled:
-            return []
-        if self.rows or self.writer is None:
-            self._flush()
-        self.writer.close()
-        return [self.path]
-
-
-def _arrow_types() -> dict[str, Callable[[], Any]]:
-    def t(name: str) -> Callable[[], Any]:
-        def make() -> Any:
-            import pyarrow as pa
-
-            return getattr(pa, name)()
-
-        return make
-
-    ints = {"set_position", "trial", "correct", "target_interval", "response_interval",
-            "reversal", "line"}  # fmt: skip
-    strs = {"participant", "session_id", "created_utc", "experiment", "protocol_path",
-            "set_id", "target", "masker", "procedure", "level_unit", "at_bound", "set_status",
-            "log"}  # fmt: skip
-    return {c: t("int64") if c in ints else t("string") if c in strs else t("float64")
-            for c in TRIAL_COLUMNS}  # fmt: skip
-
-
-_ARROW = _arrow_types()
 
 
 def study_at_a_glance(data: str | Path) -> tuple[LabSection, list[str]]:

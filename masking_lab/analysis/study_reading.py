@@ -11,8 +11,9 @@ processes read them.
 
 from __future__ import annotations
 
+import importlib.util
 import os
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -26,7 +27,7 @@ from masking_lab.core.errors import LogError
 from masking_lab.formats.csv_table import csv_text_rows
 from masking_lab.formats.session_log import read_log
 
-__all__ = ["LogPart", "StudyLogs", "read_parts"]
+__all__ = ["LogPart", "ParquetSink", "StudyLogs", "read_parts", "trial_batch"]
 
 _CHUNK = 16  # logs per worker task
 
@@ -47,8 +48,8 @@ class LogPart:
         Set id → :class:`~masking_lab.analysis.pf_table.SetTrials` (levels in dB).
     trials_csv : str
         Its ``trials.csv`` lines without the header ('' unless asked for).
-    trial_rows : list or None
-        Its trial rows, for ``trials.parquet`` (None unless asked for).
+    trial_batch : pyarrow.RecordBatch or None
+        Its trial rows as columns, for ``trials.parquet`` (None unless asked for).
     """
 
     session: SessionInfo
@@ -56,7 +57,7 @@ class LogPart:
     info_specs: list[dict[str, Any]]
     sets: dict[str, SetTrials]
     trials_csv: str = ""
-    trial_rows: list[list[Any]] | None = None
+    trial_batch: Any = None  # pyarrow.RecordBatch
 
 
 @dataclass
@@ -125,7 +126,7 @@ def read_part(
         if csv:
             part.trials_csv = csv_text_rows(TRIAL_COLUMNS, table).split("\n", 1)[1]
         if rows:
-            part.trial_rows = table
+            part.trial_batch = trial_batch(table)
     return part
 
 
@@ -183,3 +184,86 @@ def read_parts(
     with ProcessPoolExecutor(max_workers=min(workers, len(chunks))) as pool:
         for parts in pool.map(_read_chunk, chunks):
             yield from parts
+
+
+def trial_batch(rows: list[list[Any]]) -> Any:
+    """Trial rows (:data:`~masking_lab.analysis.trials_table.TRIAL_COLUMNS` order) as a
+    ``pyarrow.RecordBatch`` of the ``trials.parquet`` column types (needs pyarrow).
+
+    Examples
+    --------
+    >>> trial_batch([]).num_rows  # doctest: +SKIP
+    0
+    """
+    import pyarrow as pa
+
+    cols = list(zip(*rows, strict=True)) if rows else [[] for _ in TRIAL_COLUMNS]
+    return pa.record_batch(
+        [pa.array(list(v), type=_ARROW[c]()) for c, v in zip(TRIAL_COLUMNS, cols, strict=True)],
+        names=TRIAL_COLUMNS,
+    )
+
+
+class ParquetSink:
+    """``trials.parquet`` written in row groups when pyarrow is installed; else nothing.
+
+    Each log's rows come as one record batch (columns, a fraction of the memory of rows); a
+    row group is written once 200,000 rows are held, so the row groups fall where they fell
+    when rows were gathered one log at a time.
+    """
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.batches: list[Any] = []
+        self.n_rows = 0
+        self.writer: Any = None
+        self.enabled = importlib.util.find_spec("pyarrow") is not None
+
+    def add(self, batch: Any) -> None:
+        """Hold one log's rows (a record batch from :func:`trial_batch`)."""
+        if self.enabled:
+            self.batches.append(batch)
+            self.n_rows += batch.num_rows
+            if self.n_rows >= 200_000:
+                self._flush()
+
+    def _flush(self) -> None:
+        import pyarrow as pa
+        import pyarrow.parquet as pq
+
+        batches = self.batches or [trial_batch([])]
+        table = pa.Table.from_batches(batches).combine_chunks()
+        if self.writer is None:
+            self.writer = pq.ParquetWriter(self.path, table.schema)
+        self.writer.write_table(table)
+        self.batches, self.n_rows = [], 0
+
+    def close(self) -> list[Path]:
+        """Write what is held and close the file; the files written."""
+        if not self.enabled:
+            return []
+        if self.batches or self.writer is None:
+            self._flush()
+        self.writer.close()
+        return [self.path]
+
+
+def _arrow_types() -> dict[str, Callable[[], Any]]:
+    def t(name: str) -> Callable[[], Any]:
+        def make() -> Any:
+            import pyarrow as pa
+
+            return getattr(pa, name)()
+
+        return make
+
+    ints = {"set_position", "trial", "correct", "target_interval", "response_interval",
+            "reversal", "line"}  # fmt: skip
+    strs = {"participant", "session_id", "created_utc", "experiment", "protocol_path",
+            "set_id", "target", "masker", "procedure", "level_unit", "at_bound", "set_status",
+            "log"}  # fmt: skip
+    return {c: t("int64") if c in ints else t("string") if c in strs else t("float64")
+            for c in TRIAL_COLUMNS}  # fmt: skip
+
+
+_ARROW = _arrow_types()
