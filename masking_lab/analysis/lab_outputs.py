@@ -25,14 +25,17 @@ It returns the :class:`~masking_lab.analysis.report_lab.LabSection` the reports 
 from __future__ import annotations
 
 import json
+import weakref
 import zlib
 from collections.abc import Callable, Mapping, Sequence
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TextIO
 
 import pandas as pd
 
+from masking_lab.analysis.log_reading import PARALLEL_FROM
 from masking_lab.analysis.pf_table import (
     PF_BOOTSTRAP,
     PF_COLUMNS,
@@ -145,6 +148,10 @@ def write_lab_outputs(
         (str(r[0]), str(r[1])): str(r[2])
         for r in thresholds[["log", "set_id", "status"]].itertuples(index=False)
     }
+    flags = outliers(thresholds)
+    # The shift figures need only the thresholds: for a large study they are drawn in a
+    # process of their own while the logs are read and fitted (the main process is idle then).
+    early = _ShiftFigures(thresholds, flags, figures != "none", len(logs) >= PARALLEL_FROM)
     if trial_tables:
         trials_path = out / "trials.csv"
         parquet = ParquetSink(out / "trials.parquet")
@@ -190,10 +197,9 @@ def write_lab_outputs(
     ]  # fmt: skip
     status_csv = csv_text(status_cols, [vars(c) for c in matrix])
     files.append(write_text_atomic(out / "study_status.csv", status_csv))
-    flags = outliers(thresholds)
     figure_links: list[tuple[str, str]] = []
     if figures != "none":
-        drawn = _draw(out, study, pf_rows, thresholds, flags, figures)
+        drawn = _draw(out, study, pf_rows, early, figures)
         files += [p for p, _ in drawn]
         figure_links = [(p.relative_to(out).as_posix(), c) for p, c in drawn]
     section = LabSection(
@@ -243,12 +249,11 @@ def _draw(
     out: Path,
     study: StudyLogs,
     pf_rows: Sequence[Mapping[str, Any]],
-    thresholds: pd.DataFrame,
-    flags: Sequence[Any],
+    shift_figures: _ShiftFigures,
     figures: str,
 ) -> list[tuple[Path, str]]:
     from masking_lab.analysis.figures import safe_stem
-    from masking_lab.analysis.lab_figures import pf_figure_png, shift_figure_png
+    from masking_lab.analysis.lab_figures import pf_figure_png
 
     drawn: list[tuple[Path, str]] = []
     groups: dict[tuple[str, str], list[Mapping[str, Any]]] = {}
@@ -267,23 +272,57 @@ def _draw(
         path = out / "figures" / "psychometric" / f"{safe_stem(f'{p}_{e}')}.png"
         write_bytes_atomic(path, pf_figure_png(f"Psychometric functions: {p}, {e}", panels))
         drawn.append((path, f"psychometric functions of {p} in {e}, one panel per set"))
-    done = thresholds[(thresholds["status"] == "completed") & thresholds["shift_db"].notna()]
-    flagged = set()
-    for o in flags:
-        if "(AL shift)" in o.what:
-            head, _, rest = o.what.partition(" @ ")
-            flagged.add((o.participant, head.split(" ", 1)[1], float(rest.split(" ")[0])))
-    for e, g in done.groupby("experiment", sort=True):
-        shifts = [
-            {"participant": r.participant, "mv_stimulus": r.mv_stimulus,
-             "pair": f"{r.target}|{r.masker}", "masker_level_db_sl": r.masker_level_db_sl,
-             "shift_db": r.shift_db}
-            for r in g.itertuples(index=False)
-        ]  # fmt: skip
+    for e, png in shift_figures.result():
         path = out / "figures" / f"shifts_{safe_stem(str(e))}.png"
-        write_bytes_atomic(path, shift_figure_png(f"Individual AL shifts: {e}", shifts, flagged))
+        write_bytes_atomic(path, png)
         drawn.append((path, f"each participant's AL shift in {e} against masker level"))
     return drawn
+
+
+class _ShiftFigures:
+    """``figures/shifts_<experiment>.png`` of the thresholds: drawn in a process of its own
+    from the start (``early``), or in-process when asked for the result."""
+
+    def __init__(self, thresholds: pd.DataFrame, flags: Sequence[Any], wanted: bool, early: bool):
+        self.jobs: list[tuple[str, str, list[dict], set]] = []
+        self.pool: ProcessPoolExecutor | None = None
+        self.futures: list[Any] = []
+        if not wanted:
+            return
+        done = thresholds[(thresholds["status"] == "completed") & thresholds["shift_db"].notna()]
+        flagged = set()
+        for o in flags:
+            if "(AL shift)" in o.what:
+                head, _, rest = o.what.partition(" @ ")
+                flagged.add((o.participant, head.split(" ", 1)[1], float(rest.split(" ")[0])))
+        for e, g in done.groupby("experiment", sort=True):
+            shifts = [
+                {"participant": r.participant, "mv_stimulus": r.mv_stimulus,
+                 "pair": f"{r.target}|{r.masker}", "masker_level_db_sl": r.masker_level_db_sl,
+                 "shift_db": r.shift_db}
+                for r in g.itertuples(index=False)
+            ]  # fmt: skip
+            self.jobs.append((str(e), f"Individual AL shifts: {e}", shifts, flagged))
+        if early and self.jobs:
+            self.pool = ProcessPoolExecutor(max_workers=1)
+            self.futures = [self.pool.submit(_shift_png, *job[1:]) for job in self.jobs]
+            # a run that fails before the figures are collected does not wait for them
+            weakref.finalize(self, self.pool.shutdown, False, cancel_futures=True)
+
+    def result(self) -> list[tuple[str, bytes]]:
+        """(experiment, PNG bytes) per experiment, sorted by experiment."""
+        if self.pool is None:
+            return [(job[0], _shift_png(*job[1:])) for job in self.jobs]
+        try:
+            return [(job[0], f.result()) for job, f in zip(self.jobs, self.futures, strict=True)]
+        finally:
+            self.pool.shutdown()
+
+
+def _shift_png(title: str, shifts: list[dict], flagged: set) -> bytes:
+    from masking_lab.analysis.lab_figures import shift_figure_png
+
+    return shift_figure_png(title, shifts, flagged)
 
 
 def _write_participants(out: Path, study: StudyLogs) -> list[Path]:

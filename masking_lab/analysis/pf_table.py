@@ -10,6 +10,7 @@ in 1/dB).
 
 from __future__ import annotations
 
+import functools
 import os
 from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import ProcessPoolExecutor
@@ -90,10 +91,17 @@ def set_trials(log: SessionLog) -> dict[str, SetTrials]:
     return out
 
 
-def _model(start: Mapping[str, Any]) -> tuple[str, float, float]:
-    """The set's procedure kind, guess rate and the p its AL is read at."""
+@functools.lru_cache(maxsize=256)
+def _target_p(n_up: int, n_down: int, down_up_ratio: float) -> float:
+    """The staircase's target p (a root search, ~7 ms): a study has a handful of rules and
+    thousands of sets, so each rule is solved once (bounded: the rules come from files)."""
     from masking_lab.procedures.staircase import implied_target_p_for
 
+    return implied_target_p_for(n_up, n_down, down_up_ratio)
+
+
+def _model(start: Mapping[str, Any]) -> tuple[str, float, float]:
+    """The set's procedure kind, guess rate and the p its AL is read at."""
     proc = start.get("procedure")
     if isinstance(proc, Mapping):
         # the registry rebuilds any kind's settings; a kind without a guess rate or threshold
@@ -108,7 +116,7 @@ def _model(start: Mapping[str, Any]) -> tuple[str, float, float]:
             return str(proc.get("kind")), GUESS_3IFC, 0.5 ** (1 / 3)
     st = start.get("staircase") if isinstance(start.get("staircase"), Mapping) else {}
     try:
-        p = implied_target_p_for(
+        p = _target_p(
             int(st.get("n_up", 1)), int(st.get("n_down", 3)), float(st.get("down_up_ratio", 1.0))
         )
     except (TypeError, ValueError, ArithmeticError):
