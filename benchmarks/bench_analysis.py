@@ -26,7 +26,7 @@ Usage::
 
     python benchmarks/bench_analysis.py                    # 100 and 1000 sessions
     python benchmarks/bench_analysis.py --with-10000       # and 10000 (~2 GB of logs)
-    python benchmarks/bench_analysis.py --sizes 100 --analyze-args "--no-trial-tables"
+    python benchmarks/bench_analysis.py --sizes 100 --analyze-args=--no-trial-tables
 """
 
 from __future__ import annotations
