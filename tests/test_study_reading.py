@@ -44,3 +44,35 @@ def test_a_study_gathers_sessions_sets_and_info_in_log_order(logs):
     assert study.sessions_of == {"P01": 3, "P02": 3}
     assert {log for log, _ in study.sets} <= set(rels) and len(study.sets) > 20
     assert all(st.levels and len(st.levels) == len(st.correct) for st in study.sets.values())
+
+
+def test_only_logs_that_can_name_a_functional_set_are_parsed_again(tmp_path):
+    from masking_lab.analysis.batch import _may_hold_functional
+
+    plain = tmp_path / "a.jsonl"
+    plain.write_bytes(b'{"record":"set_start","procedure":{"kind":"quest_plus"}}\n')
+    named = tmp_path / "b.jsonl"
+    named.write_bytes(b'{"record":"set_start","procedure":{"kind":"functional_ramp"}}\n')
+    escaped = tmp_path / "c.jsonl"  # JSON may spell the kind with an escape
+    escaped.write_bytes(b'{"record":"set_start","procedure":{"kind":"\\u0066unctional_ramp"}}\n')
+    assert not _may_hold_functional(plain)
+    assert _may_hold_functional(named) and _may_hold_functional(escaped)
+    assert _may_hold_functional(tmp_path / "gone.jsonl")  # unreadable: the reader says why
+
+
+def test_shift_figures_drawn_in_their_own_process_are_the_ones_drawn_in_process(logs):
+    from masking_lab.analysis.lab_outputs import _ShiftFigures
+    from masking_lab.analysis.log_reading import read_logs
+    from masking_lab.analysis.study_status import outliers
+    from masking_lab.analysis.thresholds import EstimatorSettings, thresholds_table
+
+    root, rels = logs
+    paths = [root / r for r in rels if not r.endswith(("gone.jsonl", "torn.jsonl"))]
+    rows = [row for res in read_logs(paths, root, EstimatorSettings()) for row in res.rows]
+    thresholds = thresholds_table(rows)
+    flags = outliers(thresholds)
+    here = _ShiftFigures(thresholds, flags, True, early=False).result()
+    there = _ShiftFigures(thresholds, flags, True, early=True).result()
+    assert [e for e, _ in here] == ["experiment1", "experiment2"]
+    assert there == here and all(png.startswith(b"\x89PNG") for _, png in there)
+    assert _ShiftFigures(thresholds, flags, False, early=True).result() == []
