@@ -290,9 +290,22 @@ def _functional_ramps(
     hook: analysis/functional_outputs.py)."""
     from masking_lab.analysis.functional_outputs import write_functional_outputs
 
+    # Parsing every log again only to find no functional set is a third read of the study:
+    # a log whose bytes never name the kind (nor escape a character, which could spell it)
+    # holds none.
+    logs = [p for p in logs if _may_hold_functional(p)]
     return write_functional_outputs(
         out, logs, inputs=inputs, settings=settings.as_dict("analyze"), created_utc=created_utc
     )
+
+
+def _may_hold_functional(path: Path) -> bool:
+    """Whether the log at ``path`` can hold a ``functional_ramp`` set (unreadable: maybe)."""
+    try:
+        raw = path.read_bytes()
+    except OSError:
+        return True
+    return b"functional_ramp" in raw or b"\\u" in raw
 
 
 def _lab_outputs(
