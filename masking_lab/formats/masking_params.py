@@ -305,8 +305,9 @@ def draws_field(
 
     Examples
     --------
-    >>> draws_field("bootstrap", 0, 3, [(-4.123456, 0.81), (float("nan"), 0.8), (-3.9, 0.79)])
-    {'method': 'bootstrap', 'seed': 0, 'n_replicates': 3, 'intercept_db': [-4.1235, -3.9], 'slope': [0.81, 0.79]}
+    >>> f = draws_field("bootstrap", 0, 3, [(-4.123456, 0.81), (float("nan"), 0.8), (-3.9, 0.79)])
+    >>> f["intercept_db"], f["slope"], f["seed"]
+    ([-4.1235, -3.9], [0.81, 0.79], 0)
     """
     kept = [
         (round(float(a), DRAW_DECIMALS) + 0.0, round(float(b), DRAW_DECIMALS) + 0.0)
