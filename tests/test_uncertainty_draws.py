@@ -251,3 +251,15 @@ def test_render_names_the_method_for_new_and_old_files(tmp_path, capsys):
         u = json.loads((out / "summary.json").read_text())["uncertainty"]
         assert words.split(" ", 3)[-1] in u["method"]
         assert u["method_by_function"]["EV270 by MV180"] == "parametric fallback"
+
+
+def test_posterior_draws_are_named_as_such(tmp_path):
+    path = _params(tmp_path, draws=_correlated_draws(40))
+    doc = json.loads(path.read_text())
+    doc["functions"][0]["draws"]["method"] = "posterior"
+    doc["functions"][1]["intercept_slope_cov"] = -0.009
+    spread = pair_spread(doc, mv="MV180", ev="EV270")
+    assert spread.methods() == ("posterior draws", "covariance")
+    u = perceived_intervals(_rendering(), spread, n_draws=100)
+    assert "posterior draws (40 stored" in u.method and "correlation -0.90" in u.method
+    assert np.isfinite(u.mv_lo).all() and np.isfinite(u.ev_hi).all()
