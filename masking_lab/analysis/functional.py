@@ -214,6 +214,9 @@ class GroupRamp:
         Between-participant SDs (random effects only).
     n_participants : int
     status, message : str
+    intercept_slope_cov : float or None
+        Covariance of the group intercept and slope, dB · dB/dB (random effects: the
+        participants' mean posterior correlation times the two standard errors).
     """
 
     target: str
@@ -231,6 +234,7 @@ class GroupRamp:
     n_participants: int
     status: str = "fitted"
     message: str = ""
+    intercept_slope_cov: float | None = None
 
 
 def random_effects(means: Sequence[float], sds: Sequence[float]) -> tuple[float, float, float]:
@@ -291,6 +295,9 @@ def group_ramps(posteriors: Sequence[RampPosterior]) -> list[GroupRamp]:
                 tau_a,
                 tau_b,
                 len(ps),
+                # DerSimonian-Laird pools each parameter alone; their correlation is taken
+                # as the participants' mean posterior one.
+                intercept_slope_cov=float(np.mean([p.rho for p in ps])) * se_a * se_b,
             )
         )
         out.append(_paper_route(target, masker, ps))

@@ -78,6 +78,12 @@ class RampFit:
         Why the status is what it is, or a caution about a fitted ramp.
     n_boot_failed : int
         Bootstrap replicates that could not be fitted (0 unless ``uncertainty == "bootstrap"``).
+    intercept_slope_cov : float or None
+        Covariance of intercept and slope (dB · dB/dB SL): asymptotic, or over the bootstrap
+        replicates; None without standard errors.
+    draws : tuple of (intercept_db, slope) tuples
+        Up to :data:`MAX_KEPT_DRAWS` joint bootstrap replicates, in the order drawn (empty
+        unless ``uncertainty == "bootstrap"``): the export carries them to the rendering.
     """
 
     intercept_db: float | None
@@ -99,6 +105,12 @@ class RampFit:
     status: FitStatus
     message: str | None
     n_boot_failed: int = 0
+    intercept_slope_cov: float | None = None
+    draws: tuple[tuple[float, float], ...] = ()
+
+
+#: Joint bootstrap replicates a fit keeps for the export (the rest only shape its SEs and CIs).
+MAX_KEPT_DRAWS = 200
 
 
 def ramp_least_squares_batch(
@@ -342,6 +354,7 @@ def _with_asymptotic(fit: RampFit, x_active: NDArray[np.float64], sse: float, n:
         intercept_ci_db=(a - t * se_a, a + t * se_a),
         slope_ci=(b - t * se_b, b + t * se_b),
         uncertainty="asymptotic",
+        intercept_slope_cov=float(cov[0, 1]),
     )
 
 
@@ -362,14 +375,16 @@ def with_bootstrap(
     Returns
     -------
     RampFit
-        SE = SD of the replicates, intervals = percentile intervals at ``fit.ci_level``.
+        SE = SD of the replicates, intervals = percentile intervals at ``fit.ci_level``,
+        their covariance, and the first :data:`MAX_KEPT_DRAWS` replicates as joint draws
+        (replicates are independent, so the first ones are a random subset).
 
     Examples
     --------
     >>> fit = fit_ramp([0, 10, 20], [0.0, 4.0, 12.0])
     >>> boot = with_bootstrap(fit, [-4.2, -3.8, -4.0], [0.78, 0.82, 0.80])
-    >>> boot.uncertainty, round(boot.slope_se, 3)
-    ('bootstrap', 0.02)
+    >>> boot.uncertainty, round(boot.slope_se, 3), len(boot.draws)
+    ('bootstrap', 0.02, 3)
     """
     if fit.status != "fitted":
         return fit
@@ -394,6 +409,8 @@ def with_bootstrap(
         uncertainty="bootstrap",
         message=message,
         n_boot_failed=int(n_failed),
+        intercept_slope_cov=float(np.cov(ab, bb, ddof=1)[0, 1]),
+        draws=tuple(zip(ab[:MAX_KEPT_DRAWS].tolist(), bb[:MAX_KEPT_DRAWS].tolist(), strict=True)),
     )
 
 

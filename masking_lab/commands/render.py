@@ -192,8 +192,9 @@ def run(args: argparse.Namespace) -> int:
         print(f"  other mappings (RMS/max error as played): {others}")
     if uncertainty is not None:
         u = uncertainty.summary()
+        how = ", ".join(f"{fn} {m}" for fn, m in u["method_by_function"].items())
         print(
-            f"  uncertainty ({u['n_draws']} parametric draws of the fits, "
+            f"  uncertainty ({u['n_draws']} draws of the fits: {how}; "
             f"{100 * u['level']:.0f} % intervals): compensation not better than none at "
             f"{u['points_compensation_not_better']} points; {u['points_beyond_fitted_range']} "
             "points rely on a ramp beyond its fitted masker range"

@@ -143,6 +143,10 @@ def describe(error: jsonschema.ValidationError) -> str:
         return f"unknown key(s) {', '.join(extra)}; known keys: {', '.join(sorted(known))}"
     if v == "required":
         return f"{error.message}: add it"
+    if v in ("maxItems", "minItems") and isinstance(inst, list):
+        # jsonschema's own words quote the whole list; the count is what matters.
+        bound = "at most" if v == "maxItems" else "at least"
+        return f"must have {bound} {want} items, got {len(inst)}"
     return excerpt(error.message, 160)
 
 
