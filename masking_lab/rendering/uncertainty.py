@@ -151,7 +151,8 @@ def pair_spread(
         sources.append(f"{target} by {masker}: {entry.get('uncertainty', 'unknown')}")
         cov = entry.get("intercept_slope_cov")
         covs.append(float(cov) if isinstance(cov, int | float) and np.isfinite(cov) else None)
-        d = entry.get("draws") if isinstance(entry.get("draws"), Mapping) else {}
+        raw_draws = entry.get("draws")
+        d = raw_draws if isinstance(raw_draws, Mapping) else {}
         pairs = tuple(
             (float(a), float(b))
             for a, b in zip(d.get("intercept_db") or (), d.get("slope") or (), strict=False)
