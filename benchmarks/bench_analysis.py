@@ -4,30 +4,35 @@ Simulates a ten-participant study once (baseline, experiment I, experiment II: 3
 logs written by ``masking_lab.simulation.synthetic_logs``), then builds folders of 100, 1,000
 (and with ``--with-10000`` 10,000) sessions by copying those logs under new participant ids
 (only the header line changes, so every file is a complete, realistic session of 4 or 15
-staircases). For each folder, in one run:
+staircases). For each folder, in one run, every row timed as a whole command (a fresh Python
+process, start-up and imports included, as a user times it):
 
-- ``read bytes``: reading every file's bytes (the floor: no parsing at all);
-- ``json.loads``: reading every file and ``json.loads`` of every line (stdlib, into dicts);
-- ``analyze``: ``masking-lab analyze DATA --out OUT`` with its default options, run by the CLI's
-  ``main`` in a child process after a warm-up analysis of the pool (imports and font caches are
-  one-time costs, not per-session ones), with that process tree's peak memory (largest process
-  from ``wait4``, and the sum over the tree sampled every 50 ms, workers included).
+- ``read``: reading every file's bytes (no parsing at all);
+- ``read+sha``: reading and SHA-256 of every file (the provenance analyze records);
+- ``typed``: reading, SHA-256 and the typed msgspec decode of every line (the analysis view
+  of ``masking_lab.formats.log_records``) in as many processes as analyze uses: the floor of
+  analyze's own read;
+- ``json``: reading and stdlib ``json.loads`` of every line in one process;
+- ``analyze``: ``masking-lab analyze DATA --out OUT --quiet`` with the given options, with
+  its process tree's peak memory (largest process from ``wait4``, and the sum over the tree
+  sampled every 50 ms, workers included).
 
-Prints times, the ratios analyze / read-bytes and analyze / json.loads (targets: 10,000
-sessions in at most 15 s and 400 MB; at 1,000 sessions at most 0.6 x json.loads), and the
-growth per session. Nothing is asserted; the file cache is warm for all three (files were
-just written), so the comparison is like for like.
+Prints the times and the ratios analyze / typed (target: at most 2 at 10,000 sessions) and
+analyze / json (target: at most 1 at 1,000 sessions), and memory (target: 300 MB at 10,000).
+Nothing is asserted; the file cache is warm for all (the files were just written, and every
+row reads them), so the comparison is like for like.
 
 Usage::
 
     python benchmarks/bench_analysis.py                    # 100 and 1000 sessions
     python benchmarks/bench_analysis.py --with-10000       # and 10000 (~2 GB of logs)
-    python benchmarks/bench_analysis.py --sizes 100 --analyze-args "--figures all"
+    python benchmarks/bench_analysis.py --sizes 100 --analyze-args=--no-trial-tables
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import os
 import shlex
@@ -69,21 +74,44 @@ def build_folder(pool: Path, dest: Path, n_sessions: int) -> int:
     return written
 
 
-def time_read_bytes(paths: list[Path]) -> float:
-    """Seconds (s) to read every file's bytes."""
-    t = time.perf_counter()
-    for p in paths:
-        p.read_bytes()
-    return time.perf_counter() - t
+FLOORS = ("read", "read+sha", "typed", "json")
 
 
-def time_json_loads(paths: list[Path]) -> float:
-    """Seconds (s) to read every file and ``json.loads`` every line (stdlib)."""
-    t = time.perf_counter()
+def floor(kind: str, data: Path) -> None:
+    """In a child process: one floor over every log under ``data`` (see the module docstring)."""
+    paths = sorted(data.rglob("*.jsonl"))
+    if kind == "typed":
+        from concurrent.futures import ProcessPoolExecutor
+
+        chunks = [paths[i : i + 32] for i in range(0, len(paths), 32)]
+        with ProcessPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
+            sum(pool.map(_typed_chunk, chunks))
+        return
     for p in paths:
-        for line in p.read_bytes().splitlines():
-            if line:
-                json.loads(line)
+        raw = p.read_bytes()
+        if kind == "read+sha":
+            hashlib.sha256(raw).hexdigest()
+        elif kind == "json":
+            for line in raw.splitlines():
+                if line:
+                    json.loads(line)
+
+
+def _typed_chunk(paths: list[Path]) -> int:
+    from masking_lab.formats.log_records import ANALYSIS_DECODER
+
+    n = 0
+    for p in paths:
+        raw = p.read_bytes()
+        hashlib.sha256(raw).hexdigest()
+        n += len(ANALYSIS_DECODER.decode_lines(raw))
+    return n
+
+
+def run_floor(kind: str, data: Path) -> float:
+    """Wall time (s) of one floor as a whole command."""
+    t = time.perf_counter()
+    subprocess.run([sys.executable, __file__, "--floor", kind, str(data)], check=True)
     return time.perf_counter() - t
 
 
@@ -123,24 +151,13 @@ def _tree_rss_kb(root: int) -> int:
     return total
 
 
-def child(data: Path, out: Path, pool: Path, extra: list[str]) -> None:
-    """In the child process: warm up on the pool, then time ``analyze`` of ``data``."""
-    from masking_lab.commands.cli import main as cli_main
-
-    # One-time costs (imports, matplotlib's font cache) are not per-session costs.
-    cli_main(["analyze", str(pool), "--out", str(out.parent / "warmup"), "--quiet", *extra])
+def run_analyze(data: Path, out: Path, extra: list[str]) -> tuple[float, float, float]:
+    """Wall time (s) of ``masking-lab analyze`` as a whole command, the largest process's peak
+    (MB, RSS from ``wait4``) and the sampled process-tree peak (MB, PSS)."""
+    code = "import sys; from masking_lab.commands.cli import main; sys.exit(main(sys.argv[1:]))"
+    cmd = [sys.executable, "-c", code, "analyze", str(data), "--out", str(out), "--quiet", *extra]
     t = time.perf_counter()
-    code = cli_main(["analyze", str(data), "--out", str(out), "--quiet", *extra])
-    print(json.dumps({"seconds": time.perf_counter() - t, "exit": code}), flush=True)
-
-
-def run_analyze(data: Path, out: Path, pool: Path, extra: list[str]) -> tuple[float, float, float]:
-    """Warm analyze time (s), largest process peak (MB), sampled process-tree peak (MB).
-
-    The analysis runs in a child process (``--child``), so its memory is its own.
-    """
-    cmd = [sys.executable, __file__, "--child", str(data), str(out), str(pool), shlex.join(extra)]
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     peak = {"kb": 0}
     stop = threading.Event()
 
@@ -150,17 +167,14 @@ def run_analyze(data: Path, out: Path, pool: Path, extra: list[str]) -> tuple[fl
 
     sampler = threading.Thread(target=sample, daemon=True)
     sampler.start()
-    stdout = proc.stdout.read() if proc.stdout else b""
+    err = proc.stderr.read() if proc.stderr else b""
     _, status, usage = os.wait4(proc.pid, 0)
+    seconds = time.perf_counter() - t
     stop.set()
     sampler.join()
-    err = proc.stderr.read().decode(errors="replace") if proc.stderr else ""
     if os.waitstatus_to_exitcode(status) != 0:
-        raise SystemExit(f"analyze failed: {err[-2000:]}")
-    result = json.loads(stdout.decode().strip().splitlines()[-1])
-    if result["exit"] != 0:
-        raise SystemExit(f"analyze exited {result['exit']}: {err[-2000:]}")
-    return result["seconds"], usage.ru_maxrss / 1024, peak["kb"] / 1024
+        raise SystemExit(f"analyze failed: {err.decode(errors='replace')[-2000:]}")
+    return seconds, usage.ru_maxrss / 1024, peak["kb"] / 1024
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -169,11 +183,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--with-10000", action="store_true", help="add 10000 sessions (~2 GB)")
     ap.add_argument("--analyze-args", default="", help="extra options for analyze, quoted")
     ap.add_argument("--workdir", help="folder for the generated logs (default: a temp folder)")
-    ap.add_argument("--child", nargs=4, help=argparse.SUPPRESS)
+    ap.add_argument("--floor", nargs=2, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
-    if args.child:
-        data, out, pool, extra_text = args.child
-        child(Path(data), Path(out), Path(pool), shlex.split(extra_text))
+    if args.floor:
+        floor(args.floor[0], Path(args.floor[1]))
         return 0
     sizes = sorted(
         {int(s) for s in args.sizes.split(",")} | ({10000} if args.with_10000 else set())
@@ -191,35 +204,37 @@ def main(argv: list[str] | None = None) -> int:
         for n in sizes:
             data = work / f"data_{n}"
             size = build_folder(pool, data, n)
-            paths = sorted(data.rglob("*.jsonl"))
-            t_bytes = time_read_bytes(paths)
-            t_json = time_json_loads(paths)
-            t_an, rss_main, rss_tree = run_analyze(data, work / f"out_{n}", pool, extra)
-            results.append((n, size, t_bytes, t_json, t_an, rss_main, rss_tree))
+            floors = {kind: run_floor(kind, data) for kind in FLOORS}
+            t_an, rss_main, rss_tree = run_analyze(data, work / f"out_{n}", extra)
+            results.append((n, size, floors, t_an, rss_main, rss_tree))
             print(
-                f"  {n:>6} sessions ({size / 1e6:7.1f} MB): read {t_bytes:6.2f} s, "
-                f"json.loads {t_json:6.2f} s, analyze {t_an:6.2f} s",
+                f"  {n:>6} sessions ({size / 1e6:7.1f} MB): "
+                + ", ".join(f"{k} {v:.2f} s" for k, v in floors.items())
+                + f", analyze {t_an:.2f} s",
                 flush=True,
             )
             shutil.rmtree(data)
             shutil.rmtree(work / f"out_{n}", ignore_errors=True)
-            shutil.rmtree(work / "warmup", ignore_errors=True)
         print()
         print(f"analyze options: {args.analyze_args or '(defaults)'}; {os.cpu_count()} CPUs")
         print(
-            f"{'sessions':>9} {'MB':>7} {'read s':>7} {'json s':>7} {'analyze s':>10} "
-            f"{'an/read':>8} {'an/json':>8} {'ms/sess':>8} {'peak MB':>8} {'tree MB':>8}"
+            f"{'sessions':>9} {'MB':>7} {'read s':>7} {'+sha s':>7} {'typed s':>8} {'json s':>7} "
+            f"{'analyze s':>10} {'an/typed':>9} {'an/json':>8} {'ms/sess':>8} {'peak MB':>8} "
+            f"{'tree MB':>8}"
         )
-        for n, size, t_bytes, t_json, t_an, rss_main, rss_tree in results:
+        for n, size, f, t_an, rss_main, rss_tree in results:
             print(
-                f"{n:>9} {size / 1e6:>7.1f} {t_bytes:>7.2f} {t_json:>7.2f} {t_an:>10.2f} "
-                f"{t_an / t_bytes:>8.1f} {t_an / t_json:>8.2f} {1000 * t_an / n:>8.2f} "
-                f"{rss_main:>8.0f} {rss_tree:>8.0f}"
+                f"{n:>9} {size / 1e6:>7.1f} {f['read']:>7.2f} {f['read+sha']:>7.2f} "
+                f"{f['typed']:>8.2f} {f['json']:>7.2f} {t_an:>10.2f} {t_an / f['typed']:>9.2f} "
+                f"{t_an / f['json']:>8.2f} {1000 * t_an / n:>8.2f} {rss_main:>8.0f} "
+                f"{rss_tree:>8.0f}"
             )
         print(
-            "an/read, an/json: analyze time over the time to read the bytes, and over stdlib "
-            "json.loads of every line (same files, same run). peak MB: largest process "
-            "(wait4, RSS); tree MB: PSS summed over the process tree, sampled every 50 ms."
+            "Every time is a whole command (a fresh process). an/typed: analyze over the typed "
+            "msgspec decode + SHA-256 in as many processes as analyze uses (target <= 2 at "
+            "10,000); an/json: over stdlib json.loads of every line in one process (target <= 1 "
+            "at 1,000). peak MB: largest process (wait4, RSS; target <= 300 at 10,000); tree "
+            "MB: PSS summed over the process tree, sampled every 50 ms."
         )
     finally:
         if not args.workdir:

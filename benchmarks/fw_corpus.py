@@ -8,8 +8,11 @@ Sends the seeded corpus of ``tests/adversarial_corpus.py`` to
   time, configured from QEMU's HELLO;
 
 and prints, per run: frames, answers by kind, mismatches (the first one in full), the largest
-sample each implementation output against its limit, trials rendered, sanitizer reports and
-frames per second. Builds the firmware first (make). Run:
+sample each implementation output against its limit, trials rendered, the frames at the
+output's linear range (HELLO ``lin``) at the deepest attenuator steps, the longest wait for a
+byte from each implementation, sanitizer reports and frames per second. The ``rt`` run uses
+the QEMU image built with 0/20/40 dB steps (``tests/firmware_support.py``, ``qemu-att``).
+Builds the firmware first (make). Run:
 
     .venv/bin/python benchmarks/fw_corpus.py [--frames 100000] [--seed 23] [--runs vt,rt]
 """
@@ -38,6 +41,11 @@ def report(label: str, run: CorpusRun) -> bool:
             f"MV {r.peak_v['MV']:.6f} V / {run.limits[1]:g} V; events "
             + ", ".join(f"{k} {v}" for k, v in sorted(r.side_events.items()))
         )
+    print(f"   frames at the linear range's edge (deep attenuator steps): {run.linear_frames}")
+    print(
+        "   longest silence within a batch: "
+        + ", ".join(f"{r.name} {r.longest_silence_s:.2f} s" for r in run.results.values())
+    )
     print(f"   sanitizer reports: {sanitizer}")
     print(f"   {run.seconds:.1f} s, {run.frames / run.seconds:.0f} frames/s per implementation")
     over = any(

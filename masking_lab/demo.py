@@ -16,6 +16,7 @@ import io
 import os
 import sys
 import time
+from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
 from pathlib import Path
@@ -163,7 +164,11 @@ def _run_participant(out: str, device: str, master_seed: int, index: int) -> lis
     return done
 
 
-def run_demo(settings: DemoSettings, stream: TextIO | None = None) -> int:
+def run_demo(
+    settings: DemoSettings,
+    stream: TextIO | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> int:
     """Run the demo; print progress and the summary to ``stream`` (stderr for progress).
 
     Parameters
@@ -172,6 +177,10 @@ def run_demo(settings: DemoSettings, stream: TextIO | None = None) -> int:
         What to run and where (an existing demo there is refused unless ``force``).
     stream : TextIO or None
         Where to print (None: the summary to stdout, progress to stderr).
+    progress : callable or None
+        Hears one line per finished session, the analysis and rendering steps, then "done"
+        (``participants × 3 + 3`` calls; the command's progress bar); None prints the lines to
+        stderr.
 
     Returns
     -------
@@ -204,8 +213,9 @@ def run_demo(settings: DemoSettings, stream: TextIO | None = None) -> int:
 
         for part in DEMO_PARTS:
             shutil.rmtree(out / part, ignore_errors=True)
+    say = progress or (lambda line: print(line, file=err, flush=True))
     t_start = time.perf_counter()
-    sessions = _collect(settings, err)
+    sessions = _collect(settings, err, say)
     failed = [s for s in sessions if s.exit_code != 0]
     if failed:
         for s in failed:
@@ -213,7 +223,7 @@ def run_demo(settings: DemoSettings, stream: TextIO | None = None) -> int:
         return 3
     t_collect = time.perf_counter() - t_start
 
-    print("analysing the logs ...", file=err, flush=True)
+    say("analysing the logs ...")
     from masking_lab.analysis.batch import run_analyze
     from masking_lab.analysis.settings import AnalysisSettings
 
@@ -224,7 +234,7 @@ def run_demo(settings: DemoSettings, stream: TextIO | None = None) -> int:
     )
     t_analyse = time.perf_counter() - t_start - t_collect
 
-    print("rendering the bump-with-rough-texture scene ...", file=err, flush=True)
+    say("rendering the bump-with-rough-texture scene ...")
     rendering_summary = _render(out)
     total = time.perf_counter() - t_start
 
@@ -242,11 +252,13 @@ def run_demo(settings: DemoSettings, stream: TextIO | None = None) -> int:
         warnings=summary.warnings,
         timings={"collect": t_collect, "analyse": t_analyse, "total": total},
     )
+    if progress is not None:
+        progress("done")  # the bar's last step ends its line before the summary
     print(summary_text(model), file=out_stream)
     return 0
 
 
-def _collect(settings: DemoSettings, err: TextIO) -> list[SessionDone]:
+def _collect(settings: DemoSettings, err: TextIO, say: Callable[[str], None]) -> list[SessionDone]:
     n = settings.participants
     total = n * len(PROTOCOLS)
     where = (
@@ -267,23 +279,21 @@ def _collect(settings: DemoSettings, err: TextIO) -> list[SessionDone]:
         for a in args:
             for s in _run_participant(*a):
                 done.append(s)
-                _progress(err, len(done), total, s)
+                say(_progress(len(done), total, s))
     else:
         with ProcessPoolExecutor(max_workers=jobs) as pool:
             futures = [pool.submit(_run_participant, *a) for a in args]
             for fut in as_completed(futures):
                 for s in fut.result():
                     done.append(s)
-                    _progress(err, len(done), total, s)
+                    say(_progress(len(done), total, s))
     return sorted(done, key=lambda s: (s.participant, PROTOCOLS.index(s.protocol)))
 
 
-def _progress(err: TextIO, k: int, total: int, s: SessionDone) -> None:
-    print(
+def _progress(k: int, total: int, s: SessionDone) -> str:
+    return (
         f"  [{k:>2}/{total}] {s.participant} {s.protocol:<11} {s.n_completed}/{s.n_sets} sets, "
-        f"{s.n_trials} trials, {s.seconds:.1f} s",
-        file=err,
-        flush=True,
+        f"{s.n_trials} trials, {s.seconds:.1f} s"
     )
 
 

@@ -167,6 +167,10 @@ class DemoSummary:
         The gamut mapping the scene was rendered with.
     strategies : tuple of (name, rms dB, max dB, geometry r, texture sd dB, share within)
         Each gamut mapping's result as played (the trade between them).
+    gamut_outline : tuple of (m_p, e_p) or None
+        The perceptual gamut's outline, dB SL (None: folded, b·d ≥ 1, or no ratings).
+    points_moved : int
+        The scene's targets the mapping moved into the gamut.
     """
 
     out: Path
@@ -183,6 +187,8 @@ class DemoSummary:
     n_warnings: int
     mapping: str = "none"
     strategies: tuple[tuple[str, float, float, float, float, float], ...] = ()
+    gamut_outline: tuple[tuple[float, float], ...] | None = None
+    points_moved: int = 0
 
 
 def build_summary(
@@ -272,7 +278,13 @@ def _mapping(rendering: Mapping[str, Any]) -> dict[str, Any]:
         )
         for name, t in (gm.get("strategies") or {}).items()
     )
-    return {"mapping": gm.get("strategy", "none"), "strategies": rows}
+    outline = (rendering.get("gamut") or {}).get("outline")
+    return {
+        "mapping": gm.get("strategy", "none"),
+        "strategies": rows,
+        "gamut_outline": None if not outline else tuple((float(m), float(e)) for m, e in outline),
+        "points_moved": int(gm.get("points_moved") or 0),
+    }
 
 
 def summary_text(m: DemoSummary) -> str:
@@ -310,7 +322,7 @@ def summary_text(m: DemoSummary) -> str:
         f"  analysis {out / 'analysis'}/ (report.html, report.txt, thresholds.csv, anova.csv, "
         "figures/)",
         f"  params   {out / 'analysis' / 'masking_params.json'}",
-        f"  scene    {out / 'render'}/ (points.csv, summary.json, figure4.png)",
+        f"  scene    {out / 'render'}/ (points.csv, summary.json, figure4.png, gamut.png)",
         "",
         "Masking functions: fitted (95 % interval) beside the simulation's ground truth",
         f"  {'target|masker':<14} {'pooled with':<14} {'intercept dB':>24} {'slope':>20}"
@@ -337,6 +349,13 @@ def summary_text(m: DemoSummary) -> str:
                     f"{ch.max_rated_db_sl:g} dB SL (flagged, not clipped)"
                 )
             lines.append(text)
+        if m.gamut_outline is not None:
+            vertices = ", ".join(f"({mp:.1f}, {ep:.1f})" for mp, ep in m.gamut_outline)
+            lines.append(
+                f"  perceptual gamut (m_p, e_p dB SL) within the rig's ratings: {vertices}; "
+                f"{m.points_moved} of {m.channels[0].n_points if m.channels else 0} targets "
+                "lay outside it"
+            )
         if m.strategies:
             lines += [
                 f"  gamut mapping (rendered with {m.mapping}), as the rig plays it:",
@@ -368,9 +387,9 @@ def _param_row(f: Mapping[str, Any], truth: GroundTruth, participants: Sequence[
     a_ci = tuple(f["intercept_ci_db"]) if f.get("intercept_ci_db") else None
     b_ci = tuple(f["slope_ci"]) if f.get("slope_ci") else None
     try:
-        ta, tb = sample_truth(truth, participants, pairs, levels)  # type: ignore[arg-type]
+        ta, tb = sample_truth(truth, participants, pairs, [float(v) for v in levels])
     except (KeyError, AttributeError, MaskingLabError, ValueError):
-        return ParamRow(key, pooled_txt, "fitted", "", a, b, a_ci, b_ci)  # type: ignore[arg-type]
+        return ParamRow(key, pooled_txt, "fitted", "", a, b, a_ci, b_ci)
     inside_a = a_ci is not None and a_ci[0] <= ta <= a_ci[1]
     inside_b = b_ci is not None and b_ci[0] <= tb <= b_ci[1]
     verdict = (
@@ -378,7 +397,7 @@ def _param_row(f: Mapping[str, Any], truth: GroundTruth, participants: Sequence[
         if inside_a and inside_b
         else ("a only" if inside_a else ("b only" if inside_b else "no"))
     )
-    return ParamRow(key, pooled_txt, "fitted", "", a, b, a_ci, b_ci, (ta, tb), verdict)  # type: ignore[arg-type]
+    return ParamRow(key, pooled_txt, "fitted", "", a, b, a_ci, b_ci, (ta, tb), verdict)
 
 
 def _param_text(r: ParamRow) -> str:

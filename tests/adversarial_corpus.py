@@ -16,6 +16,7 @@ Used by ``tests/test_adversarial_corpus.py`` (CI, ≥ 5,000 frames) and
 
 from __future__ import annotations
 
+import os
 import random
 import time
 from collections import Counter
@@ -41,6 +42,20 @@ class Profile:
     fs_hz: int
     att: tuple[str, ...]
     real_time: bool = False  # a PLAY only as an episode's last command (BUSY is timing)
+    lin: int = 1798  # HELLO lin: codes played linearly each side of mid-scale
+    lsb_v: float = 20.0 / 4096  # one code at 0 dB, V at the amplifier input (12 bits, ±10 V)
+
+
+def linear_edge_v(p: Profile, codes: float, att_db: int) -> float:
+    """The request (V, whole µV) that is ``codes`` LSBs behind ``att_db`` dB.
+
+    Examples
+    --------
+    >>> p = Profile(2.5, 8.0, 1000, ("0", "20", "40"))
+    >>> linear_edge_v(p, p.lin, 40), linear_edge_v(p, p.lin + 1, 40)
+    (0.087793, 0.087842)
+    """
+    return round(codes * p.lsb_v / 10 ** (att_db / 20), 6)
 
 
 def _num(x: float) -> str:
@@ -139,6 +154,43 @@ def _valid_play(rng: random.Random, p: Profile) -> dict[str, str]:
     return f
 
 
+def linear_edge_frames(eps: list[list[bytes]], p: Profile) -> int:
+    """How many frames of ``eps`` are PLAYs whose target sits at the linear range's edge
+    (the codes of :func:`_linear_play`, alone, at a deep step)."""
+    edges = {
+        (_num(linear_edge_v(p, p.lin + d, int(a))), a)
+        for a in p.att
+        for d in (-1, 0, 1, 0.49, 0.51, -0.51)
+    }
+    n = 0
+    for fr in (f for ep in eps for f in ep):
+        if b" PLAY " not in fr:
+            continue
+        fields = dict(
+            t.split("=", 1) for t in fr.decode("latin-1").split("*")[0].split()[2:] if "=" in t
+        )
+        n += (fields.get("tamp"), fields.get("tatt")) in edges
+    return n
+
+
+def _linear_play(rng: random.Random, p: Profile) -> dict[str, str]:
+    """A valid PLAY at, one code below or above the linear range (or half an LSB around its
+    edge), mostly at the deepest attenuator steps; sometimes target and masker share the
+    channel and split the codes."""
+    f = _valid_play(rng, p)
+    att = int(rng.choice([p.att[-1], p.att[-1], p.att[-2] if len(p.att) > 1 else p.att[0]]))
+    codes = p.lin + rng.choice([-1, 0, 0, 1, 1, 0.49, 0.51, -0.51])
+    f.update(tatt=str(att), mch="-")
+    f.pop("matt", None)
+    if rng.random() < 0.3:  # target + masker on one channel: their codes add up
+        part = rng.randint(1, int(codes) - 1)
+        f.update(mch=f["tch"], mcar="120", menv="0", matt=str(att))
+        f["mamp"] = _num(linear_edge_v(p, codes - part, att))
+        codes = part
+    f["tamp"] = _num(linear_edge_v(p, codes, att))
+    return f
+
+
 def _play_fields(rng: random.Random, p: Profile) -> dict[str, str]:
     f = _valid_play(rng, p)
     extreme = _extreme_play(rng, p)
@@ -174,6 +226,8 @@ def _extreme_play(rng: random.Random, p: Profile) -> dict[str, str]:
 
 def _command(rng: random.Random, p: Profile) -> tuple[str, dict[str, str]]:
     kind = rng.random()
+    if kind < 0.06:
+        return "PLAY", _linear_play(rng, p)
     if kind < 0.45:
         return "PLAY", _play_fields(rng, p)
     if kind < 0.65:
@@ -239,7 +293,7 @@ def episodes(seed: int, frames: int, profile: Profile) -> list[list[bytes]]:
     >>> p = Profile(2.5, 8.0, 1000, ("0", "20", "40"))
     >>> eps = episodes(7, 50, p)
     >>> sum(len(e) for e in eps) >= 50, eps == episodes(7, 50, p), eps[0][-1].split(b"*")[0]
-    (True, True, b'4 STOP')
+    (True, True, b'3 STOP')
     """
     rng = random.Random(seed)
     out: list[list[bytes]] = []
@@ -272,31 +326,97 @@ class Result:
     answers: list[str] = field(default_factory=list)
     side_events: Counter[str] = field(default_factory=Counter)
     peak_v: dict[str, float] = field(default_factory=lambda: {"EV": 0.0, "MV": 0.0})
+    longest_silence_s: float = 0.0  # longest wait for a byte within one batch, s
+
+
+def cpu_seconds(pid: int | None) -> float | None:
+    """User + system CPU time a process has used so far, s (None if unknown or gone)."""
+    if pid is None:
+        return None
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            fields = f.read().rpartition(")")[2].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError):
+        return None
 
 
 class Port:
-    """A raw pyserial link that sends a batch and reads its answers, in order."""
+    """A raw pyserial link that sends a batch and reads its answers, in order.
 
-    def __init__(self, path: str) -> None:
+    Real time is legitimate here (QEMU runs on ``-icount auto``), but a loaded machine can
+    starve an implementation: the wait ends only after ``timeout`` seconds *without a byte*
+    (a slow but progressing device is waited for), and the error then says what happened:
+    how much of the batch was answered, whether the process is alive, and how much CPU it got
+    meanwhile (little CPU: starved by the machine; CPU but no bytes: the image hung).
+    """
+
+    def __init__(self, path: str, name: str = "device", pid: int | None = None) -> None:
         self.ser = serial.Serial(path, timeout=0.05)
         self.buf = b""
+        self.name, self.pid = name, pid
+        self.stalls: list[float] = []  # longest silence of each batch, s (the figures)
 
     def _frames_until_sentinel(self, timeout: float) -> list[proto.Frame]:
         got: list[proto.Frame] = []
-        deadline = time.monotonic() + timeout
+        last_byte = t0 = time.monotonic()
+        cpu0 = cpu_seconds(self.pid)
+        longest = 0.0
         while True:
             while b"\n" not in self.buf:
-                if time.monotonic() > deadline:
-                    raise TimeoutError(f"no sentinel within {timeout} s; last {self.buf[-200:]!r}")
-                self.buf += self.ser.read(max(1, self.ser.in_waiting))
+                now = time.monotonic()
+                if now - last_byte > timeout:
+                    raise TimeoutError(self._stalled(got, now - t0, now - last_byte, cpu0))
+                chunk = self.ser.read(max(1, self.ser.in_waiting))
+                if chunk:
+                    longest = max(longest, time.monotonic() - last_byte)
+                    last_byte = time.monotonic()
+                self.buf += chunk
             line, _, self.buf = self.buf.partition(b"\n")
             try:
                 f = proto.decode(line + b"\n")
             except proto.FrameError:
                 continue  # boot chatter
             if f.kind == "reply" and f.seq == SENTINEL_SEQ:
+                self.stalls.append(longest)
                 return got
             got.append(f)
+
+    def _alive(self, within: float) -> bool:
+        """Does the device answer a fresh PING now (its reply seen within ``within`` s)?"""
+        probe = SENTINEL_SEQ - 2
+        self.ser.write(proto.encode_command(probe, "PING"))
+        marker = f"{probe} OK".encode()
+        deadline = time.monotonic() + within
+        while time.monotonic() < deadline:
+            self.buf += self.ser.read(max(1, self.ser.in_waiting))
+            if marker in self.buf:
+                return True
+        return False
+
+    def _stalled(self, got: list, waited: float, silent: float, cpu0: float | None) -> str:
+        cpu1 = cpu_seconds(self.pid)
+        if self.pid is not None and cpu1 is not None and self._alive(min(silent, 10.0)):
+            state = (
+                "it answers a fresh PING, so it is alive and the batch's sentinel was lost on "
+                "the way (bytes dropped: device RX overflow?)"
+            )
+        elif self.pid is not None and cpu1 is None:
+            state = "its process has exited"
+        elif cpu0 is not None and cpu1 is not None:
+            used = cpu1 - cpu0
+            verdict = (
+                "starved: the machine gave it almost no CPU"
+                if used < 0.05 * silent
+                else "hung: it ran but sent nothing"
+            )
+            state = f"it used {used:.1f} s of CPU in {waited:.1f} s ({verdict})"
+        else:
+            state = "no process to inspect"
+        return (
+            f"{self.name}: no sentinel reply after {waited:.1f} s, {silent:.1f} s without a byte "
+            f"({len(got)} answers of this batch read); {state}; last bytes {self.buf[-200:]!r}"
+        )
 
     def batch(self, frames: list[bytes], timeout: float) -> list[proto.Frame]:
         """Send frames plus a sentinel PING; every frame the device sent before its reply."""
@@ -325,10 +445,20 @@ def answers_of(frames: list[proto.Frame], result: Result) -> None:
 
 
 def run(
-    ports: dict[str, str], eps: list[list[bytes]], *, batch: int = 40, timeout: float = 60.0
+    ports: dict[str, str],
+    eps: list[list[bytes]],
+    *,
+    batch: int = 40,
+    timeout: float = 60.0,
+    pids: dict[str, int] | None = None,
 ) -> dict[str, Result]:
-    """Send the same episodes to every port; each implementation's answers and peaks."""
-    links = {name: Port(path) for name, path in ports.items()}
+    """Send the same episodes to every port; each implementation's answers and peaks.
+
+    ``timeout`` is the longest silence (s) tolerated from one implementation; ``pids`` (name
+    → process id) lets a stall say whether the process starved or hung.
+    """
+    pids = pids or {}
+    links = {name: Port(path, name, pids.get(name)) for name, path in ports.items()}
     results = {name: Result(name) for name in ports}
     try:
         for i in range(0, len(eps), batch):
@@ -340,7 +470,8 @@ def run(
                     pk = diag.number(key)
                     results[name].peak_v[ch] = max(results[name].peak_v[ch], pk)
     finally:
-        for link in links.values():
+        for name, link in links.items():
+            results[name].longest_silence_s = max(link.stalls, default=0.0)
             link.close()
     return results
 
@@ -371,6 +502,7 @@ class CorpusRun:
     stderr: str  # of the sanitizer build
     limits: tuple[float, float]
     seconds: float
+    linear_frames: int = 0  # PLAYs at the linear range's edge (linear_edge_frames)
 
 
 def _rig(max_ev: float, max_mv: float, fs: int, wd_s: float, ramp_s: float) -> str:
@@ -383,15 +515,17 @@ def _rig(max_ev: float, max_mv: float, fs: int, wd_s: float, ramp_s: float) -> s
     )
 
 
-def _finish(ports, eps, limits, stop) -> CorpusRun:
+def _finish(ports, eps, limits, stop, pids, profile: Profile) -> CorpusRun:
     t0 = time.monotonic()
     try:
-        results = run(ports, eps)
+        results = run(ports, eps, pids=pids)
     finally:
         stderr = stop()
     n = sum(len(e) for e in eps)
+    mismatch = first_mismatch(results, eps)
+    seconds = time.monotonic() - t0
     return CorpusRun(
-        n, results, first_mismatch(results, eps), stderr, limits, time.monotonic() - t0
+        n, results, mismatch, stderr, limits, seconds, linear_edge_frames(eps, profile)
     )
 
 
@@ -400,29 +534,41 @@ def virtual_time_run(frames: int, seed: int) -> CorpusRun:
     config = parse_device_config(_rig(2.5, 8, 1000, 0.3, 0.002), "corpus rig")
     host = start("host-asan", virtual_time=True, host_args=("--vt-render", "--fs", "1000"))
     emu = FirmwareEmulator(config, virtual_time=True, render_buffers=True).start()
-    eps = episodes(seed, frames, Profile(2.5, 8.0, 1000, ("0", "20", "40")))
+    profile = Profile(2.5, 8.0, 1000, ("0", "20", "40"))
+    eps = episodes(seed, frames, profile)
 
     def stop() -> str:
         emu.close()
         return host.close()
 
-    return _finish({"emulator": emu.port, "host-asan": host.port}, eps, (2.5, 8.0), stop)
+    ports = {"emulator": emu.port, "host-asan": host.port}
+    return _finish(ports, eps, (2.5, 8.0), stop, {"host-asan": host.proc.pid}, profile)
 
 
-def real_time_run(frames: int, seed: int) -> CorpusRun:
-    """QEMU vs the sanitizer host build vs the emulator, real time, configured from QEMU."""
-    qemu = start("qemu")
+def real_time_run(frames: int, seed: int, image: str = "qemu-att") -> CorpusRun:
+    """QEMU vs the sanitizer host build vs the emulator, real time, configured from QEMU.
+
+    ``image`` ``qemu-att`` (default) is the STM32 image with 0/20/40 dB attenuator steps, so
+    the frames at the linear range's edge reach the deep steps; ``qemu`` the bare default.
+    """
+    qemu = start(image)
     link = Link(qemu.port)
     hello = link.call("HELLO")
     link.close()
     max_ev, max_mv, fs = hello.number("max_ev"), hello.number("max_mv"), int(hello.number("fs"))
     wd_ms, steps = int(hello.number("wd_ms")), tuple(hello.fields["att"].split(","))
+    lin_ev, lin_mv = (int(v) for v in hello.fields["lin"].split(","))
+    assert lin_ev == lin_mv, hello.fields["lin"]  # the emulator takes one value for both
     args = ["--max-ev", hello.fields["max_ev"], "--max-mv", hello.fields["max_mv"]]
     args += ["--fs", str(fs), "--wd-ms", str(wd_ms), "--att", hello.fields["att"]]
+    args += ["--lin-ev", str(lin_ev), "--lin-mv", str(lin_mv)]
     host = start("host-asan", host_args=(*args, "--ramp-us", "10000"))
     config = parse_device_config(_rig(max_ev, max_mv, fs, wd_ms / 1000, 0.01), "qemu rig")
-    emu = FirmwareEmulator(config, att_db=tuple(map(int, steps)), render_buffers=False).start()
-    eps = episodes(seed, frames, Profile(max_ev, max_mv, fs, steps, real_time=True))
+    emu = FirmwareEmulator(
+        config, att_db=tuple(map(int, steps)), linear_codes=lin_ev, render_buffers=False
+    ).start()
+    profile = Profile(max_ev, max_mv, fs, steps, real_time=True, lin=lin_ev)
+    eps = episodes(seed, frames, profile)
 
     def stop() -> str:
         emu.close()
@@ -430,4 +576,5 @@ def real_time_run(frames: int, seed: int) -> CorpusRun:
         return host.close()
 
     ports = {"qemu": qemu.port, "host-asan": host.port, "emulator": emu.port}
-    return _finish(ports, eps, (max_ev, max_mv), stop)
+    pids = {"qemu": qemu.proc.pid, "host-asan": host.proc.pid}
+    return _finish(ports, eps, (max_ev, max_mv), stop, pids, profile)

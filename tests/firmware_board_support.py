@@ -121,6 +121,12 @@ class QemuBoard:
 
         Events that arrive meanwhile are kept in ``self.events``.
         """
+        frame = self.answer(name, timeout, **fields)
+        assert frame.name == "OK", f"{name} answered {frame}"
+        return dict(frame.fields)
+
+    def answer(self, name: str, timeout: float = 3.0, **fields) -> proto.Frame:
+        """Send a command; its reply, OK or ERR (events meanwhile go to ``self.events``)."""
         self.seq += 1
         self.ser.write(proto.encode_command(self.seq, name, fields))
         deadline = time.monotonic() + timeout
@@ -129,8 +135,7 @@ class QemuBoard:
             if frame is not None and frame.kind == "event":
                 self.events.append(frame)
             elif frame is not None and frame.kind == "reply" and frame.seq == self.seq:
-                assert frame.name == "OK", f"{name} answered {frame}"
-                return dict(frame.fields)
+                return frame
 
     def event(self, name: str, timeout: float = 10.0) -> proto.Frame:
         """The next ``name`` event (one seen already first), PINGing so the watchdog stays fed."""

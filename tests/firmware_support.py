@@ -34,6 +34,21 @@ FIRMWARE = REPO / "firmware"
 HOST_FW = FIRMWARE / "build" / "host" / "masking-fw"
 HOST_ASAN_FW = FIRMWARE / "build" / "host-asan" / "masking-fw"  # ASan + UBSan
 QEMU_FW = FIRMWARE / "build" / "qemu" / "masking-fw.elf"
+# The QEMU image built with the shared rig's limits and the 0/20/40 dB attenuator steps of the
+# emulator and the host build (target "qemu-att"): the three are then configured alike, so the
+# linear-range frames at the deepest steps must get the same answers (HELLO lin 1798 each).
+QEMU_ATT_BUILD = FIRMWARE / "build" / "att"
+QEMU_ATT_FW = QEMU_ATT_BUILD / "qemu" / "masking-fw.elf"
+QEMU_ATT_OPTIONS = {
+    "ATT_STEPS_DB": "0,20,40",
+    "LIMIT_EV_UV": "2500000",
+    "LIMIT_MV_UV": "8000000",
+    # longer than the rig's 300 ms: under -icount auto a host that deschedules QEMU makes its
+    # clock jump on resuming, which tripped the host-quiet watchdog mid-episode in the rt corpus
+    # (a real-time artefact, 3-4 per 20,000 frames, that could turn an AMP into ERR STATE)
+    "WATCHDOG_MS": "2000",
+    "SERIAL_NUMBER": "T-42",
+}
 TARGETS = ("emulator", "host", "qemu")
 # -icount: the guest clock follows executed instructions, so device-reported times are
 # consistent even when the host is loaded; serial0 = host link, serial1 = interlock line.
@@ -88,13 +103,20 @@ def build_lock() -> Iterator[None]:
 def _make(target: str) -> str | None:
     """Build one firmware target; the reason it cannot be built, or None."""
     tools = {"host": ["make", "gcc"], "host-asan": ["make", "gcc"]}
-    tools["qemu"] = ["make", "arm-none-eabi-gcc", "qemu-system-arm"]
+    tools["qemu"] = tools["qemu-att"] = ["make", "arm-none-eabi-gcc", "qemu-system-arm"]
     absent = _missing(tools[target])
     if absent:
         return f"{absent} not installed (apt-get install gcc-arm-none-eabi qemu-system-arm make)"
+    args = [target]
+    if target == "qemu-att":
+        args = [
+            f"BUILD={QEMU_ATT_BUILD}",
+            "qemu",
+            *(f"{k}={v}" for k, v in QEMU_ATT_OPTIONS.items()),
+        ]
     with build_lock():
         proc = subprocess.run(
-            ["make", "-C", str(FIRMWARE), "-j2", target],
+            ["make", "-C", str(FIRMWARE), "-j2", *args],
             capture_output=True,
             text=True,
             timeout=300,
@@ -176,10 +198,10 @@ class HostFirmware(Device):
 
 
 class QemuFirmware(Device):
-    def __init__(self) -> None:
+    def __init__(self, elf: Path = QEMU_FW) -> None:
         self.name, self.vt = "qemu", False
         self.proc = subprocess.Popen(
-            [*QEMU_CMD, "-kernel", str(QEMU_FW)],
+            [*QEMU_CMD, "-kernel", str(elf)],
             stdout=subprocess.PIPE,
             stderr=subprocess.STDOUT,
             text=True,
@@ -226,9 +248,10 @@ def _wait_until_answering(port: str, timeout: float = 10.0) -> None:
 def start(target: str, *, host_args: tuple[str, ...] = (), **kwargs) -> Device:
     """Start a fresh ``target`` (building it first); close it with ``.close()``.
 
-    ``target`` is ``emulator``, ``host``, ``host-asan`` (the host build under ASan+UBSan) or
-    ``qemu``; ``host_args`` go to the host builds only, other keyword options to the
-    emulator (``virtual_time`` and ``seed`` to both).
+    ``target`` is ``emulator``, ``host``, ``host-asan`` (the host build under ASan+UBSan),
+    ``qemu`` or ``qemu-att`` (the QEMU image with the shared rig's limits and 0/20/40 dB
+    steps); ``host_args`` go to the host builds only, other keyword options to the emulator
+    (``virtual_time`` and ``seed`` to both).
     """
     require_build(target)
     if target == "emulator":
@@ -239,6 +262,8 @@ def start(target: str, *, host_args: tuple[str, ...] = (), **kwargs) -> Device:
             args += ["--seed", str(kwargs["seed"])]
         binary = HOST_FW if target == "host" else HOST_ASAN_FW
         return HostFirmware(*args, *host_args, binary=binary)
+    if target == "qemu-att":
+        return QemuFirmware(QEMU_ATT_FW)
     return QemuFirmware()
 
 

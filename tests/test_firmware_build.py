@@ -212,20 +212,26 @@ PLAY = {
 }
 
 
-def test_a_code_beyond_the_dac_linear_range_is_a_limit_fault_not_a_clip(custom_qemu):
-    """EV: full scale 8 V, limit 1.234567 V, steps 0/20/40 dB. At 20 dB the core's code limit
-    is the converter's 2047 codes, the DAC buffer's linear range only 1798 (0.7023 V here):
-    0.70 V plays, 0.75 V is refused at the output stage as FAULT code=LIMIT."""
+def test_a_code_beyond_the_dac_linear_range_is_refused_before_it_plays(custom_qemu):
+    """EV: full scale 8 V, limit 1.234567 V, steps 0/20/40 dB. At 20 dB the voltage limit
+    allows the converter's 2047 codes, the DAC buffer's linear range only 1798 (0.702344 V
+    here): 0.70 V plays, 0.75 V is refused at PLAY (ERR LIMIT naming the level and the range)
+    and nothing reaches the output stage: the board's own clamp counter stays 0."""
     with QemuBoard(custom_qemu) as board:
-        if int(board.call("HELLO")["proto"]) < 2:
-            pytest.skip("needs the protocol-2 core (attenuator steps, per-sample limit fault)")
+        hello = board.call("HELLO")
+        assert hello["lin"] == "1798,1798"
         t = float(board.call("TIME")["t"])
         board.call("PLAY", at=round(t + 0.2, 6), tamp=0.70, tatt=20, **PLAY)
         done = board.event("DONE")
         assert float(done.fields["tamp"]) == pytest.approx(0.7, abs=2 * 8 / 4096 / 10)
         t = float(board.call("TIME")["t"])
-        board.call("PLAY", at=round(t + 0.2, 6), tamp=0.75, tatt=20, **PLAY)
-        assert board.event("FAULT").fields["code"] == "LIMIT"
+        err = board.answer("PLAY", at=round(t + 0.2, 6), tamp=0.75, tatt=20, **PLAY)
+        assert (err.name, err.code) == ("ERR", "LIMIT")
+        assert err.text == (
+            "EV amplitude 0.75 V at 20 dB exceeds the output's linear range of 1798 codes "
+            "(0.702344 V)"
+        )
         diag = board.call("DIAG")
-        assert (float(diag["dac_ev"]), float(diag["dac_mv"])) == (0.0, 0.0)
-        assert board.symbol_word("dac_clamped") >= 1
+        assert (float(diag["dac_ev"]), float(diag["dac_mv"]), diag["playing"]) == (0, 0, "0")
+        assert board.symbol_word("dac_clamped") == 0
+        assert not [e for e in board.events if e.name == "FAULT"]

@@ -274,3 +274,26 @@ def test_the_report_links_every_figure_it_wrote(analyzed):
     assert written
     for rel in written:
         assert f'href="{rel}"' in html and rel in text
+
+
+def test_the_figures_section_lists_only_figures(analyzed):
+    # It once listed thresholds.csv and problems.csv as "staircase tracks of one session".
+    text = (analyzed / "report.txt").read_text()
+    section = text.split("\nFigures\n-------\n", 1)[1].split("\n\n", 1)[0]
+    listed = [line.strip().split(":", 1)[0] for line in section.splitlines() if line.strip()]
+    assert listed
+    for rel in listed:
+        assert rel.endswith(".png") and (analyzed / rel).is_file(), rel
+
+
+def test_a_slope_at_its_limit_is_noted_as_a_lower_bound():
+    # Every answer below 0 dB is a guess gone wrong, every one above is right: a step.
+    x = np.repeat(np.arange(-6.0, 7.0, 2.0), 8)
+    r = x > 0
+    r[::5] = x[::5] < 0  # a few lucky guesses below and lapses above, so the fit exists
+    fit = fit_pf(x, r, n_boot=0)
+    assert fit.ok and fit.slope_per_db == pytest.approx(10.0)
+    assert "slope is only a lower bound" in fit.message
+    gradual = np.random.default_rng(3).random(x.size) < pf_curve(x, 0.0, 0.5, 0.02, 1 / 3)
+    fit = fit_pf(x, gradual, n_boot=0)
+    assert fit.ok and fit.slope_per_db < 9.0 and fit.message is None

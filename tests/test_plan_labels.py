@@ -5,6 +5,7 @@ sections, and a second plan never replaces the first one's folder."""
 from __future__ import annotations
 
 import csv
+import html
 import re
 from pathlib import Path
 
@@ -140,3 +141,31 @@ def test_a_second_plan_writes_plan_out_2_and_an_explicit_out_needs_force(
     assert main([*args, "--out", "plan_out"]) == 2
     assert "--force" in capsys.readouterr().err
     assert main([*args, "--out", "plan_out", "--force"]) == 0
+
+
+def test_the_staircase_table_explains_a_star_only_when_it_has_one(questplus_plan, staircase_plan):
+    def pooled(plan: Path) -> str:
+        text = (plan / "plan.txt").read_text()
+        return text.split("Speed and accuracy of each setting", 1)[1].split("\n\n", 1)[0]
+
+    # QUEST+: its row is in the procedures table; the staircase table stars nothing.
+    assert "*" not in pooled(questplus_plan)
+    star = pooled(staircase_plan)
+    assert "* this protocol." in star and star.count("*") == 2  # one starred row, its footnote
+
+
+def test_rows_without_an_al_show_no_efficiency_in_the_html(questplus_plan):
+    # SD ≤ 0.4 dB runs into the protocol's 80-trial cap: no AL, so no efficiency (was "— %").
+    html = (questplus_plan / "report.html").read_text()
+    assert "— %" not in html
+    assert re.search(r"<td>\d+ %</td>", html)  # the rows with an AL keep theirs
+
+
+def test_the_html_per_set_table_says_whose_rows_they_are(questplus_plan, staircase_plan):
+    for plan, whose in (
+        (questplus_plan, "the paper's staircase beside this protocol"),
+        (staircase_plan, "this protocol's setting"),
+    ):
+        title = f"Per set, {whose} (4,4,4,2 dB, 11/8)"
+        assert f"{title}:" in (plan / "plan.txt").read_text()
+        assert f"<caption>{title}</caption>" in html.unescape((plan / "report.html").read_text())

@@ -97,7 +97,7 @@ def test_render_writes_interval_columns_flags_and_counts(tmp_path, capsys):
     out = tmp_path / "o"
     assert main(["render", scene, "--params", params, "--out", str(out), "--no-figure"]) == 0
     text = capsys.readouterr().out
-    assert "parametric draws" in text and "compensation not better than none at" in text
+    assert "parametric fallback" in text and "compensation not better than none at" in text
     table = pd.read_csv(out / "points.csv")
     for ch in ("mv", "ev"):
         assert (table[f"{ch}_perceived_lo_db_sl"] <= table[f"{ch}_perceived_db_sl"] + 1e-9).all()

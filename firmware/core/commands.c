@@ -98,6 +98,22 @@ static void limit_err(fw_t *fw, uint16_t seq, int ch, int64_t amp_uv, const char
                 " V limit", (const char *)NULL));
 }
 
+/* A level whose code lies beyond the output stage's linear range (HELLO lin): it
+ * could only be played clipped. Names the level, the step and the range in codes and volts. */
+static void linear_err(fw_t *fw, uint16_t seq, int ch, int64_t amp_uv, uint8_t att_db)
+{
+    char a[24], d[24], n[24], v[24], text[160];
+    int64_t lin = fw->cfg.lin_code[ch];
+    fx_format(a, sizeof a, amp_uv);
+    fx_format(d, sizeof d, (int64_t)att_db * FX_ONE);
+    fx_format(n, sizeof n, lin * FX_ONE);
+    fx_format(v, sizeof v, level_played_uv(&fw->conv[ch], lin, att_db));
+    fw_err(fw, seq, "LIMIT",
+           join(text, sizeof text, CH_NAME[ch], " amplitude ", a, " V at ", d,
+                " dB exceeds the output's linear range of ", n, " codes (", v, " V)",
+                (const char *)NULL));
+}
+
 /* Requested amp_uv (>= 0) on channel ch behind step att_idx: within the limit both as asked
  * and as quantised, and within the converter's range? Sets *code and *played. */
 static bool level_ok(fw_t *fw, uint16_t seq, int ch, int64_t amp_uv, uint8_t att_idx,
@@ -110,9 +126,12 @@ static bool level_ok(fw_t *fw, uint16_t seq, int ch, int64_t amp_uv, uint8_t att
     uint8_t att = fw->cfg.att_db[att_idx];
     *code = level_code(&fw->conv[ch], amp_uv, att);
     *played = level_played_uv(&fw->conv[ch], *code, att);
-    int64_t top = ((int64_t)1 << (fw->conv[ch].bits - 1)) - 1;
-    if (*played > fw->cfg.limit_uv[ch] || *code > top) {
+    if (*played > fw->cfg.limit_uv[ch]) {
         limit_err(fw, seq, ch, amp_uv, "quantised at this attenuation exceeds");
+        return false;
+    }
+    if (*code > fw->cfg.lin_code[ch]) {
+        linear_err(fw, seq, ch, amp_uv, att);
         return false;
     }
     return true;
@@ -192,6 +211,9 @@ static void cmd_hello(fw_t *fw, const command_t *cmd)
         att[k] = (int64_t)fw->cfg.att_db[k] * FX_ONE;
     }
     frame_add_micro_list(&fw->tx, "att", att, fw->cfg.n_att);
+    /* linear range per channel, codes around mid-scale (EV,MV): one field keeps HELLO short */
+    int64_t lin[CH_COUNT] = {fw->cfg.lin_code[CH_EV] * FX_ONE, fw->cfg.lin_code[CH_MV] * FX_ONE};
+    frame_add_micro_list(&fw->tx, "lin", lin, CH_COUNT);
     fw_send_frame(fw);
 }
 
@@ -357,12 +379,14 @@ static bool plan_levels(fw_t *fw, uint16_t seq, trial_t *t)
 {
     part_t *parts[2] = {&t->target, t->masker.ch >= 0 ? &t->masker : NULL};
     int64_t asked[CH_COUNT] = {0, 0}, code[CH_COUNT] = {0, 0}, played[CH_COUNT] = {0, 0};
+    uint8_t ch_att[CH_COUNT] = {0, 0};
     for (int k = 0; k < 2; k++) {
         part_t *p = parts[k];
         if (!p) {
             continue;
         }
         asked[p->ch] += p->amp_uv; /* each <= 1e18 after fx_parse: the sum fits */
+        ch_att[p->ch] = p->att_idx;
         if (p->amp_uv > fw->cfg.limit_uv[p->ch]) {
             continue; /* refused below, before any quantisation */
         }
@@ -373,13 +397,16 @@ static bool plan_levels(fw_t *fw, uint16_t seq, trial_t *t)
         played[p->ch] += p->played_uv;
     }
     for (int ch = 0; ch < CH_COUNT; ch++) {
-        int64_t top = ((int64_t)1 << (fw->conv[ch].bits - 1)) - 1;
         if (asked[ch] > fw->cfg.limit_uv[ch]) {
             limit_err(fw, seq, ch, asked[ch], "exceeds");
             return false;
         }
-        if (played[ch] > fw->cfg.limit_uv[ch] || code[ch] > top) {
+        if (played[ch] > fw->cfg.limit_uv[ch]) {
             limit_err(fw, seq, ch, asked[ch], "quantised at this attenuation exceeds");
+            return false;
+        }
+        if (code[ch] > fw->cfg.lin_code[ch]) { /* both parts share the channel's step */
+            linear_err(fw, seq, ch, asked[ch], fw->cfg.att_db[ch_att[ch]]);
             return false;
         }
     }

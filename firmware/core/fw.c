@@ -14,7 +14,10 @@ void fw_apply_attenuators(fw_t *fw)
     for (int ch = 0; ch < CH_COUNT; ch++) {
         uint8_t att = fw->cfg.att_db[fw->att_idx[ch]];
         fw->peak_code[ch] = 0; /* codes of another step are not comparable */
-        fw->code_limit[ch] = level_code_limit(&fw->conv[ch], fw->cfg.limit_uv[ch], att);
+        int64_t lim = level_code_limit(&fw->conv[ch], fw->cfg.limit_uv[ch], att);
+        /* behind an attenuator the voltage limit allows more codes than the output stage
+         * plays linearly: the linear range caps it, so nothing is ever clipped */
+        fw->code_limit[ch] = lim < fw->cfg.lin_code[ch] ? lim : fw->cfg.lin_code[ch];
         /* V at the amplifier input per code: 2 fsv / 2^bits / 10^(att/20) */
         float lsb = (float)fw->conv[ch].fsv_uv * 2.0f / 1e6f / (float)(1u << fw->conv[ch].bits);
         fw->v_per_code[ch] = lsb / powf(10.0f, (float)att / 20.0f);
@@ -35,6 +38,10 @@ void fw_init(fw_t *fw, const fw_config_t *cfg, bool interlock_open)
             fw->cfg.fsv_uv[ch] = 10 * FX_ONE;
         }
         fw->conv[ch].bits = fw->cfg.bits[ch];
+        int64_t top = ((int64_t)1 << (fw->cfg.bits[ch] - 1)) - 1;
+        if (fw->cfg.lin_code[ch] <= 0 || fw->cfg.lin_code[ch] > top) {
+            fw->cfg.lin_code[ch] = level_default_linear(fw->cfg.bits[ch]);
+        }
         fw->conv[ch].fsv_uv = fw->cfg.fsv_uv[ch];
     }
     if (fw->cfg.n_att == 0 || fw->cfg.n_att > LEVEL_MAX_STEPS) {

@@ -34,6 +34,10 @@ typedef struct {
     int64_t fsv_uv[CH_COUNT];         /* full scale at the amplifier input, µV peak */
     uint8_t att_db[LEVEL_MAX_STEPS];  /* attenuator steps, dB ascending, first 0 */
     uint8_t n_att;
+    /* largest |code| around mid-scale the output stage plays linearly, per channel (HELLO
+     * lin=EV,MV); 0 = level_default_linear(bits). Every code limit (command checks and
+     * the per-sample check in fw_render) is capped by it, at every attenuator step. */
+    int64_t lin_code[CH_COUNT];
     const char *build;                /* 12 hex digits (FW_BUILD if NULL) */
     uint32_t test_overdrive_pct;      /* fault injection (host build tests only): 0 = off */
     bool vt_render;                   /* virtual time: still render every trial's samples

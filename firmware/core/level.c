@@ -60,3 +60,8 @@ int64_t level_code_limit(const converter_t *cv, int64_t limit_uv, uint8_t att_db
     int64_t top = ((int64_t)1 << (cv->bits - 1)) - 1;
     return code < top ? code : top;
 }
+
+int64_t level_default_linear(uint8_t bits)
+{
+    return ((int64_t)LEVEL_REF_LINEAR_CODES << bits) / (2 * LEVEL_REF_HALF_CODES);
+}

@@ -15,6 +15,13 @@
 #define LEVEL_MAX_ATT_DB 60
 #define LEVEL_MAX_STEPS 4
 
+/* The output stage's linear range: the largest |code| around mid-scale it plays without
+ * clipping. The reference board's DAC (STM32F4, output buffer on) is linear from 0.2 V to
+ * VDDA - 0.2 V, 1798 of its 2048 codes each side of mid-scale (stm32/board_logic.h DAC_SPAN);
+ * a board that does not say otherwise gets the same fraction of its converter's half range. */
+#define LEVEL_REF_LINEAR_CODES 1798
+#define LEVEL_REF_HALF_CODES 2048
+
 typedef struct {
     uint8_t bits;     /* converter resolution */
     int64_t fsv_uv;   /* full scale at the amplifier input, µV peak */
@@ -29,5 +36,9 @@ int64_t level_played_uv(const converter_t *cv, int64_t code, uint8_t att_db);
 /* Largest code magnitude whose level at the amplifier input is <= limit_uv, and that the
  * converter can produce (2^(bits-1) - 1). */
 int64_t level_code_limit(const converter_t *cv, int64_t limit_uv, uint8_t att_db);
+
+/* The default linear range of a `bits`-bit converter: the reference fraction 1798/2048 of its
+ * half range, rounded down (1798 for 12 bits, 28768 for 16). */
+int64_t level_default_linear(uint8_t bits);
 
 #endif

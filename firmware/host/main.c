@@ -173,7 +173,8 @@ static void usage(const char *argv0)
             "usage: %s [--virtual-time] [--wd-ms N] [--max-ev V] [--max-mv V] [--fs HZ]\n"
             "          [--ramp-us N] [--jitter-us N] [--seed N] [--sn TEXT] [--model TEXT]\n"
             "          [--interlock-open] [--bits-ev N] [--bits-mv N] [--fsv-ev V]\n"
-            "          [--fsv-mv V] [--att DB,DB,..] [--iwdg-ms N] [--vt-render]\n"
+            "          [--fsv-mv V] [--att DB,DB,..] [--lin-ev N] [--lin-mv N]\n"
+            "          [--iwdg-ms N] [--vt-render]\n"
             "  test-only fault injection: [--test-overdrive-pct P] [--test-stall-ms N]\n"
             "          [--clock-start-us N] [--test-clock-stepback-us N]\n"
             "Serves the masking-lab device protocol on a new pseudo-terminal; prints its path.\n"
@@ -279,6 +280,13 @@ int main(int argc, char **argv)
                 cfg.fsv_uv[0] = parse_micro(a, v);
             } else if (strcmp(a, "--fsv-mv") == 0) {
                 cfg.fsv_uv[1] = parse_micro(a, v);
+            } else if (strcmp(a, "--lin-ev") == 0 || strcmp(a, "--lin-mv") == 0) {
+                int64_t n = parse_micro(a, v);
+                if (n % 1000000 || n < 1000000 || n > 32767 * 1000000LL) {
+                    fprintf(stderr, "masking-fw: %s needs a whole number of codes >= 1\n", a);
+                    return 2;
+                }
+                cfg.lin_code[a[6] == 'e' ? 0 : 1] = n / 1000000;
             } else if (strcmp(a, "--att") == 0) {
                 parse_att(&cfg, v);
             } else if (strcmp(a, "--iwdg-ms") == 0) {
@@ -305,6 +313,13 @@ int main(int argc, char **argv)
     for (int ch = 0; ch < CH_COUNT; ch++) {
         bad_v |= cfg.limit_uv[ch] <= 0 || cfg.limit_uv[ch] > 1000 * 1000000LL;
         bad_v |= cfg.fsv_uv[ch] <= 0 || cfg.fsv_uv[ch] > 1000 * 1000000LL;
+        int bits = cfg.bits[ch] ? cfg.bits[ch] : 12;
+        if (cfg.lin_code[ch] > ((int64_t)1 << (bits - 1)) - 1) {
+            fprintf(stderr, "masking-fw: --lin-%s %lld exceeds the %d-bit converter's %lld codes\n",
+                    ch ? "mv" : "ev", (long long)cfg.lin_code[ch], bits,
+                    (long long)(((int64_t)1 << (bits - 1)) - 1));
+            return 2;
+        }
     }
     if (cfg.fs_hz < 1000 || cfg.fs_hz > 1000000 || bad_v || iwdg_ms == 0) {
         fprintf(stderr, "masking-fw: need 1000 <= --fs <= 1000000, limits and full scales in "

@@ -11,6 +11,8 @@
  * only be met by clipping: such a build fails here instead. */
 _Static_assert(LIMIT_EV_UV > 0 && LIMIT_EV_UV * 2048LL <= FSV_EV_UV * 1798LL,
                "LIMIT_EV_UV exceeds the linear range of the EV output (FSV_EV_UV * 1798/2048)");
+_Static_assert(DAC_SPAN == LEVEL_REF_LINEAR_CODES && DAC_BITS == 12,
+               "the core's reference linear range is this DAC's");
 _Static_assert(LIMIT_MV_UV > 0 && LIMIT_MV_UV * 2048LL <= FSV_MV_UV * 1798LL,
                "LIMIT_MV_UV exceeds the linear range of the MV output (FSV_MV_UV * 1798/2048)");
 
@@ -28,10 +30,10 @@ bool board_codes_playable(fw_t *f)
     if (dac_code_linear(f->out_code[0]) && dac_code_linear(f->out_code[1])) {
         return true;
     }
-    /* Beyond the buffer's linear range (possible at an attenuator step, where the core's code
-     * limit is the converter's 2047): play 0 V instead and let the core report it as it does a
-     * sample over the limit, FAULT code=LIMIT, rather than clip it silently. QEMU stands in
-     * for the DAC board and applies the same rule. */
+    /* Beyond the buffer's linear range: cannot happen since the core's code limits are
+     * capped by cfg.lin_code (= DAC_SPAN), so this is a second line of defence. Play 0 V and
+     * let the core report it as a sample over the limit, FAULT code=LIMIT, rather than clip.
+     * QEMU stands in for the DAC board and applies the same rule. */
     dac_clamped++;
     f->limit_tripped = true;
     board_outputs_zero();
@@ -53,6 +55,9 @@ static fw_config_t config = {
 #if FW_PROTOCOL_VERSION >= 2
     .bits = {DAC_BITS, DAC_BITS},
     .fsv_uv = {FSV_EV_UV, FSV_MV_UV},
+    /* the DAC buffer's linear range: the core caps every code limit by it, so a level the
+     * buffer would clip is refused at the command (ERR LIMIT) on every implementation alike */
+    .lin_code = {DAC_SPAN, DAC_SPAN},
     .build = FW_BUILD,
 #endif
 };

@@ -34,7 +34,7 @@
 #define FLASH_ACR REG32(0x40023C00u)
 #define PWR_CR REG32(0x40007000u)
 #define PWR_CSR REG32(0x40007004u)
-#define PWR_CSR_VOSRDY (1u << 14)
+#define PWR_CSR_VOSRDY (1u << 14) /* RM0390 PWR_CSR bit 14 (ST CMSIS stm32f446xx.h: _Pos 14U) */
 
 /* GPIO */
 #define GPIOA_BASE 0x40020000u

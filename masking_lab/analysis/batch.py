@@ -204,10 +204,12 @@ def _analyze_into(
             f"{data}: none of the {len(paths)} log file(s) could be read; first problem: "
             f"{problems[0]['log']}: {problems[0]['problem']}"
         )
+    track_files: list[Path] = []
     if tracks:
         from masking_lab.analysis.track_figures import draw_tracks
 
-        files += draw_tracks(tracks, workers=min(4, os.cpu_count() or 1))
+        track_files = draw_tracks(tracks, workers=min(4, os.cpu_count() or 1))
+        files += track_files
     thresholds = thresholds_table(rows, unmasked_al=settings.unmasked_al, consume=True)
     shifts = shifts_long(thresholds)
     created_utc = settings.created_utc or (max(created) if created else EPOCH_UTC)
@@ -232,8 +234,9 @@ def _analyze_into(
     )
     warnings = [f"{p['log']}: {p['problem']} ({p['action']})" for p in problems]
     warnings += report_inputs.rig_warnings
+    # Only the track figures are listed as such (files also holds thresholds.csv, problems.csv).
     lab = _lab_outputs(
-        data, out, [i["path"] for i in inputs], thresholds, settings, files, fit_progress
+        data, out, [i["path"] for i in inputs], thresholds, settings, track_files, fit_progress
     )
     files += lab.files
     warnings += lab.warnings
@@ -258,10 +261,10 @@ def _analyze_into(
             "AL shift); see report.txt for the status of each set"
         )
     levels_told_apart(shifts, str(data))
-    results = analyze_shifts(shifts, settings, has_participants=True)
+    experiments = analyze_shifts(shifts, settings, has_participants=True)
     files += write_outputs(
         out,
-        results,
+        experiments,
         settings,
         source="analyze",
         inputs=inputs,
@@ -271,7 +274,7 @@ def _analyze_into(
         thresholds=thresholds,
         lab=lab.section,
     )
-    warnings += result_warnings(results)
+    warnings += result_warnings(experiments)
     ramp_files, ramp_problems = _functional_ramps(out, analysed_logs, inputs, settings, created_utc)
     return RunSummary(out, files + ramp_files, warnings + ramp_problems)
 
@@ -287,9 +290,22 @@ def _functional_ramps(
     hook: analysis/functional_outputs.py)."""
     from masking_lab.analysis.functional_outputs import write_functional_outputs
 
+    # Parsing every log again only to find no functional set is a third read of the study:
+    # a log whose bytes never name the kind (nor escape a character, which could spell it)
+    # holds none.
+    logs = [p for p in logs if _may_hold_functional(p)]
     return write_functional_outputs(
         out, logs, inputs=inputs, settings=settings.as_dict("analyze"), created_utc=created_utc
     )
+
+
+def _may_hold_functional(path: Path) -> bool:
+    """Whether the log at ``path`` can hold a ``functional_ramp`` set (unreadable: maybe)."""
+    try:
+        raw = path.read_bytes()
+    except OSError:
+        return True
+    return b"functional_ramp" in raw or b"\\u" in raw
 
 
 def _lab_outputs(

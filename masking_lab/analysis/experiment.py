@@ -250,20 +250,20 @@ def _analyze_experiment(
                 notes.append("one frequency level only: no paired comparisons")
 
     cells = []
-    for (lv, level), g in sorted(
+    for (lv, _), g in sorted(
         sub.groupby(["mv_stimulus", "masker_level_db_sl"]),
-        key=lambda kv: (level_sort_key(kv[0][0]), kv[0][1]),
+        key=lambda kv: (level_sort_key(str(kv[0][0])), kv[0][1]),
     ):
         values = g["shift_db"].to_numpy(dtype=float)
         test = one_sample_t(values) if has_participants else None
-        t, m = pair_of_level[lv]
+        t, m = pair_of_level[str(lv)]
         cells.append(
             CellResult(
                 t,
                 m,
-                lv,
+                str(lv),
                 float(g["mv_frequency_hz"].iloc[0]),
-                float(level),
+                float(g["masker_level_db_sl"].iloc[0]),  # the group's level (a number, not key)
                 int(values.size),
                 float(values.mean()),
                 test,
@@ -351,7 +351,7 @@ def _model_comparison(
 ) -> tuple[str, ...]:
     """Pooled against separate ramps over every shift (issue 13), beside the paper's rule."""
     points = {
-        lv: (g["masker_level_db_sl"].to_numpy(float), g["shift_db"].to_numpy(float))
+        str(lv): (g["masker_level_db_sl"].to_numpy(float), g["shift_db"].to_numpy(float))
         for lv, g in sub.groupby("mv_stimulus")
     }
     return tuple(comparison_lines(compare_pooling(points, levels), settings.pool_alpha))

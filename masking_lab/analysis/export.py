@@ -7,6 +7,7 @@ masking-function figures through :mod:`masking_lab.formats` (atomic, byte-stable
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import replace
 from pathlib import Path
@@ -33,7 +34,7 @@ from masking_lab.analysis.tables import (
 )
 from masking_lab.formats.csv_table import csv_text
 from masking_lab.formats.fileio import write_bytes_atomic, write_text_atomic
-from masking_lab.formats.masking_params import masking_params_json
+from masking_lab.formats.masking_params import draws_field, masking_params_json
 
 __all__ = ["determination", "masking_params_document", "write_outputs"]
 
@@ -155,6 +156,7 @@ def masking_params_document(
                     "n_participants": gf.n_participants,
                     "estimate": "paper_route",
                     **determination(f.status, f.intercept_ci_db, f.slope_ci),
+                    **_joint_uncertainty(f.intercept_slope_cov, f.draws, f.n_boot_failed, settings),
                 }
                 if entries[(target, masker)]["poorly_determined"]:
                     why = entries[(target, masker)]["determination"]
@@ -176,6 +178,24 @@ def masking_params_document(
         "functions": [entries[k] for k in sorted(entries)],
     }
     return doc, notes
+
+
+def _joint_uncertainty(
+    cov: float | None,
+    draws: Sequence[tuple[float, float]],
+    n_failed: int,
+    settings: AnalysisSettings,
+) -> dict[str, Any]:
+    """The optional ``intercept_slope_cov`` and ``draws`` keys (absent when unknown)."""
+    out: dict[str, Any] = {}
+    if cov is not None and math.isfinite(cov):
+        out["intercept_slope_cov"] = cov
+    if draws:
+        n_replicates = max(settings.n_boot - n_failed, len(draws))
+        field = draws_field("bootstrap", settings.seed, n_replicates, draws)
+        if field is not None:
+            out["draws"] = field
+    return out
 
 
 def write_outputs(

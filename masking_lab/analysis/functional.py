@@ -86,7 +86,7 @@ def _quantiles(grid: np.ndarray, weights: np.ndarray) -> tuple[float, float]:
     values = np.unique(grid)
     mass = np.array([weights[grid == v].sum() for v in values])
     cdf = np.cumsum(mass) / mass.sum()
-    return tuple(float(np.interp(q, cdf, values)) for q in (0.025, 0.975))  # type: ignore[return-value]
+    return float(np.interp(0.025, cdf, values)), float(np.interp(0.975, cdf, values))
 
 
 def ramp_posterior(
@@ -214,6 +214,9 @@ class GroupRamp:
         Between-participant SDs (random effects only).
     n_participants : int
     status, message : str
+    intercept_slope_cov : float or None
+        Covariance of the group intercept and slope, dB · dB/dB (random effects: the
+        participants' mean posterior correlation times the two standard errors).
     """
 
     target: str
@@ -231,6 +234,7 @@ class GroupRamp:
     n_participants: int
     status: str = "fitted"
     message: str = ""
+    intercept_slope_cov: float | None = None
 
 
 def random_effects(means: Sequence[float], sds: Sequence[float]) -> tuple[float, float, float]:
@@ -291,6 +295,9 @@ def group_ramps(posteriors: Sequence[RampPosterior]) -> list[GroupRamp]:
                 tau_a,
                 tau_b,
                 len(ps),
+                # DerSimonian-Laird pools each parameter alone; their correlation is taken
+                # as the participants' mean posterior one.
+                intercept_slope_cov=float(np.mean([p.rho for p in ps])) * se_a * se_b,
             )
         )
         out.append(_paper_route(target, masker, ps))
@@ -308,12 +315,12 @@ def _paper_route(target: str, masker: str, ps: Sequence[RampPosterior]) -> Group
         masker,
         "paper_route",
         "functional_ramp",
-        fit.intercept_db,
-        fit.slope,
+        fit.intercept_db if fit.intercept_db is not None else math.nan,
+        fit.slope if fit.slope is not None else math.nan,
         fit.intercept_se_db if fit.intercept_se_db is not None else math.nan,
         fit.slope_se if fit.slope_se is not None else math.nan,
-        tuple(fit.intercept_ci_db) if fit.intercept_ci_db is not None else nan,  # type: ignore[arg-type]
-        tuple(fit.slope_ci) if fit.slope_ci is not None else nan,  # type: ignore[arg-type]
+        fit.intercept_ci_db if fit.intercept_ci_db is not None else nan,
+        fit.slope_ci if fit.slope_ci is not None else nan,
         None,
         None,
         len(ps),

@@ -72,6 +72,11 @@ def _function_entry(g: GroupRamp, levels: Sequence[float]) -> dict[str, Any]:
         "n_participants": g.n_participants,
         "procedure": g.procedure,
         "estimate": g.estimate,
+        **(
+            {"intercept_slope_cov": _num(g.intercept_slope_cov)}
+            if _num(g.intercept_slope_cov) is not None
+            else {}
+        ),
     }
 
 

@@ -79,11 +79,12 @@ def _pf_panel(ax: Any, panel: Mapping[str, Any]) -> None:
         ax.annotate(f"{int(ni)}", (xi, pi), textcoords="offset points", xytext=(0, 7),
                     ha="center", fontsize=8)  # fmt: skip
     ax.axhline(fit.guess, color="0.6", lw=0.8, ls=":", label="guess rate")
-    if fit.ok:
+    th, slope, lapse = fit.threshold_db, fit.slope_per_db, fit.lapse  # all set when fit.ok
+    if fit.ok and th is not None and slope is not None and lapse is not None:
         lo, hi = float(x.min()), float(x.max())
         pad = max(1.0, 0.1 * (hi - lo))
         xs = np.linspace(lo - pad, hi + pad, 200)
-        ys = pf_curve(xs, fit.threshold_db, fit.slope_per_db, fit.lapse, fit.guess)  # type: ignore[arg-type]
+        ys = pf_curve(xs, th, slope, lapse, fit.guess)
         ax.plot(xs, ys, color="C0", lw=1.6, label="fitted function")
         ax.axvline(fit.threshold_db, color="C3", lw=1.2, ls="--", label="threshold α")
         ax.axvline(fit.al_db, color="C2", lw=1.2, ls=":", label="AL at target p")

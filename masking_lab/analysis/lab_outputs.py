@@ -24,80 +24,50 @@ It returns the :class:`~masking_lab.analysis.report_lab.LabSection` the reports 
 
 from __future__ import annotations
 
-import importlib.util
 import json
+import weakref
 import zlib
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TextIO
 
 import pandas as pd
 
-from masking_lab.analysis.psychometric import PFFit, fit_pf
+from masking_lab.analysis.log_reading import PARALLEL_FROM
+from masking_lab.analysis.pf_table import (
+    PF_BOOTSTRAP,
+    PF_COLUMNS,
+    SetTrials,
+    fit_all,
+    pf_job,
+    pf_row,
+)
+from masking_lab.analysis.psychometric import PFFit
 from masking_lab.analysis.report_lab import LabSection, PFRow, pf_plot
+from masking_lab.analysis.study_reading import ParquetSink, StudyLogs, read_parts
 from masking_lab.analysis.study_status import (
-    SessionInfo,
     outliers,
     status_matrix,
     unmasked_als,
 )
-from masking_lab.analysis.trials_table import TRIAL_COLUMNS, trial_rows
-from masking_lab.core.errors import LogError, MaskingLabError
-from masking_lab.core.psychometric import GUESS_3IFC
-from masking_lab.formats.csv_table import csv_text, csv_text_rows
+from masking_lab.analysis.trials_table import TRIAL_COLUMNS
+from masking_lab.formats.csv_table import csv_text
 from masking_lab.formats.fileio import write_bytes_atomic, write_text_atomic
 from masking_lab.formats.html_report import data_uri
-from masking_lab.formats.session_log import SessionLog, read_log
 
-__all__ = ["PF_COLUMNS", "LabOutputs", "pf_row", "read_study", "write_lab_outputs"]
-
-PF_BOOTSTRAP = 200  # parametric-bootstrap data sets per psychometric function
-PF_COLUMNS = [
-    "participant",
-    "experiment",
-    "set_id",
-    "target",
-    "masker",
-    "masker_level_db_sl",
-    "level_unit",
-    "procedure",
-    "n_trials",
-    "n_levels",
-    "guess",
-    "p_target",
-    "threshold_db",
-    "threshold_ci95_low_db",
-    "threshold_ci95_high_db",
-    "slope_per_db",
-    "slope_ci95_low_per_db",
-    "slope_ci95_high_per_db",
-    "lapse",
-    "lapse_ci95_low",
-    "lapse_ci95_high",
-    "al_db",
-    "al_sd_db",
-    "al_ci95_low_db",
-    "al_ci95_high_db",
-    "deviance",
-    "deviance_df",
-    "deviance_p",
-    "n_bootstrap",
-    "status",
-    "note",
-    "session_id",
-    "log",
+__all__ = [
+    "PF_COLUMNS",
+    "LabOutputs",
+    "fit_all",
+    "pf_job",
+    "pf_row",
+    "read_study",
+    "write_lab_outputs",
 ]
+
 _UNIT_TEXT = {"db_sl": "dB SL", "db_v": "dB re 1 V"}
-
-
-@dataclass
-class SetTrials:
-    """One set attempt's trials for the psychometric fit."""
-
-    start: Mapping[str, Any]
-    levels: list[float] = field(default_factory=list)
-    correct: list[bool] = field(default_factory=list)
 
 
 @dataclass
@@ -109,149 +79,30 @@ class LabOutputs:
     warnings: list[str]
 
 
-def _set_trials(log: SessionLog) -> dict[str, SetTrials]:
-    out: dict[str, SetTrials] = {}
-    for rec in log.records:
-        sid = rec.get("set_id")
-        if rec.get("record") == "set_start" and isinstance(sid, str):
-            out.setdefault(sid, SetTrials(rec)).start = rec
-        elif rec.get("record") == "trial" and sid in out:
-            st = out[sid]
-            key = "level_db_sl" if st.start.get("level_unit") == "db_sl" else "level_db_v"
-            lv, ok = rec.get(key), rec.get("correct")
-            if isinstance(lv, int | float) and not isinstance(lv, bool) and isinstance(ok, bool):
-                st.levels.append(float(lv))
-                st.correct.append(ok)
-    return out
-
-
-def _model(start: Mapping[str, Any]) -> tuple[str, float, float]:
-    """The set's procedure kind, guess rate and the p its AL is read at."""
-    from masking_lab.procedures.staircase import implied_target_p_for
-
-    proc = start.get("procedure")
-    if isinstance(proc, Mapping):
-        # the registry rebuilds any kind's settings; a kind without a guess rate or threshold
-        # point (or unreadable settings) is read as a 3IFC track at the 1-up-3-down point
-        from masking_lab.procedures.registry import settings_from_start
-
-        try:
-            s = settings_from_start(start, None)
-            guess = float(getattr(s, "guess", GUESS_3IFC))
-            return str(proc.get("kind")), guess, float(getattr(s, "p_at_threshold", 0.5 ** (1 / 3)))
-        except (MaskingLabError, TypeError, ValueError):
-            return str(proc.get("kind")), GUESS_3IFC, 0.5 ** (1 / 3)
-    st = start.get("staircase") if isinstance(start.get("staircase"), Mapping) else {}
-    try:
-        p = implied_target_p_for(
-            int(st.get("n_up", 1)), int(st.get("n_down", 3)), float(st.get("down_up_ratio", 1.0))
-        )
-    except (TypeError, ValueError, ArithmeticError):
-        p = 0.5 ** (1 / 3)
-    return "staircase", GUESS_3IFC, p
-
-
-def pf_row(base: Mapping[str, Any], st: SetTrials, seed: int, n_boot: int = PF_BOOTSTRAP) -> dict:
-    """The ``psychometric.csv`` row of one set: the fit of its trials, λ fitted in [0, 0.1].
-
-    Examples
-    --------
-    >>> st = SetTrials({"level_unit": "db_sl"}, [0.0, 2.0, 4.0] * 10, [False, True, True] * 10)
-    >>> row = pf_row({"participant": "P1"}, st, seed=1, n_boot=0)
-    >>> row["status"], row["n_levels"], row["deviance_df"]
-    ('fitted', 3, 0)
-    """
-    kind, guess, p_target = _model(st.start)
-    fit: PFFit = fit_pf(
-        st.levels, st.correct, guess=guess, p_target=p_target, lapse=None, n_boot=n_boot,
-        seed=seed,
-    )  # fmt: skip
-
-    def ci(v: tuple[float, float] | None, i: int) -> float | None:
-        return None if v is None else v[i]
-
-    return {
-        **base,
-        "level_unit": "db_sl" if st.start.get("level_unit") == "db_sl" else "db_v",
-        "procedure": kind,
-        "n_trials": fit.n_trials,
-        "n_levels": fit.n_levels,
-        "guess": guess,
-        "p_target": p_target,
-        "threshold_db": fit.threshold_db,
-        "threshold_ci95_low_db": ci(fit.threshold_ci_db, 0),
-        "threshold_ci95_high_db": ci(fit.threshold_ci_db, 1),
-        "slope_per_db": fit.slope_per_db,
-        "slope_ci95_low_per_db": ci(fit.slope_ci_per_db, 0),
-        "slope_ci95_high_per_db": ci(fit.slope_ci_per_db, 1),
-        "lapse": fit.lapse,
-        "lapse_ci95_low": ci(fit.lapse_ci, 0),
-        "lapse_ci95_high": ci(fit.lapse_ci, 1),
-        "al_db": fit.al_db,
-        "al_sd_db": fit.al_sd_db,
-        "al_ci95_low_db": ci(fit.al_ci_db, 0),
-        "al_ci95_high_db": ci(fit.al_ci_db, 1),
-        "deviance": fit.deviance,
-        "deviance_df": max(fit.n_levels - 3, 0),
-        "deviance_p": fit.deviance_p,
-        "n_bootstrap": fit.n_boot,
-        "status": "fitted" if fit.ok else "failed",
-        "note": fit.message,
-        "_fit": fit,
-    }
-
-
-@dataclass
-class StudyLogs:
-    """The analysed logs as the per-participant outputs need them."""
-
-    sessions: list[SessionInfo] = field(default_factory=list)
-    sets: dict[tuple[str, str], SetTrials] = field(default_factory=dict)
-    info: dict[str, dict[str, Any]] = field(default_factory=dict)
-    info_fields: dict[str, dict[str, Any]] = field(default_factory=dict)
-    sessions_of: dict[str, int] = field(default_factory=dict)
-
-
 def read_study(
     data: Path,
     logs: Sequence[str],
-    on_log: Callable[[str, SessionLog], None] | None = None,
+    set_status: Mapping[tuple[str, str], str] | None = None,
+    *,
+    trials_csv: TextIO | None = None,
+    parquet: ParquetSink | None = None,
 ) -> StudyLogs:
     """Read the analysed logs (relative paths under ``data``) with the general reader.
 
-    ``on_log`` sees each parsed log (``analyze`` streams its trial rows from there).
+    With ``trials_csv`` (and ``parquet``), each log's trial rows are written there as it comes
+    in (``set_status``: ``(log, set_id)`` → status), so a large study never sits in memory.
+    Many logs are read in parallel (:func:`~masking_lab.analysis.study_reading.read_parts`).
     """
     study = StudyLogs()
-    for rel in logs:
-        try:
-            log = read_log(data / rel)
-        except LogError:
+    rows = parquet is not None and parquet.enabled
+    for part in read_parts(data, logs, set_status, csv=trials_csv is not None, rows=rows):
+        if part is None:
             continue  # already reported by the analysis' own read
-        h = log.header if isinstance(log.header, Mapping) else {}
-        protocol = h.get("protocol") if isinstance(h.get("protocol"), Mapping) else {}
-        participant = str(h.get("participant", "?"))
-        order = h.get("set_order") if isinstance(h.get("set_order"), list) else []
-        study.sessions.append(
-            SessionInfo(
-                participant,
-                str(protocol.get("experiment", "?")),
-                rel,
-                tuple(str(s) for s in order),
-                log.ended,
-            )
-        )
-        study.sessions_of[participant] = study.sessions_of.get(participant, 0) + 1
-        info = h.get("info")
-        if isinstance(info, Mapping):
-            study.info.setdefault(participant, {}).update(info)
-        content = protocol.get("content") if isinstance(protocol.get("content"), Mapping) else {}
-        for spec in content.get("info") or []:
-            if isinstance(spec, Mapping) and isinstance(spec.get("name"), str):
-                study.info_fields.setdefault(spec["name"], dict(spec))
-        for sid, st in _set_trials(log).items():
-            study.sets[(rel, sid)] = st
-        if on_log is not None:
-            on_log(rel, log)
+        study.add(part)
+        if trials_csv is not None:
+            trials_csv.write(part.trials_csv)
+        if rows and part.trial_batch is not None:
+            parquet.add(part.trial_batch)  # type: ignore[union-attr]
     return study
 
 
@@ -297,18 +148,16 @@ def write_lab_outputs(
         (str(r[0]), str(r[1])): str(r[2])
         for r in thresholds[["log", "set_id", "status"]].itertuples(index=False)
     }
+    flags = outliers(thresholds)
+    # The shift figures need only the thresholds: for a large study they are drawn in a
+    # process of their own while the logs are read and fitted (the main process is idle then).
+    early = _ShiftFigures(thresholds, flags, figures != "none", len(logs) >= PARALLEL_FROM)
     if trial_tables:
         trials_path = out / "trials.csv"
-        parquet = _ParquetSink(out / "trials.parquet")
+        parquet = ParquetSink(out / "trials.parquet")
         with trials_path.open("w", encoding="utf-8", newline="") as fh:
             fh.write(",".join(TRIAL_COLUMNS) + "\n")
-
-            def on_log(rel: str, log: SessionLog) -> None:
-                rows = list(trial_rows(log, rel, status))
-                fh.write(csv_text_rows(TRIAL_COLUMNS, rows).split("\n", 1)[1])
-                parquet.add(rows)
-
-            study = read_study(data, logs, on_log)
+            study = read_study(data, logs, status, trials_csv=fh, parquet=parquet)
         files.append(trials_path)
         files += parquet.close()
     else:
@@ -316,8 +165,8 @@ def write_lab_outputs(
 
     # Psychometric functions of the sets whose threshold is used (completed attempts).
     used = thresholds[thresholds["status"] == "completed"] if trial_tables else thresholds[:0]
-    pf_rows: list[dict] = []
-    for i, r in enumerate(used.itertuples(index=False)):
+    wanted: list[tuple[dict, SetTrials, int]] = []
+    for r in used.itertuples(index=False):
         st = study.sets.get((str(r.log), str(r.set_id)))
         if st is not None:
             base = {
@@ -331,9 +180,13 @@ def write_lab_outputs(
                 "log": r.log,
             }
             seed = zlib.crc32(f"{r.participant}|{r.experiment}|{r.set_id}|{r.log}".encode())
-            pf_rows.append(pf_row(base, st, seed, n_boot))
-        if progress:
-            progress(i + 1, len(used))
+            wanted.append((base, st, seed))
+    # Every fit at once (batched, in parallel for many sets): the same numbers as one by one.
+    fits = fit_all([pf_job(st, seed, n_boot) for _, st, seed in wanted], progress=progress)
+    pf_rows = [
+        pf_row(base, st, seed, n_boot, fit)
+        for (base, st, seed), fit in zip(wanted, fits, strict=True)
+    ]
     if trial_tables:
         files.append(write_text_atomic(out / "psychometric.csv", csv_text(PF_COLUMNS, pf_rows)))
     files += _write_participants(out, study)
@@ -344,10 +197,9 @@ def write_lab_outputs(
     ]  # fmt: skip
     status_csv = csv_text(status_cols, [vars(c) for c in matrix])
     files.append(write_text_atomic(out / "study_status.csv", status_csv))
-    flags = outliers(thresholds)
     figure_links: list[tuple[str, str]] = []
     if figures != "none":
-        drawn = _draw(out, study, pf_rows, thresholds, flags, figures)
+        drawn = _draw(out, study, pf_rows, early, figures)
         files += [p for p, _ in drawn]
         figure_links = [(p.relative_to(out).as_posix(), c) for p, c in drawn]
     section = LabSection(
@@ -397,12 +249,11 @@ def _draw(
     out: Path,
     study: StudyLogs,
     pf_rows: Sequence[Mapping[str, Any]],
-    thresholds: pd.DataFrame,
-    flags: Sequence[Any],
+    shift_figures: _ShiftFigures,
     figures: str,
 ) -> list[tuple[Path, str]]:
     from masking_lab.analysis.figures import safe_stem
-    from masking_lab.analysis.lab_figures import pf_figure_png, shift_figure_png
+    from masking_lab.analysis.lab_figures import pf_figure_png
 
     drawn: list[tuple[Path, str]] = []
     groups: dict[tuple[str, str], list[Mapping[str, Any]]] = {}
@@ -421,23 +272,57 @@ def _draw(
         path = out / "figures" / "psychometric" / f"{safe_stem(f'{p}_{e}')}.png"
         write_bytes_atomic(path, pf_figure_png(f"Psychometric functions: {p}, {e}", panels))
         drawn.append((path, f"psychometric functions of {p} in {e}, one panel per set"))
-    done = thresholds[(thresholds["status"] == "completed") & thresholds["shift_db"].notna()]
-    flagged = set()
-    for o in flags:
-        if "(AL shift)" in o.what:
-            head, _, rest = o.what.partition(" @ ")
-            flagged.add((o.participant, head.split(" ", 1)[1], float(rest.split(" ")[0])))
-    for e, g in done.groupby("experiment", sort=True):
-        shifts = [
-            {"participant": r.participant, "mv_stimulus": r.mv_stimulus,
-             "pair": f"{r.target}|{r.masker}", "masker_level_db_sl": r.masker_level_db_sl,
-             "shift_db": r.shift_db}
-            for r in g.itertuples(index=False)
-        ]  # fmt: skip
+    for e, png in shift_figures.result():
         path = out / "figures" / f"shifts_{safe_stem(str(e))}.png"
-        write_bytes_atomic(path, shift_figure_png(f"Individual AL shifts: {e}", shifts, flagged))
+        write_bytes_atomic(path, png)
         drawn.append((path, f"each participant's AL shift in {e} against masker level"))
     return drawn
+
+
+class _ShiftFigures:
+    """``figures/shifts_<experiment>.png`` of the thresholds: drawn in a process of its own
+    from the start (``early``), or in-process when asked for the result."""
+
+    def __init__(self, thresholds: pd.DataFrame, flags: Sequence[Any], wanted: bool, early: bool):
+        self.jobs: list[tuple[str, str, list[dict], set]] = []
+        self.pool: ProcessPoolExecutor | None = None
+        self.futures: list[Any] = []
+        if not wanted:
+            return
+        done = thresholds[(thresholds["status"] == "completed") & thresholds["shift_db"].notna()]
+        flagged = set()
+        for o in flags:
+            if "(AL shift)" in o.what:
+                head, _, rest = o.what.partition(" @ ")
+                flagged.add((o.participant, head.split(" ", 1)[1], float(rest.split(" ")[0])))
+        for e, g in done.groupby("experiment", sort=True):
+            shifts = [
+                {"participant": r.participant, "mv_stimulus": r.mv_stimulus,
+                 "pair": f"{r.target}|{r.masker}", "masker_level_db_sl": r.masker_level_db_sl,
+                 "shift_db": r.shift_db}
+                for r in g.itertuples(index=False)
+            ]  # fmt: skip
+            self.jobs.append((str(e), f"Individual AL shifts: {e}", shifts, flagged))
+        if early and self.jobs:
+            self.pool = ProcessPoolExecutor(max_workers=1)
+            self.futures = [self.pool.submit(_shift_png, *job[1:]) for job in self.jobs]
+            # a run that fails before the figures are collected does not wait for them
+            weakref.finalize(self, self.pool.shutdown, False, cancel_futures=True)
+
+    def result(self) -> list[tuple[str, bytes]]:
+        """(experiment, PNG bytes) per experiment, sorted by experiment."""
+        if self.pool is None:
+            return [(job[0], _shift_png(*job[1:])) for job in self.jobs]
+        try:
+            return [(job[0], f.result()) for job, f in zip(self.jobs, self.futures, strict=True)]
+        finally:
+            self.pool.shutdown()
+
+
+def _shift_png(title: str, shifts: list[dict], flagged: set) -> bytes:
+    from masking_lab.analysis.lab_figures import shift_figure_png
+
+    return shift_figure_png(title, shifts, flagged)
 
 
 def _write_participants(out: Path, study: StudyLogs) -> list[Path]:
@@ -479,67 +364,6 @@ def _tsv(v: Any) -> str:
         return "n/a"
     text = json.dumps(v) if isinstance(v, bool) else str(v)
     return text.replace("\t", " ").replace("\n", " ")
-
-
-class _ParquetSink:
-    """``trials.parquet`` written in row groups when pyarrow is installed; else nothing."""
-
-    def __init__(self, path: Path) -> None:
-        self.path = path
-        self.rows: list[list[Any]] = []
-        self.writer: Any = None
-        self.enabled = importlib.util.find_spec("pyarrow") is not None
-
-    def add(self, rows: list[list[Any]]) -> None:
-        if self.enabled:
-            self.rows += rows
-            if len(self.rows) >= 200_000:
-                self._flush()
-
-    def _flush(self) -> None:
-        import pyarrow as pa
-        import pyarrow.parquet as pq
-
-        cols = list(zip(*self.rows, strict=True)) if self.rows else [[] for _ in TRIAL_COLUMNS]
-        table = pa.table(
-            {
-                c: pa.array(list(v), type=_ARROW[c]())
-                for c, v in zip(TRIAL_COLUMNS, cols, strict=True)
-            }
-        )
-        if self.writer is None:
-            self.writer = pq.ParquetWriter(self.path, table.schema)
-        self.writer.write_table(table)
-        self.rows = []
-
-    def close(self) -> list[Path]:
-        if not self.enabled:
-            return []
-        if self.rows or self.writer is None:
-            self._flush()
-        self.writer.close()
-        return [self.path]
-
-
-def _arrow_types() -> dict[str, Callable[[], Any]]:
-    def t(name: str) -> Callable[[], Any]:
-        def make() -> Any:
-            import pyarrow as pa
-
-            return getattr(pa, name)()
-
-        return make
-
-    ints = {"set_position", "trial", "correct", "target_interval", "response_interval",
-            "reversal", "line"}  # fmt: skip
-    strs = {"participant", "session_id", "created_utc", "experiment", "protocol_path",
-            "set_id", "target", "masker", "procedure", "level_unit", "at_bound", "set_status",
-            "log"}  # fmt: skip
-    return {c: t("int64") if c in ints else t("string") if c in strs else t("float64")
-            for c in TRIAL_COLUMNS}  # fmt: skip
-
-
-_ARROW = _arrow_types()
 
 
 def study_at_a_glance(data: str | Path) -> tuple[LabSection, list[str]]:

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -78,6 +78,12 @@ class RampFit:
         Why the status is what it is, or a caution about a fitted ramp.
     n_boot_failed : int
         Bootstrap replicates that could not be fitted (0 unless ``uncertainty == "bootstrap"``).
+    intercept_slope_cov : float or None
+        Covariance of intercept and slope (dB · dB/dB SL): asymptotic, or over the bootstrap
+        replicates; None without standard errors.
+    draws : tuple of (intercept_db, slope) tuples
+        Up to :data:`MAX_KEPT_DRAWS` joint bootstrap replicates, in the order drawn (empty
+        unless ``uncertainty == "bootstrap"``): the export carries them to the rendering.
     """
 
     intercept_db: float | None
@@ -99,6 +105,12 @@ class RampFit:
     status: FitStatus
     message: str | None
     n_boot_failed: int = 0
+    intercept_slope_cov: float | None = None
+    draws: tuple[tuple[float, float], ...] = ()
+
+
+#: Joint bootstrap replicates a fit keeps for the export (the rest only shape its SEs and CIs).
+MAX_KEPT_DRAWS = 200
 
 
 def ramp_least_squares_batch(
@@ -232,7 +244,7 @@ def fit_ramp(x: ArrayLike, shifts: ArrayLike, *, ci_level: float = 0.95) -> Ramp
     if xv.size != y.size:
         raise AnalysisError(f"got {xv.size} masker levels but {y.size} shifts")
     fitted_range = (float(xv.min()), float(xv.max())) if xv.size else (0.0, 0.0)
-    base = dict(
+    base: dict[str, Any] = dict(  # the fields every outcome shares; RampFit checks the rest
         intercept_se_db=None,
         slope_se=None,
         intercept_ci_db=None,
@@ -258,7 +270,7 @@ def fit_ramp(x: ArrayLike, shifts: ArrayLike, *, ci_level: float = 0.95) -> Ramp
                 f"{_levels_text(xv) or 'none'} dB SL — measure more levels or pool this pair "
                 "with another"
             ),
-            **base,  # type: ignore[arg-type]
+            **base,
         )
     a, b = ramp_least_squares(xv, y)
     pred = np.maximum(0.0, a + b * xv)
@@ -281,7 +293,7 @@ def fit_ramp(x: ArrayLike, shifts: ArrayLike, *, ci_level: float = 0.95) -> Ramp
                 f"no masking between {fitted_range[0]:g} and {fitted_range[1]:g} dB SL; the "
                 "exported ramp is 0 there and says nothing about higher masker levels"
             ),
-            **{**base, "r2": r2, "adj_r2": adj},  # type: ignore[arg-type]
+            **{**base, "r2": r2, "adj_r2": adj},
         )
     active = (a + b * xv) > _TINY
     active_levels = np.unique(xv[active])
@@ -315,7 +327,7 @@ def fit_ramp(x: ArrayLike, shifts: ArrayLike, *, ci_level: float = 0.95) -> Ramp
             "adj_r2_active": adj_active,
             "knee_db_sl": None if knee is None else float(knee),
             "n_active_levels": int(active_levels.size),
-        },  # type: ignore[arg-type]
+        },
     )
     return _with_asymptotic(fit, xv[active], sse, n)
 
@@ -334,7 +346,7 @@ def _with_asymptotic(fit: RampFit, x_active: NDArray[np.float64], sse: float, n:
     cov = (sse / dof) * np.linalg.inv(J.T @ J)
     se_a, se_b = math.sqrt(max(cov[0, 0], 0.0)), math.sqrt(max(cov[1, 1], 0.0))
     t = float(stats.t.ppf(0.5 + fit.ci_level / 2.0, dof))
-    a, b = float(fit.intercept_db), float(fit.slope)  # type: ignore[arg-type]
+    a, b = float(fit.intercept_db), float(fit.slope)  # type: ignore[arg-type]  # fitted: set
     return replace(
         fit,
         intercept_se_db=se_a,
@@ -342,6 +354,7 @@ def _with_asymptotic(fit: RampFit, x_active: NDArray[np.float64], sse: float, n:
         intercept_ci_db=(a - t * se_a, a + t * se_a),
         slope_ci=(b - t * se_b, b + t * se_b),
         uncertainty="asymptotic",
+        intercept_slope_cov=float(cov[0, 1]),
     )
 
 
@@ -362,14 +375,16 @@ def with_bootstrap(
     Returns
     -------
     RampFit
-        SE = SD of the replicates, intervals = percentile intervals at ``fit.ci_level``.
+        SE = SD of the replicates, intervals = percentile intervals at ``fit.ci_level``,
+        their covariance, and the first :data:`MAX_KEPT_DRAWS` replicates as joint draws
+        (replicates are independent, so the first ones are a random subset).
 
     Examples
     --------
     >>> fit = fit_ramp([0, 10, 20], [0.0, 4.0, 12.0])
     >>> boot = with_bootstrap(fit, [-4.2, -3.8, -4.0], [0.78, 0.82, 0.80])
-    >>> boot.uncertainty, round(boot.slope_se, 3)
-    ('bootstrap', 0.02)
+    >>> boot.uncertainty, round(boot.slope_se, 3), len(boot.draws)
+    ('bootstrap', 0.02, 3)
     """
     if fit.status != "fitted":
         return fit
@@ -394,6 +409,8 @@ def with_bootstrap(
         uncertainty="bootstrap",
         message=message,
         n_boot_failed=int(n_failed),
+        intercept_slope_cov=float(np.cov(ab, bb, ddof=1)[0, 1]),
+        draws=tuple(zip(ab[:MAX_KEPT_DRAWS].tolist(), bb[:MAX_KEPT_DRAWS].tolist(), strict=True)),
     )
 
 

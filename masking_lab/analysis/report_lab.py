@@ -96,12 +96,13 @@ def pf_plot(levels_db: Sequence[float], correct: Sequence[bool], fit: PFFit) -> 
         for xi, ni, ki in zip(x, n, k, strict=True)
     )
     curve, thr, al = "", None, None
-    if fit.ok and fit.threshold_db is not None:
+    th, slope, lapse = fit.threshold_db, fit.slope_per_db, fit.lapse  # all set when fit.ok
+    if fit.ok and th is not None and slope is not None and lapse is not None:
         xs = np.linspace(lo, hi, 60)
-        ys = pf_curve(xs, fit.threshold_db, fit.slope_per_db, fit.lapse, fit.guess)  # type: ignore[arg-type]
+        ys = pf_curve(xs, th, slope, lapse, fit.guess)
         curve = " ".join(f"{px(float(a))},{py(float(b))}" for a, b in zip(xs, ys, strict=True))
-        thr = px(fit.threshold_db) if lo <= fit.threshold_db <= hi else None
-        al = px(fit.al_db) if fit.al_db is not None and lo <= fit.al_db <= hi else None  # type: ignore[operator]
+        thr = px(th) if lo <= th <= hi else None
+        al = px(fit.al_db) if fit.al_db is not None and lo <= fit.al_db <= hi else None
     step = max(1, int(np.ceil((hi - lo) / 5)))
     ticks = np.arange(np.ceil(lo / step) * step, hi + 1e-9, step)
     return PFPlot(

@@ -101,7 +101,7 @@ def rig_changes(uses: Iterable[RigUse]) -> list[str]:
         if len(rigs) < 2:
             continue
         groups = "; ".join(
-            f"{group[0].rig.get('name') or 'unnamed rig'}: "  # type: ignore[union-attr]
+            f"{_rig_name(group[0])}: "
             + ", ".join(f"{u.log_name} [{u.experiment}]" for u in sorted(group, key=_name))
             for group in sorted(rigs.values(), key=lambda g: _name(min(g, key=_name)))
         )
@@ -116,3 +116,7 @@ def rig_changes(uses: Iterable[RigUse]) -> list[str]:
 
 def _name(use: RigUse) -> str:
     return use.log_name
+
+
+def _rig_name(use: RigUse) -> str:
+    return (use.rig or {}).get("name") or "unnamed rig"

@@ -250,9 +250,10 @@ def rm_design(
     wide = wide.sort_index()
     missing = wide.isna()
     dropped = []
+    cells_ab = list(itertools.product(levels_a, levels_b))  # the columns, in order
     for subj, row in missing.iterrows():
         if row.any():
-            cells = [f"{a}@{b}" for (a, b), m in row.items() if m]
+            cells = [f"{a}@{b}" for (a, b), m in zip(cells_ab, row, strict=True) if m]
             dropped.append((str(subj), f"no value for {', '.join(cells)}"))
     kept = wide[~missing.any(axis=1)]
     if len(kept) < 2:

@@ -231,9 +231,10 @@ def outliers(thresholds: pd.DataFrame) -> list[Outlier]:
     masked = done[done["masker"].notna() & done["shift_db"].notna()]
     keys = ["experiment", "target", "masker", "masker_level_db_sl"]
     for key, g in masked.groupby(keys, sort=True):
-        e, t, m, lv = key
+        e, t, m, _ = key
+        lv = float(g["masker_level_db_sl"].iloc[0])  # the group's level (the key is untyped)
         vals: dict[str, Any] = dict(zip(g["participant"], g["shift_db"].astype(float), strict=True))
-        out += _flag(vals, f"{e} {t}|{m} @ {float(lv):g} dB SL (AL shift)")
+        out += _flag(vals, f"{e} {t}|{m} @ {lv:g} dB SL (AL shift)")
     for target, als in sorted(_by_target(unmasked_als(thresholds)).items()):
         out += _flag(als, f"unmasked AL of {target}")
     return out

@@ -175,9 +175,13 @@ def estimate_set(records: SetRecords, settings: EstimatorSettings) -> SetEstimat
         est = procedure_estimate(
             start["procedure"], levels, correct, estimator=settings.estimator, lapse=settings.lapse
         )
-        ci = None if est.ci_low_db is None else (est.ci_low_db, est.ci_high_db)
+        ci = (
+            None
+            if est.ci_low_db is None or est.ci_high_db is None
+            else (est.ci_low_db, est.ci_high_db)
+        )
         note = est.note or ("; ".join(notes) or None)
-        return SetEstimate(est.al_db, est.status, n_trials, 0, note, est.sd_db, ci)  # type: ignore[arg-type]
+        return SetEstimate(est.al_db, est.status, n_trials, 0, note, est.sd_db, ci)
     staircase = start.get("staircase") or {}
     if settings.estimator == "reversals":
         k = settings.n_reversals_averaged or int(staircase.get("n_reversals_averaged", 8))
@@ -196,16 +200,16 @@ def estimate_set(records: SetRecords, settings: EstimatorSettings) -> SetEstimat
         )
         if not fit.ok:
             return SetEstimate(None, "estimator_failed", n_trials, len(reversals), fit.message)
-        if not math.isfinite(float(fit.threshold_db)):  # type: ignore[arg-type]
+        threshold_db, s = fit.threshold_db, fit.scale_db
+        if threshold_db is None or s is None or not math.isfinite(threshold_db):
             return SetEstimate(
                 None, "estimator_failed", n_trials, len(reversals),
                 f"the estimate is {fit.threshold_db}",
             )  # fmt: skip
         # Its SD and 95 % interval from a parametric bootstrap (analysis.psychometric), seeded
         # by the set so reruns give the same bytes.
-        s = float(fit.scale_db)  # type: ignore[arg-type]
         q = (p_target - GUESS_3IFC) / (1.0 - GUESS_3IFC - fit.lapse)
-        alpha = float(fit.threshold_db) - s * math.log(q / (1.0 - q))  # type: ignore[arg-type]
+        alpha = threshold_db - s * math.log(q / (1.0 - q))
         boot = fit_pf(
             levels,
             correct,
@@ -219,7 +223,7 @@ def estimate_set(records: SetRecords, settings: EstimatorSettings) -> SetEstimat
         if boot.ok and boot.message:  # e.g. few refits inside the bounds
             notes.append(boot.message)
         return SetEstimate(
-            float(fit.threshold_db),  # type: ignore[arg-type]
+            float(threshold_db),
             "completed",
             n_trials,
             len(reversals),
@@ -425,6 +429,7 @@ def thresholds_table(
     if rows and isinstance(rows[0], tuple):
         col = dict(zip(ROW_KEYS, map(list, zip(*rows, strict=True)), strict=True))
     else:
+        # rows are dicts here (the tuple form was handled above)
         col = {c: [r.get(c) for r in rows] for c in ROW_KEYS}  # type: ignore[union-attr]
     if consume:
         rows.clear()

@@ -124,7 +124,8 @@ def trial_rows(
     ('P1', 0, 12.0, 1, 3)
     """
     h = log.header if isinstance(log.header, Mapping) else {}
-    protocol = h.get("protocol") if isinstance(h.get("protocol"), Mapping) else {}
+    raw_protocol = h.get("protocol")
+    protocol = raw_protocol if isinstance(raw_protocol, Mapping) else {}
     base = [
         str(h.get("participant", "")),
         str(h.get("session_id", log_name)),

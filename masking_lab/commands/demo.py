@@ -13,6 +13,7 @@ import argparse
 from pathlib import Path
 
 from masking_lab.commands.options import command_texts
+from masking_lab.commands.progress_bars import add_progress_options, progress_wanted, step_bar
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -38,6 +39,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--jobs", type=int, default=None, help="worker processes [cores, at most 4]")
     p.add_argument("--n-boot", type=int, default=1000, help="bootstrap replicates of the fits")
+    add_progress_options(p)
     p.set_defaults(handler=run)
 
 
@@ -56,4 +58,11 @@ def run(args: argparse.Namespace) -> int:
         jobs=args.jobs if args.jobs is not None else default_jobs(),
         n_boot=args.n_boot,
     )
-    return run_demo(settings)
+    # A bar over sessions, analysis and rendering on a terminal (or with --progress); else a
+    # line per session as before.
+    bar = None
+    if progress_wanted(args.progress):
+        from masking_lab.demo_summary import PROTOCOLS
+
+        bar = step_bar("demo", True, total=args.participants * len(PROTOCOLS) + 3)
+    return run_demo(settings, progress=bar)

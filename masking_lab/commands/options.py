@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import textwrap
+from typing import TypedDict
 
 __all__ = ["command_texts", "progress_flags", "rating_options", "session_options"]
 
@@ -101,7 +102,15 @@ def progress_flags(p: argparse.ArgumentParser) -> None:
     )
 
 
-def command_texts(doc: str | None) -> dict[str, str]:
+class CommandTexts(TypedDict):
+    """The ``help`` and ``description`` keywords of ``add_parser`` (a TypedDict, so that the
+    ``**command_texts(...)`` splat is checked against argparse's signature)."""
+
+    help: str
+    description: str
+
+
+def command_texts(doc: str | None) -> CommandTexts:
     """``help`` and ``description`` for a sub-parser, from its command module's docstring.
 
     The docstring's first paragraph is ``\\`\\`SYNTAX\\`\\`: help.``; its second paragraph is the

@@ -1,11 +1,14 @@
-"""``masking-lab plan PROTOCOL``: simulate a protocol to trade session time against threshold
-precision.
+"""``masking-lab plan PROTOCOL | --scene SCENE``: simulate a protocol to trade session time
+against threshold precision, or plan the measurements a scene needs.
 
 Run the protocol's staircases against simulated observers for a grid of stop rules, step
 schedules and estimators, and QUEST+ at posterior-SD stop rules beside them; print trials,
 minutes, AL bias, SD and RMSE per setting with its efficiency against the Cramér-Rao bound,
 answer 'fewest trials for ±X dB' across procedures, and write CSV tables, report.html and the
-speed–accuracy figure to --out.
+speed–accuracy figure to --out. With --scene SCENE instead of a protocol: list the masking
+functions a scene needs and the masker ranges it plays (present within the fitted range,
+extrapolated, or missing), write the protocols that measure what is missing, and predict the
+scene's rendering error for a few budgets of participants × trials (docs/scenes.md).
 
 Simulated observers run the protocol's staircases thousands of times under a grid of stop
 rules, step schedules and estimators, and QUEST+ on the same observers; the command prints what
@@ -22,10 +25,14 @@ import math
 import sys
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from masking_lab.commands.options import command_texts
+from masking_lab.commands.plan_scene import add_scene_options, run_scene
 from masking_lab.commands.progress_bars import add_progress_options
+
+if TYPE_CHECKING:  # `--help` must not import the protocol layer
+    from masking_lab.formats.protocol import Protocol
 
 
 def _checked(
@@ -82,7 +89,9 @@ def _rig_resolution(protocol: Any, truth: Any, device_config: str | None) -> lis
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("plan", **command_texts(__doc__))
-    p.add_argument("protocol", metavar="PROTOCOL", help="protocol YAML file")
+    p.add_argument(
+        "protocol", metavar="PROTOCOL", nargs="?", help="protocol YAML file (or give --scene)"
+    )
     p.add_argument(
         "--replicates",
         type=_positive_int,
@@ -191,7 +200,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--device-config",
         metavar="FILE",
         help="rig config whose converters are checked against every set's level range: a "
-        "floor below the rig's resolution is flagged (default: protocols/devices/default.yaml)",
+        "floor below the rig's resolution is flagged; with --scene, its channels' "
+        "max_level_db_sl are the ratings (default: protocols/devices/default.yaml)",
     )
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument(
@@ -224,13 +234,14 @@ def register(sub: argparse._SubParsersAction) -> None:
         "scheduler's address (tcp://host:8786); the same --seed gives the same table on any",
     )
     add_progress_options(p)
+    add_scene_options(p)
     p.set_defaults(handler=run)
 
 
-def _places_masker(protocol: object) -> bool:
+def _places_masker(protocol: Protocol) -> bool:
     from masking_lab.procedures.registry import kind_of
 
-    return any(kind_of(s.settings).places_masker for s in protocol.sets)  # type: ignore[attr-defined]
+    return any(kind_of(s.settings).places_masker for s in protocol.sets)
 
 
 #: Simulated participants per route for a functional protocol (each track is ~1 s of CPU).
@@ -291,6 +302,13 @@ def run(args: argparse.Namespace) -> int:
     from masking_lab.procedures.staircase_batch import Observer
     from masking_lab.simulation.observer import load_ground_truth
 
+    if (args.protocol is None) == (args.scene is None):
+        raise AnalysisError(
+            "plan: give either a PROTOCOL to simulate or --scene SCENE to plan a scene's "
+            "measurements (not both)"
+        )
+    if args.scene is not None:
+        return run_scene(args, plan_folder(args.out, force=args.force))
     protocol = load_protocol(args.protocol)
     out = plan_folder(args.out, force=args.force)
     if _places_masker(protocol):

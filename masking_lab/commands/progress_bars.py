@@ -84,12 +84,19 @@ def count_bar(
 
 
 def step_bar(
-    label: str, enabled: bool, stream: TextIO | None = None, total: int | None = None
+    label: str,
+    enabled: bool,
+    stream: TextIO | None = None,
+    total: int | None = None,
+    *,
+    lines_when_off: bool = True,
 ) -> Callable[[str], None]:
     """A callback ``(message)`` counting steps, the message as the bar's text.
 
-    Without ``enabled`` the messages are printed as lines (``label: message``) when stderr is
-    a terminal or ``stream`` is given, as the commands did before.
+    Without ``enabled`` the messages are printed as lines (``label: message``), as ``plan``
+    and ``study`` did before the bars, or dropped with ``lines_when_off=False`` (commands that
+    printed no progress before: ``render``). With ``total`` the bar closes (ends its line) at
+    the last step, so the command's own output starts on a fresh line.
 
     Examples
     --------
@@ -102,6 +109,8 @@ def step_bar(
     """
     out = stream or sys.stderr
     if not enabled:
+        if not lines_when_off:
+            return lambda _msg: None
         return lambda msg: print(f"{label}: {msg}", file=out, flush=True)
     from tqdm import tqdm
 
@@ -110,5 +119,7 @@ def step_bar(
     def say(msg: str) -> None:
         bar.update(1)
         bar.set_postfix_str(msg)  # redraws, so the current step always shows
+        if total is not None and bar.n >= total:
+            bar.close()
 
     return say

@@ -16,6 +16,7 @@ import argparse
 import sys
 
 from masking_lab.commands.options import command_texts, rating_options
+from masking_lab.commands.progress_bars import add_progress_options, progress_wanted, step_bar
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -51,6 +52,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "what is felt (default 200; 0: none)",
     )
     p.add_argument("--no-figure", action="store_true", help="skip figure4.png and gamut.png")
+    add_progress_options(p)
     p.set_defaults(handler=run)
 
 
@@ -70,6 +72,8 @@ def run(args: argparse.Namespace) -> int:
     from masking_lab.rendering.scene import load_scene
     from masking_lab.rendering.solver import MissingMaskingError, PairProblem, pair_from_params
 
+    # A bar of the five steps on a terminal (or with --progress); the figures take longest.
+    step = step_bar("render", progress_wanted(args.progress), total=5, lines_when_off=False)
     scene = load_scene(args.scene)
     limits = max_level_db_sl(args.device_config)
     max_mv = args.max_mv_db_sl if args.max_mv_db_sl is not None else limits.get("MV")
@@ -88,12 +92,12 @@ def run(args: argparse.Namespace) -> int:
             for warning in determination_warnings(params, args.params, (mv, ev)):
                 print(f"masking-lab render: warning: {warning}", file=sys.stderr)
         except MissingMaskingError as exc:
-            written = " and ".join(
+            protocols = " and ".join(
                 str(write_measurement_protocol(doc, args.out, writer="render"))
                 for doc in measurement_protocols(exc.problems, writer="render")
             )
             raise SolverError(
-                f"{exc}\n  wrote {written}: the protocol(s) that measure just this pair, one per "
+                f"{exc}\n  wrote {protocols}: the protocol(s) that measure just this pair, one per "
                 f"masking direction. Check them with `masking-lab validate`, run them after the "
                 "participants' baseline, analyse them together with the rest of the study, and "
                 "render again"
@@ -106,15 +110,18 @@ def run(args: argparse.Namespace) -> int:
     if gamut_map != "none" and (max_mv is None or max_ev is None):
         # Nothing is rated on some channel: there is no gamut to map into.
         gamut_map = "none"
+    step("solving the compensated inputs")
     rendering = render_scene(
         scene, pair, max_mv_db_sl=max_mv, max_ev_db_sl=max_ev, gamut_map=gamut_map
     )
+    step(f"uncertainty ({args.uncertainty_draws} draws)")
     uncertainty = None
     if pair is not None and args.uncertainty_draws:
         from masking_lab.rendering.uncertainty import pair_spread, perceived_intervals
 
         spread = pair_spread(params, mv=pair.mv, ev=pair.ev)
         uncertainty = perceived_intervals(rendering, spread, n_draws=args.uncertainty_draws)
+    step("comparing gamut mappings")
     trade = None
     if max_mv is not None and max_ev is not None:
         from masking_lab.rendering.render import compare_strategies
@@ -123,11 +130,13 @@ def run(args: argparse.Namespace) -> int:
     # All files appear at once (the folder swapped in whole) unless --out holds other files.
     out = Path(args.out)
     protect = [args.scene, *([args.params] if args.params else [])]
+    step("writing points, summary and figures")
     with staged_output(out, protect=protect, markers=("summary.json",), shared="in_place") as st:
         staged = write_rendering(
             rendering, st, figure=not args.no_figure, uncertainty=uncertainty, strategies=trade
         )
         written = [out / p.name for p in staged]
+    step("done")
     summary = summarize(rendering)
     if pair is None:
         print(f"{scene.name}: single-channel scene, targets passed straight through")
@@ -183,8 +192,9 @@ def run(args: argparse.Namespace) -> int:
         print(f"  other mappings (RMS/max error as played): {others}")
     if uncertainty is not None:
         u = uncertainty.summary()
+        how = ", ".join(f"{fn} {m}" for fn, m in u["method_by_function"].items())
         print(
-            f"  uncertainty ({u['n_draws']} parametric draws of the fits, "
+            f"  uncertainty ({u['n_draws']} draws of the fits: {how}; "
             f"{100 * u['level']:.0f} % intervals): compensation not better than none at "
             f"{u['points_compensation_not_better']} points; {u['points_beyond_fitted_range']} "
             "points rely on a ramp beyond its fitted masker range"

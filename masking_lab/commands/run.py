@@ -60,8 +60,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         default=[],
         metavar="KEY=VALUE",
         help="participant metadata the protocol's info section asks for (age, handedness, "
-        "...), e.g. --info age=24 --info handedness=right; repeatable; on a terminal the "
-        "missing fields are asked for",
+        "...), e.g. --info age=24 --info handedness=right; repeatable; the missing fields "
+        "are asked on the terminal, or in the window with --responder psychopy",
     )
     usertest = p.add_argument_group("user tests (protocols with kind: usertest)")
     usertest.add_argument(

@@ -231,7 +231,7 @@ def _only_mv(params: dict[str, Any], ev: str, source: str) -> str:
 
     names = sorted(
         {
-            f.get("target")
+            str(f.get("target"))
             for f in params.get("functions", [])
             if isinstance(f, dict)
             and f.get("masker") == ev
@@ -239,8 +239,8 @@ def _only_mv(params: dict[str, Any], ev: str, source: str) -> str:
         }
     )
     if len(names) == 1:
-        return str(names[0])
-    listed = ", ".join(str(n) for n in names) or "none"
+        return names[0]
+    listed = ", ".join(names) or "none"
     raise SolverError(
         f"{source}: say which MV stimulus with --mv NAME (masked by {ev} in the file: {listed})"
     )

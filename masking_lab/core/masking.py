@@ -13,7 +13,9 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 
-def ramp(x: ArrayLike, intercept_db: float, slope: float) -> NDArray[np.float64]:
+def ramp(
+    x: ArrayLike, intercept_db: float | NDArray[np.float64], slope: float | NDArray[np.float64]
+) -> NDArray[np.float64]:
     """AL shift in dB for masker level(s) ``x`` in dB SL: ``max(0, intercept_db + slope·x)``.
 
     Parameters

@@ -111,7 +111,7 @@ def parse_stimulus(name: str) -> Stimulus:
             "for example EV270, MV120 or MV120am40"
         )
     channel, carrier, envelope = match.groups()
-    return Stimulus(channel, float(carrier), float(envelope) if envelope else None)  # type: ignore[arg-type]
+    return Stimulus(as_channel(channel), float(carrier), float(envelope) if envelope else None)
 
 
 def is_stimulus_name(name: str) -> bool:
@@ -133,6 +133,42 @@ def is_stimulus_name(name: str) -> bool:
     (True, True, False)
     """
     return bool(_NAME.match(str(name).strip()))
+
+
+def as_channel(value: object, what: str = "channel") -> Channel:
+    """``value`` as a :data:`Channel`: the checked step from a text field to ``"EV"``/``"MV"``.
+
+    Parameters
+    ----------
+    value : object
+        A field, wire token or column value; ``"EV"`` or ``"MV"`` (exact case).
+    what : str
+        The field's name, used in the error message.
+
+    Returns
+    -------
+    Channel
+        ``"EV"`` (electrovibration) or ``"MV"`` (mechanical vibration).
+
+    Raises
+    ------
+    ValueError
+        If ``value`` is anything else.
+
+    Examples
+    --------
+    >>> as_channel("MV")
+    'MV'
+    >>> as_channel("LRA", "tch")
+    Traceback (most recent call last):
+    ...
+    ValueError: tch is 'LRA': write EV or MV
+    """
+    if value == "EV":
+        return "EV"
+    if value == "MV":
+        return "MV"
+    raise ValueError(f"{what} is {value!r}: write EV or MV")
 
 
 def _num(x: float) -> str:

@@ -225,7 +225,7 @@ class DeviceConfig:
             ``ratio``) or None, ``transducer`` and ``measured_gain`` (a list of
             ``{"frequency_hz", "v_out_per_v_in"}`` sorted by frequency; empty if not measured)
             and ``converter`` (``bits``, ``full_scale_v``, ``attenuator_steps_db``,
-            ``min_lsb``) or None.
+            ``min_lsb``, ``linear_codes``) or None.
 
         Examples
         --------
@@ -251,6 +251,8 @@ class DeviceConfig:
                     "min_lsb": conv.min_lsb,
                 }
             )
+            if conv is not None and conv.linear_codes is not None:
+                record["converter"]["linear_codes"] = conv.linear_codes
         return {"name": self.name, "config": self.path, "channels": channels}
 
 
@@ -341,8 +343,11 @@ def _schema_problems(data: Any, lines: Mapping[str, int]) -> Iterator[tuple[str,
     for err in schema_errors(data, "device_config"):
         path = key_path(err)
         if err.validator == "additionalProperties":
-            known = list(err.schema.get("properties", {}))
-            for key in [k for k in err.instance if k not in known]:
+            # additionalProperties reports an object schema and an object instance
+            err_schema = err.schema if isinstance(err.schema, Mapping) else {}
+            instance = err.instance if isinstance(err.instance, Mapping) else {}
+            known = list(err_schema.get("properties", {}))
+            for key in [k for k in instance if k not in known]:
                 child = f"{path}.{key}" if path != "(top level)" else str(key)
                 if path == "nidaq" and key in ("device", "ao_channels"):
                     yield (
@@ -461,6 +466,7 @@ def _converter(
         full_scale_v=float(spec["full_scale_v"]),
         steps_db=steps,
         min_lsb=float(spec.get("min_lsb", DEFAULT_MIN_LSB)),
+        linear_codes=int(spec["linear_codes"]) if "linear_codes" in spec else None,
     )
 
 
@@ -503,7 +509,8 @@ def _max_drive_v(
     result never exceeds the ±10 V of the analog outputs.
     """
     ratio = rig.attenuator.ratio if rig.attenuator is not None else 1.0
-    amp_max = rig.amplifier.max_input_v if rig.amplifier is not None else None
+    amp = rig.amplifier
+    amp_max = amp.max_input_v if amp is not None else None
     if "max_drive_v" not in spec:
         if amp_max is None:
             raise DeviceConfigError(
@@ -515,12 +522,12 @@ def _max_drive_v(
         return min(amp_max / ratio, BOARD_MAX_V)
     limit = float(spec["max_drive_v"])
     # A relative tolerance keeps 1.8 V through a 0.5 divider (3.6 V) from failing on rounding.
-    if amp_max is not None and limit * ratio > amp_max * (1 + 1e-9):
+    if amp is not None and amp_max is not None and limit * ratio > amp_max * (1 + 1e-9):
         through = f" × attenuator ratio {ratio:g} = {limit * ratio:g} V" if ratio != 1.0 else ""
         raise DeviceConfigError(
             source,
             _where(f"{path}.max_drive_v", lines),
-            f"{limit:g} V{through} at the input of the {rig.amplifier.model} exceeds its "
+            f"{limit:g} V{through} at the input of the {amp.model} exceeds its "
             f"max_input_v of {amp_max:g} V; lower max_drive_v to at most {amp_max / ratio:.4g} V",
         )
     return limit

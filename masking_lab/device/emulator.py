@@ -91,6 +91,10 @@ class FirmwareEmulator(EmulatorCommands):
         Converter full scale of both channels at the amplifier input, V peak.
     att_db : tuple of int
         Attenuator steps the board switches, dB, ascending, first 0 (HELLO ``att``).
+    linear_codes : int, optional
+        Largest |code| around mid-scale the output stage plays linearly, both channels (HELLO
+        ``lin``); None = the reference DAC's fraction 1798/2048 of the half range (1798 codes
+        at 12 bits), as the host build and the STM32 image.
     overdrive : float
         Fault injection for tests: scale every rendered sample by this factor after the level
         checks, so the per-sample limit check (``FAULT code=LIMIT``) can be exercised.
@@ -110,6 +114,7 @@ class FirmwareEmulator(EmulatorCommands):
         bits: int = 12,
         fsv_v: float = 10.0,
         att_db: tuple[int, ...] = (0, 20, 40),
+        linear_codes: int | None = None,
         overdrive: float = 1.0,
     ) -> None:
         self.config = config or default_device_config()
@@ -120,9 +125,18 @@ class FirmwareEmulator(EmulatorCommands):
         self.limits = {
             ch: min(HARD_MAX_DRIVE_V, self.config.limits.max_drive_v[ch]) for ch in CHANNELS
         }
+        top = (1 << (int(bits) - 1)) - 1
+        if linear_codes is not None and not 1 <= linear_codes <= top:
+            raise ValueError(
+                f"linear_codes={linear_codes} must be a whole number of codes in 1..{top} "
+                f"for a {bits}-bit converter (omit it for the reference 1798/2048 of the range)"
+            )
         self.checker = Checker(
             {ch: round(v * ONE) for ch, v in self.limits.items()},
-            {ch: Converter(int(bits), round(fsv_v * ONE)) for ch in CHANNELS},
+            {
+                ch: Converter(int(bits), round(fsv_v * ONE), int(linear_codes or 0))
+                for ch in CHANNELS
+            },
             att_db,
             round(self.config.waveform.sample_rate_hz),
         )

@@ -19,11 +19,17 @@ import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
+from masking_lab.core.stimulus import Channel, as_channel
+
 ONE = 1_000_000  # micro-units per unit (µs per s, µV per V, µHz per Hz)
 MAX_TRIAL_US = 60_000_000
 MAX_AHEAD_VT_US = 86_400 * ONE  # TRIAL_MAX_AHEAD_VT_US of firmware/core/trial.h
 MAX_INTERVALS = 9
 MAX_STEPS = 4
+# the reference DAC's linear range (STM32F4, buffer on: 0.2 V .. VDDA - 0.2 V) is 1798 of its
+# 2048 codes each side of mid-scale: LEVEL_REF_LINEAR_CODES / LEVEL_REF_HALF_CODES in level.h
+LINEAR_REF_CODES = 1798
+LINEAR_REF_HALF = 2048
 _QUANTISED = "quantised at this attenuation exceeds"
 _PLAIN = re.compile(r"^[-+]?([0-9]*)(?:\.([0-9]*))?$")
 
@@ -82,18 +88,22 @@ class Converter:
         Resolution, bits (2–16).
     fsv_uv : int
         Full scale, µV peak at the amplifier input with no attenuation.
+    linear : int
+        Largest |code| around mid-scale the output stage plays linearly (HELLO ``lin``);
+        0 = the reference fraction 1798/2048 of the half range (``level_default_linear()``).
 
     Examples
     --------
     >>> dac = Converter(12, 10_000_000)
     >>> dac.code(1_000, 40), dac.played_uv(dac.code(1_000, 40), 40)
     (20, 977)
-    >>> dac.code_limit(5_000_000, 0)
-    1024
+    >>> dac.code_limit(5_000_000, 0), dac.code_limit(5_000_000, 20), dac.lin
+    (1024, 1798, 1798)
     """
 
     bits: int
     fsv_uv: int
+    linear: int = 0
 
     def code(self, amp_uv: int, att_db: int) -> int:
         """Code amplitude (whole LSBs, half up) of ``amp_uv`` µV behind ``att_db`` dB."""
@@ -120,19 +130,26 @@ class Converter:
             code = math.floor(
                 float(limit_uv) * math.pow(10.0, att_db / 20.0) * float(1 << self.bits) / den
             )
-        return min(code, self.top)
+        return min(code, self.lin)
 
     @property
     def top(self) -> int:
         """Largest code magnitude the converter produces: 2^(bits-1) − 1."""
         return (1 << (self.bits - 1)) - 1
 
+    @property
+    def lin(self) -> int:
+        """Largest code magnitude played linearly: ``linear``, or the reference fraction."""
+        if 0 < self.linear <= self.top:
+            return self.linear
+        return (LINEAR_REF_CODES << self.bits) // (2 * LINEAR_REF_HALF)
+
 
 @dataclass(frozen=True)
 class Part:
     """One tone of a PLAY, checked: channel, µHz, µV, attenuator step, levels."""
 
-    channel: str
+    channel: Channel
     carrier_uhz: int
     envelope_uhz: int
     amp_uv: int
@@ -195,7 +212,7 @@ class Checker:
         self.fs_hz = int(fs_hz)
 
     def hello_fields(self) -> dict[str, object]:
-        """HELLO's converter fields: ``bits_ev`` ``bits_mv`` ``fsv_ev`` ``fsv_mv`` ``att``.
+        """HELLO's converter fields: ``bits_ev`` ``bits_mv`` ``fsv_ev`` ``fsv_mv`` ``att`` ``lin``.
 
         Examples
         --------
@@ -203,7 +220,8 @@ class Checker:
         ...             (0, 20), 1000)
         >>> c.converters = {"EV": Converter(12, 10_000_000), "MV": Converter(16, 2_500_000)}
         >>> c.hello_fields()
-        {'bits_ev': 12, 'bits_mv': 16, 'fsv_ev': 10.0, 'fsv_mv': 2.5, 'att': [0, 20]}
+        {'bits_ev': 12, 'bits_mv': 16, 'fsv_ev': 10.0, 'fsv_mv': 2.5, 'att': [0, 20], \
+'lin': [1798, 28768]}
         """
         ev, mv = self.converters["EV"], self.converters["MV"]
         return {
@@ -212,6 +230,7 @@ class Checker:
             "fsv_ev": ev.fsv_uv / ONE,
             "fsv_mv": mv.fsv_uv / ONE,
             "att": list(self.att_db),
+            "lin": [ev.lin, mv.lin],
         }
 
     # ---- fields (ERR ARGS)
@@ -225,12 +244,12 @@ class Checker:
         return v
 
     @staticmethod
-    def channel(fields: Mapping[str, str], key: str) -> str:
+    def channel(fields: Mapping[str, str], key: str) -> Channel:
         """Field ``key`` as ``EV``/``MV``; ArgsError otherwise."""
         ch = fields.get(key)
         if ch not in ("EV", "MV"):
             raise ArgsError(f"{key} is not EV or MV")
-        return ch
+        return as_channel(ch, key)
 
     def amplitude(self, fields: Mapping[str, str], key: str) -> int:
         """An amplitude field, µV ≥ 0 (its limit is checked later)."""
@@ -257,7 +276,7 @@ class Checker:
                 return k
         raise ArgsError(f"{key} is not one of the board's attenuation steps (HELLO att)")
 
-    def stream(self, fields: Mapping[str, str], *, setup: bool) -> tuple[str, int, int, int]:
+    def stream(self, fields: Mapping[str, str], *, setup: bool) -> tuple[Channel, int, int, int]:
         """SETUP (``setup``) or AMP fields: (channel, carrier µHz, envelope µHz, amp µV)."""
         ch = self.channel(fields, "ch")
         car = env = 0
@@ -318,10 +337,12 @@ class Checker:
         cv, att = self.converters[ch], self.att_db[att_idx]
         code = cv.code(amp_uv, att)
         played = cv.played_uv(code, att)
-        if played > limit or code > cv.top:
+        if played > limit:
             raise LimitError(
                 _limit_text(ch, amp_uv, limit, "quantised at this attenuation exceeds")
             )
+        if code > cv.lin:
+            raise LimitError(linear_text(ch, amp_uv, att, cv))
         return code, played
 
     def play_levels(self, play: CheckedPlay) -> CheckedPlay:
@@ -329,12 +350,14 @@ class Checker:
         asked = {"EV": 0, "MV": 0}
         code = {"EV": 0, "MV": 0}
         played = {"EV": 0, "MV": 0}
+        att_idx = {"EV": 0, "MV": 0}
         parts: list[Part | None] = []
         for part in (play.target, play.masker):
             if part is None:
                 parts.append(None)
                 continue
             asked[part.channel] += part.amp_uv
+            att_idx[part.channel] = part.att_idx
             if part.amp_uv > self.limits_uv[part.channel]:
                 parts.append(part)
                 continue
@@ -348,8 +371,11 @@ class Checker:
             limit = self.limits_uv[ch]
             if asked[ch] > limit:
                 raise LimitError(_limit_text(ch, asked[ch], limit, "exceeds"))
-            if played[ch] > limit or code[ch] > self.converters[ch].top:
+            if played[ch] > limit:
                 raise LimitError(_limit_text(ch, asked[ch], limit, _QUANTISED))
+            if code[ch] > self.converters[ch].lin:  # parts on one channel share its step
+                att = self.att_db[att_idx[ch]]
+                raise LimitError(linear_text(ch, asked[ch], att, self.converters[ch]))
         target, masker = parts
         assert target is not None
         return CheckedPlay(target, masker, *_rest(play))
@@ -365,6 +391,35 @@ def _rest(play: CheckedPlay) -> tuple[int, int, int, int, int, int]:
 
 def _limit_text(ch: str, amp_uv: int, limit_uv: int, what: str) -> str:
     return f"{ch} amplitude {amp_uv / ONE:g} V {what} the {limit_uv / ONE:g} V limit"
+
+
+def linear_text(ch: str, amp_uv: int, att_db: int, cv: Converter) -> str:
+    """ERR LIMIT's text for a level beyond the output's linear range, as the firmware words it.
+
+    Examples
+    --------
+    >>> linear_text("MV", 90_000, 40, Converter(12, 10_000_000))
+    "MV amplitude 0.09 V at 40 dB exceeds the output's linear range of 1798 codes (0.087793 V)"
+    """
+    top_v = fmt_micro(cv.played_uv(cv.lin, att_db))
+    return (
+        f"{ch} amplitude {fmt_micro(amp_uv)} V at {att_db} dB exceeds the output's linear "
+        f"range of {cv.lin} codes ({top_v} V)"
+    )
+
+
+def fmt_micro(value: int) -> str:
+    """Integer micro-units as the firmware's shortest plain decimal (``fx_format``).
+
+    Examples
+    --------
+    >>> fmt_micro(87_793), fmt_micro(8_000_000), fmt_micro(-5)
+    ('0.087793', '8', '-0.000005')
+    """
+    sign = "-" if value < 0 else ""
+    whole, frac = divmod(abs(value), ONE)
+    text = f"{whole}.{frac:06d}".rstrip("0").rstrip(".")
+    return sign + text
 
 
 def envelope_peak(envelope_hz: float | None, duration_s: float) -> float:

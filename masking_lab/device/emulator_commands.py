@@ -8,14 +8,15 @@ through the emulator's ``_ok``/``_err``/``_send_event``.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from masking_lab.core.stimulus import CHANNELS
 from masking_lab.device import protocol as proto
 from masking_lab.device.base import TrialPlan
-from masking_lab.device.emulator_checks import ONE
+from masking_lab.device.emulator_checks import ONE, Checker
 from masking_lab.device.emulator_state import (
     INTERLOCK_TEXT,
+    OnsetLateness,
     PlayState,
     interlock_text,
     plan_of,
@@ -24,6 +25,9 @@ from masking_lab.device.emulator_state import (
     virtual_play,
 )
 
+if TYPE_CHECKING:
+    from masking_lab.device.config import DeviceConfig
+
 FIRMWARE_VERSION = "fw-2.0.0"  # the firmware release whose behaviour this emulates
 PROTOCOL_VERSION = 2
 
@@ -31,9 +35,36 @@ PROTOCOL_VERSION = 2
 class EmulatorCommands:
     """Command handlers; the state they use lives in ``FirmwareEmulator.__init__``."""
 
-    # attributes and helpers provided by FirmwareEmulator
+    # attributes and helpers provided by FirmwareEmulator (declared so mypy checks their use)
     _amp: dict[str, float]
     _play: PlayState | None
+    config: DeviceConfig
+    virtual_time: bool
+    watchdog_s: float
+    render_buffers: bool
+    limits: dict[str, float]
+    checker: Checker
+    overdrive: float
+    build: str
+    _lateness: OnsetLateness
+    _interlock_open: bool
+    _vt_us: int
+    _stream: dict[str, tuple[float, float | None]]
+    _last_sample: dict[str, float]
+    _peak: dict[str, float]
+    _wd_trips: int
+
+    if TYPE_CHECKING:  # defined by FirmwareEmulator; signatures here only for the checker
+
+        def _device_now(self) -> float: ...
+        def _zero(self, why: str, aborted_why: str | None = None) -> None: ...
+        def _fault(self, code: str, why: str) -> None: ...
+        def _unplug_locked(self, why: str) -> None: ...
+        def _take_fault(self, kind: str) -> bool: ...
+        def _ok(self, seq: int, fields: dict[str, Any] | None = None) -> None: ...
+        def _err(self, seq: int, code: str, text: str) -> None: ...
+        def _send_event(self, name: str, fields: dict[str, Any]) -> None: ...
+        def _note(self, text: str) -> None: ...
 
     def _cmd_hello(self, frame: proto.Frame) -> None:
         self._zero("HELLO (new host session)")
@@ -54,7 +85,8 @@ class EmulatorCommands:
         self._ok(frame.seq, {"t": self._device_now()})
 
     def _cmd_diag(self, frame: proto.Frame) -> None:
-        fields = {"ev": self._amp["EV"], "mv": self._amp["MV"], "playing": int(bool(self._play))}
+        fields: dict[str, Any] = {"ev": self._amp["EV"], "mv": self._amp["MV"]}
+        fields.update(playing=int(bool(self._play)))
         fields.update(il=interlock_text(self._interlock_open), dac_ev=self._last_sample["EV"])
         fields.update(dac_mv=self._last_sample["MV"], wd=self._wd_trips, t=self._device_now())
         fields.update(pk_ev=round(self._peak["EV"], 6), pk_mv=round(self._peak["MV"], 6))
@@ -154,6 +186,6 @@ class EmulatorCommands:
 
     def _send_done(self, play: PlayState, end: float) -> None:
         plan = play.plan
-        fields = {"seq": play.seq, "on": play.actual, "end": end}
+        fields: dict[str, Any] = {"seq": play.seq, "on": play.actual, "end": end}
         fields.update(tamp=plan.target_amplitude_v, mamp=plan.masker_amplitude_v)
         self._send_event("DONE", fields)

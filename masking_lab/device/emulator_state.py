@@ -15,7 +15,7 @@ from pathlib import Path
 from types import MappingProxyType
 
 from masking_lab.core import waveforms
-from masking_lab.core.stimulus import Stimulus
+from masking_lab.core.stimulus import Channel, Stimulus
 from masking_lab.device.base import TrialPlan
 from masking_lab.device.emulator_checks import ONE, CheckedPlay, Part
 
@@ -212,7 +212,7 @@ def plan_of(play: CheckedPlay) -> TrialPlan:
 
 def render_trial(
     plan: TrialPlan, sample_rate_hz: float, ramp_s: float, overdrive: float = 1.0
-) -> dict[str, tuple[float, float]]:
+) -> dict[Channel, tuple[float, float]]:
     """Render a trial like the output stage: per channel (largest |sample|, last sample), V.
 
     Each tone peaks at its played (quantised) amplitude; ``overdrive`` scales every sample
@@ -227,7 +227,7 @@ def render_trial(
     >>> render_trial(plan, 10_000.0, 0.002)["EV"]
     (0.5, 0.0)
     """
-    out = {"EV": (0.0, 0.0), "MV": (0.0, 0.0)}
+    out: dict[Channel, tuple[float, float]] = {"EV": (0.0, 0.0), "MV": (0.0, 0.0)}
     if round(plan.stimulus_s * sample_rate_hz) + 1 < 3:
         return out
     bufs = waveforms.trial_buffers(plan, sample_rate_hz, ramp_s=ramp_s)

@@ -35,18 +35,52 @@ class Converter:
         Attenuation steps the board can switch, dB, ascending from 0.
     min_lsb : float
         Smallest span, in LSBs, the step choice aims for.
+    linear_codes : int or None
+        Largest |code| around mid-scale the output stage plays without clipping (HELLO
+        ``lin``; the reference board's DAC buffer: 1798 of 2048); None = the converter's whole
+        range, 2^(bits−1) − 1. A level needing more codes at a step does not fit that step.
 
     Examples
     --------
     >>> conv = Converter(12, 10.0, (0.0, 20.0, 40.0))
     >>> round(conv.lsb_v(0.0) * 1000, 3)  # mV at the amplifier input
     4.883
+    >>> Converter(12, 10.0, linear_codes=1798).max_code, conv.max_code
+    (1798, 2047)
     """
 
     bits: int
     full_scale_v: float
     steps_db: tuple[float, ...] = (0.0,)
     min_lsb: float = DEFAULT_MIN_LSB
+    linear_codes: int | None = None
+
+    @property
+    def max_code(self) -> int:
+        """Largest |code| played: ``linear_codes``, else 2^(bits−1) − 1 (the converter's)."""
+        top = (1 << (self.bits - 1)) - 1
+        return top if self.linear_codes is None else min(self.linear_codes, top)
+
+    def code(self, amplitude_v: float, step_db: float) -> int:
+        """Code amplitude (whole LSBs, rounded half up) of ``amplitude_v`` V at ``step_db``.
+
+        Examples
+        --------
+        >>> Converter(12, 10.0).code(0.0878, 40.0), Converter(12, 10.0).code(0.08783, 40.0)
+        (1798, 1799)
+        """
+        lsb0 = 2.0 * self.full_scale_v / 2.0**self.bits
+        return math.floor(amplitude_v * 10.0 ** (step_db / 20.0) / lsb0 + 0.5)
+
+    def linear_max_v(self, step_db: float) -> float:
+        """The largest amplitude (V at the amplifier input) played linearly at ``step_db``.
+
+        Examples
+        --------
+        >>> round(Converter(12, 10.0, linear_codes=1798).linear_max_v(40.0), 6)
+        0.087793
+        """
+        return self.max_code * self.lsb_v(step_db)
 
     def lsb_v(self, step_db: float) -> float:
         """One LSB at the amplifier input at attenuation ``step_db``, V."""
@@ -62,21 +96,30 @@ class Converter:
         >>> round(Converter(12, 10.0).played_v(0.002, 40.0), 6)
         0.002002
         """
-        gain = 10.0 ** (step_db / 20.0)
-        lsb0 = 2.0 * self.full_scale_v / 2.0**self.bits
-        codes = math.floor(amplitude_v * gain / lsb0 + 0.5)
-        return codes * lsb0 / gain
+        return self.code(amplitude_v, step_db) * self.lsb_v(step_db)
 
-    def fits(self, amplitude_v: float, step_db: float) -> bool:
-        """True if ``amplitude_v`` V at step ``step_db`` stays within the full scale."""
-        return amplitude_v * 10.0 ** (step_db / 20.0) <= self.full_scale_v * (1 + 1e-12)
+    def fits(self, amplitude_v: float | Iterable[float], step_db: float) -> bool:
+        """True if ``amplitude_v`` V at step ``step_db`` stays within the codes played linearly.
+
+        Several amplitudes (one channel's target and masker) are rounded one by one and their
+        codes added, as the firmware does.
+
+        Examples
+        --------
+        >>> conv = Converter(12, 10.0, (0.0, 40.0), linear_codes=1798)
+        >>> conv.fits(0.0878, 40.0), conv.fits(0.08783, 40.0), conv.fits([0.05, 0.04], 40.0)
+        (True, False, False)
+        """
+        amps = [amplitude_v] if isinstance(amplitude_v, int | float) else list(amplitude_v)
+        return sum(self.code(a, step_db) for a in amps if a > 0) <= self.max_code
 
     def pick_step(self, amplitudes_v: Iterable[float]) -> float:
         """The attenuation step (dB) for amplitudes sharing this channel in one trial.
 
         The smallest step at which the smallest non-zero amplitude spans ``min_lsb`` LSBs and
-        their sum fits the full scale; else the largest step at which the sum fits (the most
-        LSBs); else 0 dB (the amplitude is above the full scale: the limits refuse it).
+        their codes together fit the linear range; else the largest step at which they fit
+        (the most LSBs); else 0 dB (above the linear range at every step: refused, see
+        :meth:`fits`).
 
         Examples
         --------
@@ -87,8 +130,8 @@ class Converter:
         amps = [a for a in amplitudes_v if a > 0]
         if not amps:
             return self.steps_db[0]
-        low, total = min(amps), sum(amps)
-        fitting = [s for s in self.steps_db if self.fits(total, s)]
+        low = min(amps)
+        fitting = [s for s in self.steps_db if self.fits(amps, s)]
         if not fitting:
             return self.steps_db[0]
         for step in fitting:
@@ -122,7 +165,8 @@ def unplayable(
     for amp in amplitudes_v:
         if amp <= 0:
             continue
-        best = min(converter.error_db(amp, s) for s in converter.steps_db if converter.fits(amp, s))
+        errors = (converter.error_db(amp, s) for s in converter.steps_db if converter.fits(amp, s))
+        best = min(errors, default=math.inf)  # beyond the linear range at every step
         if best > max_error_db:
             bad.append((float(amp), best))
     return bad

@@ -385,9 +385,10 @@ class NidaqDevice:
         where the task has one, else the host clock read just before start()."""
         if id(task) not in self._stamped:
             return software_t0, "host clock at start"
+        errors: tuple[type[BaseException], ...] = (*self._errors, AttributeError)
         try:
             stamp = task.triggers.start_trigger.timestamp_val
-        except (*self._errors, AttributeError) as exc:
+        except errors as exc:
             log.warning("no start-trigger timestamp (%s); onsets from the host clock", exc)
             return software_t0, "host clock at start"
         # The stamp is host wall time: map it to the session clock through one paired reading.

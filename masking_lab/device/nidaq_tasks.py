@@ -362,9 +362,10 @@ def set_idle_zero(nidaqmx: Any, channel: Any, status: str) -> str:
     behaviour = getattr(nidaqmx.constants, "AOIdleOutputBehavior", None)
     if behaviour is None or channel is None:
         return "not supported by this nidaqmx"
+    errors: tuple[type[BaseException], ...] = (*driver_errors(nidaqmx), AttributeError)
     try:
         channel.ao_idle_output_behavior = behaviour.ZERO_VOLTS
-    except (*driver_errors(nidaqmx), AttributeError) as exc:
+    except errors as exc:
         if status.startswith("unsupported"):
             return status
         return f"unsupported ({first_line(exc)}); buffers end on 0 V"
@@ -374,12 +375,13 @@ def set_idle_zero(nidaqmx: Any, channel: Any, status: str) -> str:
 def enable_start_timestamp(nidaqmx: Any, task: Any) -> bool:
     """Ask ``task`` to stamp its start trigger in host time; True where the device can."""
     timescale = getattr(nidaqmx.constants, "Timescale", None)
+    errors: tuple[type[BaseException], ...] = (*driver_errors(nidaqmx), AttributeError)
     try:
         trigger = task.triggers.start_trigger
         trigger.timestamp_enable = True
         if timescale is not None:
             trigger.timestamp_timescale = timescale.USE_HOST
-    except (*driver_errors(nidaqmx), AttributeError):
+    except errors:
         return False
     return True
 

@@ -171,6 +171,9 @@ class Hello:
         Converter full scale per channel at the amplifier input with no attenuation, peak V.
     attenuation_db : tuple of float
         Attenuator steps the board can switch, dB, ascending, first 0 (``(0.0,)`` without).
+    linear_codes : Mapping[str, int]
+        Per channel, the largest |code| around mid-scale the output plays without clipping
+        (HELLO ``lin=EV,MV``; empty when the board does not report it: the whole converter).
     """
 
     version: int
@@ -187,6 +190,7 @@ class Hello:
     bits: Mapping[str, int] = field(default_factory=dict)
     full_scale_v: Mapping[str, float] = field(default_factory=dict)
     attenuation_db: tuple[float, ...] = (0.0,)
+    linear_codes: Mapping[str, int] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -211,7 +215,7 @@ class Aborted:
 def parse_hello(frame: Frame) -> Hello:
     """Validate a HELLO reply into a :class:`Hello`.
 
-    The protocol-2 fields (``build``, ``clk``, ``rst``, ``bits_*``, ``fsv_*``, ``att``) are
+    The protocol-2 fields (``build``, ``clk``, ``rst``, ``bits_*``, ``fsv_*``, ``att``, ``lin``) are
     checked when the reply says ``proto`` ≥ 2; an older reply parses without them so the host can
     say which firmware to flash.
 
@@ -221,7 +225,8 @@ def parse_hello(frame: Frame) -> Hello:
         A missing field, a fractional or negative version or watchdog period, a limit that is
         not in (0, 1000] V, ``vt``/``il`` values other than ``0``/``1`` and ``open``/``closed``,
         or a protocol-2 field out of range (bits not in 1..32, a full scale not in (0, 1000] V,
-        attenuation steps not ascending from 0, an unknown clock source or reset cause).
+        attenuation steps not ascending from 0, an unknown clock source or reset cause, a
+        linear range ``lin`` that is not two whole codes within the converters).
 
     Examples
     --------
@@ -284,7 +289,30 @@ def _hello_v2(frame: Frame, hello: Hello) -> Hello:
         bits=bits,
         full_scale_v=fsv,
         attenuation_db=att,
+        linear_codes=_hello_linear(frame, bits),
     )
+
+
+def _hello_linear(frame: Frame, bits: Mapping[str, int]) -> dict[str, int]:
+    """HELLO ``lin=EV,MV``: whole codes in 1..2^(bits−1)−1 per channel; {} when absent."""
+    if "lin" not in frame.fields:
+        return {}  # firmware before the field: its converter's whole range
+    raw = frame._raw("lin")
+    try:
+        values = [float(v) for v in raw.split(",")]
+    except ValueError:
+        values = []
+    out: dict[str, int] = {}
+    for ch, v in zip(("EV", "MV"), values, strict=False):
+        top = (1 << (bits[ch] - 1)) - 1
+        if math.isfinite(v) and v == int(v) and 1 <= v <= top:
+            out[ch] = int(v)
+    if len(values) != 2 or len(out) != 2:
+        raise FrameError(
+            f"HELLO: lin={raw[:40]!r} must be two whole code counts EV,MV, each in "
+            f"1..2^(bits-1)-1 ({(1 << (bits['EV'] - 1)) - 1},{(1 << (bits['MV'] - 1)) - 1})"
+        )
+    return out
 
 
 def firmware_too_old(version: int, firmware: str) -> str | None:

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 from masking_lab.core.errors import DeviceProtocolError, DeviceTimeModeError, SafetyLimitError
@@ -89,11 +89,16 @@ def converters_from(
 
     A channel the config gives no converter for takes the board's (with the default
     ``min_lsb``). A mismatch in bits, full scale (beyond 1 ppm) or attenuator steps is a
-    DeviceProtocolError naming the field, both values and what to fix.
+    DeviceProtocolError naming the field, both values and what to fix. The board's linear
+    range (HELLO ``lin``) is taken when the config gives none; a config whose
+    ``linear_codes`` exceeds the board's is a mismatch (its levels could clip).
     """
     out: dict[str, Converter] = {}
     for ch in ("EV", "MV"):
-        board = Converter(hello.bits[ch], hello.full_scale_v[ch], hello.attenuation_db)
+        lin = hello.linear_codes.get(ch)
+        board = Converter(
+            hello.bits[ch], hello.full_scale_v[ch], hello.attenuation_db, linear_codes=lin
+        )
         want = configured.get(ch)
         if want is None:
             out[ch] = board
@@ -107,6 +112,8 @@ def converters_from(
             diffs.append(
                 f"attenuator steps {_steps(board.steps_db)} dB (config {_steps(want.steps_db)} dB)"
             )
+        if lin is not None and want.linear_codes is not None and want.linear_codes > lin:
+            diffs.append(f"linear range {lin} codes (config {want.linear_codes})")
         if diffs:
             raise DeviceProtocolError(
                 f"device on {port} reports for {ch}: {'; '.join(diffs)}, unlike the rig config "
@@ -114,6 +121,8 @@ def converters_from(
                 "config's converter. Fix the config to describe this board, or connect the "
                 "board the config describes"
             )
+        if lin is not None and (want.linear_codes is None or want.linear_codes > lin):
+            want = replace(want, linear_codes=lin)
         out[ch] = want
     return out
 
@@ -128,6 +137,7 @@ def hello_details(hello: proto.Hello) -> dict[str, Any]:
         "bits": dict(hello.bits),
         "full_scale_v": dict(hello.full_scale_v),
         "attenuation_db": list(hello.attenuation_db),
+        "linear_codes": dict(hello.linear_codes),
     }
 
 
@@ -147,7 +157,8 @@ def choose_steps(plan: TrialPlan, converters: Mapping[str, Converter], where: st
     Raises
     ------
     SafetyLimitError
-        An amplitude that no step renders within 1 dB (nothing is sent).
+        An amplitude that no step renders within 1 dB, or a channel's amplitudes beyond the
+        output's linear range at every step (nothing is sent).
     """
     amps: dict[str, list[float]] = {"EV": [], "MV": []}
     amps[plan.target.channel].append(plan.target_amplitude_v)
@@ -155,6 +166,15 @@ def choose_steps(plan: TrialPlan, converters: Mapping[str, Converter], where: st
     if plan.masker is not None:
         amps[plan.masker.channel].append(masker_v)
     step = {ch: converters[ch].pick_step(a) for ch, a in amps.items()}
+    for ch, a in amps.items():
+        conv = converters[ch]
+        if not conv.fits(a, step[ch]):  # no step plays it without clipping: the board refuses
+            raise SafetyLimitError(
+                f"{where}: {ch} amplitude {sum(a):.6g} V exceeds the output's linear range at "
+                f"every attenuator step (at {step[ch]:g} dB: {conv.max_code} codes, "
+                f"{conv.linear_max_v(step[ch]):.6g} V; HELLO lin); nothing was sent. Lower "
+                "the level or the masker"
+            )
     played: dict[str, float] = {}
     for what, stim, amp in (
         ("target", plan.target, plan.target_amplitude_v),

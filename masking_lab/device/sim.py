@@ -56,7 +56,7 @@ class SimDevice:
         )
         self.onset_jitter_s = float(onset_jitter_s)
         self._rng = np.random.default_rng(seed)
-        self._amp = dict.fromkeys(CHANNELS, 0.0)
+        self._amp: dict[str, float] = dict.fromkeys(CHANNELS, 0.0)
         self._closed = False
         self.trials_played = 0
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,6 +26,13 @@ from masking_lab.formats.schemas import (
 )
 
 SCHEMA = "masking_params"
+
+#: Bounds of a stored joint draw (the schema's): intercept in dB, slope in dB/dB SL.
+DRAW_INTERCEPT_LIMIT_DB = 500.0
+DRAW_SLOPE_LIMIT = 100.0
+#: Most joint draws one function stores, and the decimals they keep (the file stays small).
+MAX_STORED_DRAWS = 200
+DRAW_DECIMALS = 4
 
 
 class MaskingParamsError(ProtocolError):
@@ -64,7 +72,8 @@ class MaskingParamsEntry:
     message : str or None
         Caveat or reason for the status.
     extra : dict
-        Optional keys (experiment, uncertainty, ci_level, n_participants).
+        Optional keys (experiment, uncertainty, ci_level, n_participants,
+        intercept_slope_cov, draws).
     """
 
     target: str
@@ -135,6 +144,14 @@ def validate_masking_params(
                 "keep one entry per (target, masker) pair",
             )
         seen[key] = i
+        draws = f.get("draws")
+        if draws is not None and len(draws["intercept_db"]) != len(draws["slope"]):
+            raise MaskingParamsError(
+                source,
+                f"functions[{i}].draws",
+                f"{len(draws['intercept_db'])} intercepts but {len(draws['slope'])} slopes; "
+                "the draws are joint pairs: give as many of each",
+            )
         pair = f"{key[0]}|{key[1]}"
         if pair not in f["pooled_pairs"]:
             raise MaskingParamsError(
@@ -142,10 +159,19 @@ def validate_masking_params(
             )
 
 
+# A draws array (the only arrays under these keys) on one line, not one number per line.
+_DRAW_ARRAY = re.compile(r'("(?:intercept_db|slope)": )\[([^\]\[]*)\]')
+
+
 def masking_params_json(doc: dict[str, Any]) -> str:
     """Deterministic JSON text of a document (validated first)."""
     validate_masking_params(doc, "<document to write>")
-    return json.dumps(_rounded(doc), indent=2, ensure_ascii=False, allow_nan=False) + "\n"
+    text = json.dumps(_rounded(doc), indent=2, ensure_ascii=False, allow_nan=False)
+    text = _DRAW_ARRAY.sub(
+        lambda m: m.group(1) + "[" + ", ".join(v.strip() for v in m.group(2).split(",")) + "]",
+        text,
+    )
+    return text + "\n"
 
 
 def write_masking_params(path: str | Path, doc: dict[str, Any]) -> Path:
@@ -205,6 +231,7 @@ def load_masking_params(path: str | Path) -> dict[tuple[str, str], MaskingParams
             slope_se=f["slope_se"],
             intercept_ci_db=_pair(f["intercept_ci_db"]),
             slope_ci=_pair(f["slope_ci"]),
+            # the schema (checked above) requires this pair: _pair never returns None for it
             fitted_range_db_sl=_pair(f["fitted_range_db_sl"]),  # type: ignore[arg-type]
             knee_db_sl=f["knee_db_sl"],
             adj_r2=f["adj_r2"],
@@ -255,6 +282,51 @@ def determination_warnings(
                 "participants or masker levels"
             )
     return out
+
+
+def draws_field(
+    method: str, seed: int | None, n_replicates: int, draws: Any
+) -> dict[str, Any] | None:
+    """The optional ``draws`` entry of an exported function: joint (intercept, slope) draws.
+
+    Keeps the first :data:`MAX_STORED_DRAWS` finite draws within the schema's bounds
+    (intercept ±500 dB, slope 0–100 dB/dB SL), rounded to 4 decimals so that the file is small
+    and byte-stable for a seed; None when none is left.
+
+    Parameters
+    ----------
+    method : {"bootstrap", "posterior"}
+        Where the draws come from.
+    seed : int or None
+        Seed of the generator that made them (reproducibility).
+    n_replicates : int
+        Replicates the fit's standard errors and intervals were computed from.
+    draws : iterable of (float, float)
+        (intercept dB, slope dB/dB SL) pairs.
+
+    Examples
+    --------
+    >>> f = draws_field("bootstrap", 0, 3, [(-4.123456, 0.81), (float("nan"), 0.8), (-3.9, 0.79)])
+    >>> f["intercept_db"], f["slope"], f["seed"]
+    ([-4.1235, -3.9], [0.81, 0.79], 0)
+    """
+    kept = [
+        (round(float(a), DRAW_DECIMALS) + 0.0, round(float(b), DRAW_DECIMALS) + 0.0)
+        for a, b in draws
+        if math.isfinite(a)
+        and math.isfinite(b)
+        and abs(a) <= DRAW_INTERCEPT_LIMIT_DB
+        and 0.0 <= b <= DRAW_SLOPE_LIMIT
+    ][:MAX_STORED_DRAWS]
+    if len(kept) < 2:
+        return None
+    return {
+        "method": method,
+        "seed": seed,
+        "n_replicates": int(n_replicates),
+        "intercept_db": [a for a, _ in kept],
+        "slope": [b for _, b in kept],
+    }
 
 
 def _pair(v: Any) -> tuple[float, float] | None:

@@ -298,8 +298,11 @@ def _schema_problems(data: Any, lines: Mapping[str, int]) -> Iterator[tuple[str,
     for err in schema_errors(data, "protocol"):
         path = key_path(err)
         if err.validator == "additionalProperties":
-            parent = err.schema.get("properties", {})
-            extras = [k for k in err.instance if k not in parent]
+            # additionalProperties reports an object schema and an object instance
+            err_schema = err.schema if isinstance(err.schema, Mapping) else {}
+            instance = err.instance if isinstance(err.instance, Mapping) else {}
+            parent = err_schema.get("properties", {})
+            extras = [k for k in instance if k not in parent]
             for key in extras:
                 child = f"{path}.{key}" if path != "(top level)" else str(key)
                 hint = difflib.get_close_matches(str(key), list(parent), n=1)

@@ -34,7 +34,7 @@ import stat
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any
 
 import yaml
 
@@ -192,7 +192,8 @@ class _Refused(Exception):
 class _PlainLoader(yaml.SafeLoader):
     """SafeLoader with a depth limit, a cap on what aliases expand to, and dates left as text."""
 
-    yaml_implicit_resolvers: ClassVar[dict[Any, list[Any]]] = {
+    # PyYAML's stubs declare this table an instance attribute; it is a class-level one here too
+    yaml_implicit_resolvers: dict[Any, list[Any]] = {  # noqa: RUF012
         first: [(tag, rx) for tag, rx in resolvers if tag != "tag:yaml.org,2002:timestamp"]
         for first, resolvers in yaml.SafeLoader.yaml_implicit_resolvers.items()
     }
@@ -210,7 +211,8 @@ class _PlainLoader(yaml.SafeLoader):
             node = super().compose_node(parent, index)
             # An alias is a reference; whatever walks the data later walks it in full, so it
             # costs what its expansion holds (a few hundred bytes can expand to gigabytes).
-            self._spend(_expanded_size(node, self._budget + 1), mark)
+            if node is not None:
+                self._spend(_expanded_size(node, self._budget + 1), mark)
             return node
         self._spend(1, mark)
         self._depth += 1

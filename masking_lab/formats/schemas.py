@@ -137,11 +137,16 @@ def describe(error: jsonschema.ValidationError) -> str:
     if v == "pattern":
         return f"{excerpt(inst)} does not match the pattern {want}"
     if v == "additionalProperties" and isinstance(inst, dict):
-        known = set(error.schema.get("properties", {}))
+        schema = error.schema if isinstance(error.schema, Mapping) else {}
+        known = set(schema.get("properties", {}))
         extra = [excerpt(k) for k in inst if k not in known][:3]
         return f"unknown key(s) {', '.join(extra)}; known keys: {', '.join(sorted(known))}"
     if v == "required":
         return f"{error.message}: add it"
+    if v in ("maxItems", "minItems") and isinstance(inst, list):
+        # jsonschema's own words quote the whole list; the count is what matters.
+        bound = "at most" if v == "maxItems" else "at least"
+        return f"must have {bound} {want} items, got {len(inst)}"
     return excerpt(error.message, 160)
 
 

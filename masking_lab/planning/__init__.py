@@ -11,6 +11,10 @@ judged by session length (trials, minutes) and threshold accuracy (bias and SD i
 - :mod:`~masking_lab.planning.figures`: the speed–accuracy and convergence figures.
 - :mod:`~masking_lab.planning.study`: the study of docs/speed-accuracy.md
   (``python -m masking_lab.planning.study``).
+- :mod:`~masking_lab.planning.scene_needs`, :mod:`~masking_lab.planning.scene_protocols`,
+  :mod:`~masking_lab.planning.scene_budget`, :mod:`~masking_lab.planning.scene_report`:
+  ``plan --scene``, the masking functions a scene needs, the protocols that measure what is
+  missing, and the scene's rendering error per budget of participants × trials.
 
 Pure except the study's command entry point; ``masking-lab plan`` (:mod:`masking_lab.commands
 .plan`) reads the protocol and writes the files.

@@ -106,12 +106,22 @@ def format_table(result: PlanResult) -> str:
             f"{_num(ml.get('bias_db'), '+8.2f')}{_num(ml.get('sd_db'), '6.2f')}"
             f"{_num(z * ml.get('worst_sd_db', math.nan), '8.2f')}"
         )
+    # A QUEST+ protocol has no row here (its row is in the procedures table): no star to explain.
+    own = "* this protocol. " if any(r.get("own") for r in result.table) else ""
     lines.append(
-        f"* this protocol. Pooled over sets: bias is averaged, SD is the root-mean-square "
+        f"{own}Pooled over sets: bias is averaged, SD is the root-mean-square "
         f"within-set SD, ±{z:g}SD uses the worst set. AL = sessions ending with a threshold; "
         "ceil = ceiling or floor; cap = trial cap."
     )
     return "\n".join(lines)
+
+
+def per_set_caption(result: PlanResult) -> str:
+    """What the per-set rows are: the protocol's own staircase, or the paper's beside it."""
+    steps = ",".join(f"{v:g}" for v in result.protocol_schedule.step_sizes_db)
+    mine = any(r.get("own") for r in result.table)
+    whose = "this protocol's setting" if mine else "the paper's staircase beside this protocol"
+    return f"Per set, {whose} ({steps} dB, {result.protocol_rule.label})"
 
 
 def format_per_set(result: PlanResult, *, only_own: bool) -> str:
@@ -128,9 +138,7 @@ def format_per_set(result: PlanResult, *, only_own: bool) -> str:
             and r["rule"] == own_rule.label
         )
     ]
-    mine = any(r.get("own") for r in result.table)
-    whose = "this protocol's setting" if mine else "the paper's staircase beside this protocol"
-    title = f"Per set, {whose} ({steps} dB, {own_rule.label}):" if only_own else "Per set:"
+    title = f"{per_set_caption(result)}:" if only_own else "Per set:"
     lines = [
         title,
         f"{'set':<12}{'schedule':<16}{'rule':<7}{'estimator':<15}{'trials':>7}{'p90':>5}"

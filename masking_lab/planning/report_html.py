@@ -13,7 +13,7 @@ from collections.abc import Mapping, Sequence
 from masking_lab.formats.html_report import data_uri, render_page
 from masking_lab.planning.plan import ESTIMATOR_LABELS, PlanResult
 from masking_lab.planning.procedure_plan import ProcedureComparison
-from masking_lab.planning.report import plan_section_titles
+from masking_lab.planning.report import per_set_caption, plan_section_titles
 
 __all__ = ["render_plan_html"]
 
@@ -78,6 +78,7 @@ def render_plan_html(
             "z": result.settings.z,
             "table": result.table,
             "per_set": per_set,
+            "per_set_caption": per_set_caption(result),
             "estimators": ESTIMATOR_LABELS,
             "figures": [(name, data_uri(png)) for name, png in figures.items()],
             "titles": list(

@@ -102,7 +102,7 @@ def _row(
 
 
 def compare(
-    true_thresholds_db: Sequence[float],
+    true_thresholds_db: Sequence[float] | NDArray[np.float64],
     n_per_threshold: int,
     rng: np.random.Generator,
     *,
@@ -155,7 +155,7 @@ def compare(
         )
     ]
     strictest = min(targets_sd_db)
-    kinds = [("QUEST+ (slope known)", (scale_db,))]
+    kinds: list[tuple[str, tuple[float, ...]]] = [("QUEST+ (slope known)", (scale_db,))]
     if psi:
         kinds.append(("psi-marginal (slope unknown)", tuple(psi_scales_db)))
     for name, scales in kinds:

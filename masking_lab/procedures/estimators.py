@@ -189,7 +189,7 @@ def ml_threshold(
     # a dozen levels however many trials it runs.
     xu, inv = np.unique(x, return_inverse=True)
     n_at = np.bincount(inv).astype(float)
-    k_at = np.bincount(inv, weights=r.astype(float))
+    k_at = np.asarray(np.bincount(inv, weights=r.astype(float)), dtype=np.float64)  # no copy
     grid_nll = _neg_log_lik_grid(xu, n_at, k_at, tt.ravel(), ss.ravel(), guess, lapse0, p_target)
     grid_nll = grid_nll.reshape(tt.shape)
     best_t = np.argmin(grid_nll, axis=0)

@@ -259,7 +259,7 @@ class RampTables:
     intercepts_db: NDArray[np.float64]
     slopes: NDArray[np.float64]
     nuisance: NDArray[np.float64]
-    p_correct: NDArray[np.float64]
+    p_correct: NDArray[np.float32]
     prior: NDArray[np.float64]
     first_stimulus: int
 
@@ -289,7 +289,7 @@ def likelihood(
     rise = 1.0 - guess - lapse
     q = (p_at_threshold - guess) / rise
     # The paper's ramp (core.masking.ramp), broadcast over (a, b) × stimuli: shape (A, S).
-    shift = ramp(maskers_db_sl[None, :], intercepts_db[:, None], slopes[:, None])  # type: ignore[arg-type]
+    shift = ramp(maskers_db_sl[None, :], intercepts_db[:, None], slopes[:, None])
     theta = shift[:, :, None] + u[None, None, :]  # (A, S, N)
     z = (targets_db[None, :, None] - theta) / scale + np.log(q / (1.0 - q))
     # Kept off 0 and 1 by 1e-12: with a lapse of 0 a wrong answer far above threshold would
@@ -445,7 +445,7 @@ class FunctionalRamp:
             and np.array_equal(self.posterior, other.posterior)
         )
 
-    __hash__ = None  # type: ignore[assignment]
+    __hash__ = None  # type: ignore[assignment]  # unhashable on purpose: it holds arrays
 
     @property
     def finished(self) -> bool:

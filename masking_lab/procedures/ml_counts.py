@@ -95,7 +95,9 @@ class LevelIndex:
         flat = (np.arange(n_rows)[:, None] * n_groups + group)[use]
         size = n_rows * n_groups
         n = np.bincount(flat, minlength=size).astype(float).reshape(n_rows, n_groups)
-        k = np.bincount(flat, weights=correct[use], minlength=size).reshape(n_rows, n_groups)
+        # weighted bincount is float64 already (its stubs say int): asarray only retypes, no copy
+        k_flat = np.bincount(flat, weights=correct[use], minlength=size)
+        k = np.asarray(k_flat, dtype=np.float64).reshape(n_rows, n_groups)
         return LevelCounts(level, n, k)
 
 

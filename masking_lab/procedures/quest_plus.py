@@ -30,7 +30,7 @@ import functools
 import math
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, fields, replace
-from typing import Any, Literal
+from typing import Any, Literal, TypeGuard
 
 import numpy as np
 from numpy.typing import NDArray
@@ -123,7 +123,7 @@ class QuestPlusSettings:
             raise ProcedureError(f"quest_plus setting {name}: {problem}")
 
     def _problems(self) -> Iterable[tuple[str, str]]:
-        def finite(v: object) -> bool:
+        def finite(v: object) -> TypeGuard[float]:  # narrows the optional settings for mypy
             return isinstance(v, int | float) and math.isfinite(v)
 
         for name in ("min_level_db", "max_level_db", "bound_margin_db"):
@@ -548,7 +548,7 @@ class QuestPlus:
             level,
             (*self.levels_db, self.level_db),
             (*self.responses, correct),
-            status,  # type: ignore[arg-type]
+            status,  # type: ignore[arg-type]  # stop_status yields only the Status names
         )
 
     def estimate(self) -> ThresholdEstimate:

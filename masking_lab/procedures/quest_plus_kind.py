@@ -221,9 +221,9 @@ def _estimate_log(
     fit = ml_threshold(
         levels_db, correct, guess=settings.guess, lapse=lapse, p_target=settings.p_at_threshold
     )
-    if not fit.ok:
+    if not fit.ok or fit.threshold_db is None:
         return None, sd, lo, hi, method, "estimator_failed", fit.message
-    return float(fit.threshold_db), sd, lo, hi, method, "completed", None  # type: ignore[arg-type]
+    return float(fit.threshold_db), sd, lo, hi, method, "completed", None
 
 
 def _simulate_batch(

@@ -13,7 +13,7 @@ shaded bands show the per-point intervals of what is felt. Drawn in the package'
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -21,6 +21,9 @@ from numpy.typing import NDArray
 from masking_lab.formats.png_figure import legible, png_bytes
 from masking_lab.rendering.render import Rendering, intended
 from masking_lab.rendering.solver import forward
+
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
 
 __all__ = ["clipped_perceived", "figure4_png"]
 
@@ -190,8 +193,8 @@ def figure4_png(r: Rendering, *, dpi: int = 100, bands: Any = None) -> bytes:
 
 def _mark_unplayable(
     r: Rendering,
-    left: object,
-    right: object,
+    left: Axes,
+    right: Axes,
     over: NDArray[np.bool_],
     clipped: tuple[NDArray[np.float64], NDArray[np.float64]],
     has: tuple[bool, bool],
@@ -202,17 +205,17 @@ def _mark_unplayable(
     if mv_max is not None and mv_max == ev_max:
         # One line for both: two dotted lines at one level hid the first under the second.
         label = f"MV and EV rated maximum ({mv_max:g} dB SL)"
-        left.axhline(mv_max, ls=":", lw=1.8, color="0.2", label=label)  # type: ignore[attr-defined]
+        left.axhline(mv_max, ls=":", lw=1.8, color="0.2", label=label)
     else:
         for limit, colour, name in ((mv_max, MV_COLOUR, "MV"), (ev_max, EV_COLOUR, "EV")):
             if limit is not None:
                 label = f"{name} rated maximum ({limit:g} dB SL)"
-                left.axhline(limit, ls=":", lw=1.8, color=colour, label=label)  # type: ignore[attr-defined]
+                left.axhline(limit, ls=":", lw=1.8, color=colour, label=label)
     if not np.any(over):
         return
     n = int(np.sum(over))
-    for ax, label in ((left, f"rig cannot play ({n} of {len(x)} points)"), (right, None)):
-        ax.fill_between(  # type: ignore[attr-defined]
+    for ax, hatch_label in ((left, f"rig cannot play ({n} of {len(x)} points)"), (right, None)):
+        ax.fill_between(
             x,
             0,
             1,
@@ -221,13 +224,13 @@ def _mark_unplayable(
             edgecolor="0.7",
             hatch="///",
             lw=0,
-            transform=ax.get_xaxis_transform(),  # type: ignore[attr-defined]
-            label=label,
+            transform=ax.get_xaxis_transform(),
+            label=hatch_label,
         )
     for k, colour, name in ((0, MV_COLOUR, "MV"), (1, EV_COLOUR, "EV")):
         if has[k]:
             shown = np.where(over, clipped[k], np.nan)
-            right.plot(x, shown, ":", color=colour, lw=2, label=f"{name} perceived if clipped")  # type: ignore[attr-defined]
+            right.plot(x, shown, ":", color=colour, lw=2, label=f"{name} perceived if clipped")
 
 
 def _suptitle(r: Rendering) -> str:

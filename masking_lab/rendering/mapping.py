@@ -21,7 +21,7 @@ Pure: no I/O.
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, SupportsFloat
 
 import numpy as np
 from numpy.typing import NDArray
@@ -77,7 +77,7 @@ def map_targets(g: Gamut, mv_db_sl: Arr, ev_db_sl: Arr, strategy: str) -> tuple[
     e = np.array(ev_db_sl, dtype=float)
     if strategy == "none":
         return m, e, 1.0
-    m_off, e_off = np.all(m == -np.inf), np.all(e == -np.inf)
+    m_off, e_off = bool(np.all(m == -np.inf)), bool(np.all(e == -np.inf))
     # A silent channel sits at its floor for the geometry (it masks nothing there).
     mw = np.full_like(m, g.mv_box_db_sl[0]) if m_off else m.copy()
     ew = np.full_like(e, g.ev_box_db_sl[0]) if e_off else e.copy()
@@ -337,7 +337,7 @@ def _correlation(a: Arr, b: Arr) -> float:
     return round(max(-1.0, min(1.0, r)), 9) if np.isfinite(r) else 0.0
 
 
-def _num(v: float) -> float | None:
+def _num(v: SupportsFloat) -> float | None:
     # JSON-ready: a metric that overflowed is unknown (None), never inf or NaN in a summary.
     x = float(v)
     return round(x, 9) if math.isfinite(x) else None

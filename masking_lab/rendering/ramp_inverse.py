@@ -121,7 +121,7 @@ REASON_TEXT = {
     "too far apart in magnitude)",
 }
 
-_EPS = np.finfo(float).eps
+_EPS = float(np.finfo(float).eps)
 
 
 class PointSolution(NamedTuple):
@@ -169,12 +169,19 @@ class RampPair(Protocol):
         Sign of b·d − 1 (−1, 0 or 1), exact.
     """
 
-    a_db: float
-    b: float
-    c_db: float
-    d: float
-    one_minus_bd: float
-    bd_side: int
+    # read-only, so that a frozen dataclass such as MutualMasking satisfies the protocol
+    @property
+    def a_db(self) -> float: ...
+    @property
+    def b(self) -> float: ...
+    @property
+    def c_db(self) -> float: ...
+    @property
+    def d(self) -> float: ...
+    @property
+    def one_minus_bd(self) -> float: ...
+    @property
+    def bd_side(self) -> int: ...
 
 
 # --------------------------------------------------------------------------------------------
@@ -380,7 +387,7 @@ _NO_ILL = PointSolution(math.nan, math.nan, 0, Status.NONE, (), False, Reason.IL
 # Arrays
 
 
-def tiled_cases(mm, m_p, e_p, u, v, n1, n2):  # type: ignore[no-untyped-def]
+def tiled_cases(mm, m_p, e_p, u, v, n1, n2):
     """b·d < 1: exactly one case holds at every finite target (see the module table).
 
     Parameters
@@ -424,7 +431,7 @@ def tiled_cases(mm, m_p, e_p, u, v, n1, n2):  # type: ignore[no-untyped-def]
     return f, g, case, status, reason, continuum, None, None, None
 
 
-def folded_cases(mm, m_p, e_p, u, v, n1, n2):  # type: ignore[no-untyped-def]
+def folded_cases(mm, m_p, e_p, u, v, n1, n2):
     """b·d ≥ 1: test every case, keep the distinct answers.
 
     Parameters are those of :func:`tiled_cases`.

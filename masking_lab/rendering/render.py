@@ -300,7 +300,7 @@ def render_scene(
         gamut = gamut_for_targets(model, max_mv_db_sl, max_ev_db_sl, mv_t, ev_t)
     extra: dict[str, Any] = {"gamut": gamut}
     if gamut_map != "none":
-        if gamut is None:
+        if gamut is None or max_mv_db_sl is None or max_ev_db_sl is None:  # (None together)
             raise SolverError(
                 f"gamut mapping {gamut_map!r} needs both channels' rated maxima (--max-mv-db-sl, "
                 "--max-ev-db-sl or a rig config with channels.<MV|EV>.max_level_db_sl)"

@@ -236,7 +236,7 @@ def solve(
     )
 
 
-def _refuse_irreproducible(mm: MutualMasking, m_p, e_p, out) -> None:  # type: ignore[no-untyped-def]
+def _refuse_irreproducible(mm: MutualMasking, m_p, e_p, out) -> None:
     """A unique answer that the forward model does not turn back into its target is refused.
 
     Near b·d = 1 the closed form divides by 1 − b·d and float64 cannot carry the result; such a
@@ -251,7 +251,7 @@ def _refuse_irreproducible(mm: MutualMasking, m_p, e_p, out) -> None:  # type: i
         _mark_ill(bad, out)
 
 
-def _refuse_irreproducible_candidates(  # type: ignore[no-untyped-def]
+def _refuse_irreproducible_candidates(
     mm: MutualMasking, m_p, e_p, cand_m, cand_e, cand_ok, out
 ) -> None:
     """b·d ≥ 1: a point any of whose listed answers fails the forward check is ill-conditioned."""
@@ -266,7 +266,7 @@ def _refuse_irreproducible_candidates(  # type: ignore[no-untyped-def]
         _mark_ill(bad, out)
 
 
-def _mark_ill(bad, out) -> None:  # type: ignore[no-untyped-def]
+def _mark_ill(bad, out) -> None:
     m_i, e_i, case, status, reason, continuum = out
     status[bad] = Status.NONE
     reason[bad] = Reason.ILL_CONDITIONED

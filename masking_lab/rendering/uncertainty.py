@@ -1,13 +1,19 @@
 """Uncertainty carried to the finger: how sure the rendering is of what is felt (issue 19.3).
 
-``masking_params.json`` stores, per masking function, the fitted intercept and slope with their
-standard errors and confidence intervals (``uncertainty``: ``bootstrap`` or ``asymptotic``),
-but not the bootstrap draws themselves. So the draws here are *parametric*: each of a, b, c, d
-is drawn from a normal with its standard error (or, without one, the interval's half-width over
-the normal quantile), slopes kept ≥ 0. The file does not store the intercept–slope covariance,
-so the draws are independent; since a fitted intercept and slope are negatively correlated, this
-overstates the spread in the middle of the fitted range (the intervals are conservative).
+Each masking function's (intercept, slope) uncertainty is drawn jointly, by the best means its
+``masking_params.json`` entry offers:
 
+1. *bootstrap draws* / *posterior draws*: the joint (a, b) draws the export stores
+   (``draws``: up to 200 participant-bootstrap replicates of the fit), used as they are,
+   cycled and shuffled to the number of draws asked for;
+2. *covariance*: a bivariate normal with the exported standard errors and the
+   intercept–slope covariance (``intercept_slope_cov``);
+3. *parametric fallback*: independent normals with the exported standard errors (or the
+   interval's half-width over the normal quantile), as files written before the export kept
+   draws or covariances. A fitted intercept and slope are negatively correlated, so this
+   overstates the spread in the middle of the fitted range (conservative intervals).
+
+Slopes are kept ≥ 0; the two functions of a pair are drawn independently of each other.
 For every draw the played inputs are pushed through the drawn model (paper Eq. 3–4), with and
 without compensation, giving per-point percentile intervals of the perceived intensities. Two
 per-point flags:
@@ -37,9 +43,15 @@ from masking_lab.rendering.render import NO_MASKING, Rendering
 __all__ = ["PairSpread", "RenderingUncertainty", "pair_spread", "perceived_intervals"]
 
 METHOD = (
-    "parametric draws (independent normals with the exported standard errors; "
-    "masking_params.json stores no bootstrap draws and no intercept-slope covariance, so the "
-    "intervals are conservative)"
+    "parametric fallback (independent normals with the exported standard errors; the file "
+    "stores no joint draws and no intercept-slope covariance, so the intervals are conservative)"
+)
+#: Short names of how one function's (intercept, slope) draws are made.
+BOOTSTRAP, POSTERIOR, COVARIANCE, FALLBACK = (
+    "bootstrap draws",
+    "posterior draws",
+    "covariance",
+    "parametric fallback",
 )
 
 
@@ -53,6 +65,14 @@ class PairSpread:
         Standard error of each parameter (0: known exactly).
     source : str
         Where they came from (``"bootstrap"``/``"asymptotic"`` per direction).
+    ab_cov, cd_cov : float or None
+        Intercept–slope covariance of each function (dB · dB/dB), when the file stores it.
+    ab_draws, cd_draws : tuple of (float, float)
+        Stored joint (intercept dB, slope dB/dB) draws of each function (empty: none).
+    draws_kind : (str, str)
+        ``"bootstrap"``/``"posterior"`` of the two functions' stored draws (``""``: none).
+    names : (str, str)
+        ``"target by masker"`` of the two functions (MV masked by EV first).
     """
 
     a_sd_db: float
@@ -60,15 +80,35 @@ class PairSpread:
     c_sd_db: float
     d_sd: float
     source: str = ""
+    ab_cov: float | None = None
+    cd_cov: float | None = None
+    ab_draws: tuple[tuple[float, float], ...] = ()
+    cd_draws: tuple[tuple[float, float], ...] = ()
+    draws_kind: tuple[str, str] = ("", "")
+    names: tuple[str, str] = ("MV by EV", "EV by MV")
+
+    def methods(self) -> tuple[str, str]:
+        """How each function is drawn: bootstrap/posterior draws, covariance or the fallback."""
+        out = []
+        for draws, kind, cov in (
+            (self.ab_draws, self.draws_kind[0], self.ab_cov),
+            (self.cd_draws, self.draws_kind[1], self.cd_cov),
+        ):
+            if draws:
+                out.append(POSTERIOR if kind == "posterior" else BOOTSTRAP)
+            else:
+                out.append(COVARIANCE if cov is not None else FALLBACK)
+        return out[0], out[1]
 
 
 def pair_spread(
     params: Mapping[str, Any], *, mv: str, ev: str, level_default: float = 0.95
 ) -> PairSpread:
-    """Read the standard errors of one pair's two masking functions from masking_params.json.
+    """Read the uncertainty of one pair's two masking functions from masking_params.json.
 
-    A missing standard error is taken from the interval (half-width / z of its level); with
-    neither, the parameter counts as exact (0) and ``source`` says so.
+    The standard errors, and the joint draws and intercept–slope covariance where the file
+    stores them. A missing standard error is taken from the interval (half-width / z of its
+    level); with neither, the parameter counts as exact (0) and ``source`` says so.
 
     Examples
     --------
@@ -80,9 +120,14 @@ def pair_spread(
     >>> s = pair_spread(doc, mv="MV180", ev="EV270")
     >>> round(s.a_sd_db, 3), round(s.c_sd_db, 3), round(s.d_sd, 4)
     (0.4, 0.5, 0.0255)
+    >>> s.methods()
+    ('parametric fallback', 'parametric fallback')
     """
     out: list[float] = []
     sources = []
+    covs: list[float | None] = []
+    joint: list[tuple[tuple[float, float], ...]] = []
+    kinds: list[str] = []
     for target, masker in ((mv, ev), (ev, mv)):
         entry = next(
             (
@@ -104,7 +149,30 @@ def pair_spread(
             else:
                 out.append(0.0)
         sources.append(f"{target} by {masker}: {entry.get('uncertainty', 'unknown')}")
-    return PairSpread(out[0], out[1], out[2], out[3], "; ".join(sources))
+        cov = entry.get("intercept_slope_cov")
+        covs.append(float(cov) if isinstance(cov, int | float) and np.isfinite(cov) else None)
+        raw_draws = entry.get("draws")
+        d = raw_draws if isinstance(raw_draws, Mapping) else {}
+        pairs = tuple(
+            (float(a), float(b))
+            for a, b in zip(d.get("intercept_db") or (), d.get("slope") or (), strict=False)
+            if np.isfinite(a) and np.isfinite(b)
+        )
+        joint.append(pairs if len(pairs) >= 2 else ())
+        kinds.append(str(d.get("method", "")) if joint[-1] else "")
+    return PairSpread(
+        out[0],
+        out[1],
+        out[2],
+        out[3],
+        "; ".join(sources),
+        ab_cov=covs[0],
+        cd_cov=covs[1],
+        ab_draws=joint[0],
+        cd_draws=joint[1],
+        draws_kind=(kinds[0], kinds[1]),
+        names=(f"{mv} by {ev}", f"{ev} by {mv}"),
+    )
 
 
 @dataclass(frozen=True)
@@ -126,7 +194,10 @@ class RenderingUncertainty:
     beyond_fitted : ndarray of bool
         The compensation relies on a ramp beyond its fitted masker range.
     method : str
-        How the draws were made.
+        How the draws were made, in words.
+    method_by_function : tuple of (str, str)
+        ``("target by masker", method)`` per masking function: ``"bootstrap draws"``,
+        ``"posterior draws"``, ``"covariance"`` or ``"parametric fallback"``.
     """
 
     level: float
@@ -142,6 +213,7 @@ class RenderingUncertainty:
     not_better: NDArray[np.bool_]
     beyond_fitted: NDArray[np.bool_]
     method: str = METHOD
+    method_by_function: tuple[tuple[str, str], ...] = ()
 
     def columns(self) -> dict[str, NDArray[Any]]:
         """The per-point columns for points.csv (dB SL; flags as bool)."""
@@ -168,6 +240,7 @@ class RenderingUncertainty:
 
         return {
             "method": self.method,
+            "method_by_function": dict(self.method_by_function),
             "n_draws": self.n_draws,
             "level": self.level,
             "max_band_width_db": {
@@ -225,12 +298,7 @@ def perceived_intervals(
     rng = rng if rng is not None else np.random.default_rng(0)
     pair = r.pair if r.pair is not None else NO_MASKING
     base = np.array([pair.a_db, pair.b, pair.c_db, pair.d])
-    sd = np.array([spread.a_sd_db, spread.b_sd, spread.c_sd_db, spread.d_sd])
-    if r.pair is None:
-        sd = np.zeros(4)  # nothing masks a single channel
-    with np.errstate(over="ignore", invalid="ignore"):
-        draws = base + rng.standard_normal((n_draws, 4)) * sd
-    draws[:, [1, 3]] = np.maximum(draws[:, [1, 3]], 0.0)
+    draws, method, by_function = _draws(base, spread, n_draws, rng, single=r.pair is None)
     mi, ei = r.mv_input_db_sl, r.ev_input_db_sl
     mt, et = r.mv_target_db_sl, r.ev_target_db_sl
     comp = np.empty((2, n_draws, mi.size))
@@ -268,7 +336,61 @@ def perceived_intervals(
         ev_uncomp_hi=hi_u[1],
         not_better=np.asarray(not_better),
         beyond_fitted=beyond,
+        method=method,
+        method_by_function=by_function,
     )
+
+
+def _draws(
+    base: NDArray[np.float64],
+    spread: PairSpread,
+    n_draws: int,
+    rng: np.random.Generator,
+    *,
+    single: bool,
+) -> tuple[NDArray[np.float64], str, tuple[tuple[str, str], ...]]:
+    """(n_draws, 4) draws of a, b, c, d, the method in words and per function."""
+    if single:  # nothing masks a single channel
+        return np.tile(base, (n_draws, 1)), "none (a single-channel scene has no masking)", ()
+    sd = np.array([spread.a_sd_db, spread.b_sd, spread.c_sd_db, spread.d_sd])
+    with np.errstate(over="ignore", invalid="ignore"):
+        z = rng.standard_normal((n_draws, 4))  # the fallback's draws, as before
+        draws = base + z * sd
+    methods = spread.methods()
+    words = []
+    for k, (stored, cov, method) in enumerate(
+        (
+            (spread.ab_draws, spread.ab_cov, methods[0]),
+            (spread.cd_draws, spread.cd_cov, methods[1]),
+        )
+    ):
+        cols = [2 * k, 2 * k + 1]
+        if stored:
+            # Every stored draw used alike (cycled), in an order independent of the other
+            # function's, so the two functions stay independent.
+            idx = rng.permutation(np.arange(n_draws) % len(stored))
+            draws[:, cols] = np.asarray(stored, dtype=float)[idx]
+            words.append(f"{spread.names[k]}: {method} ({len(stored)} stored, used jointly)")
+        elif cov is not None and sd[cols[0]] > 0 and sd[cols[1]] > 0:
+            with np.errstate(over="ignore", invalid="ignore"):
+                rho = float(np.clip(cov / (sd[cols[0]] * sd[cols[1]]), -1.0, 1.0))
+            rho = rho if np.isfinite(rho) else 0.0
+            mixed = rho * z[:, cols[0]] + np.sqrt(1.0 - rho**2) * z[:, cols[1]]
+            draws[:, cols[1]] = base[cols[1]] + mixed * sd[cols[1]]
+            words.append(
+                f"{spread.names[k]}: {method} (bivariate normal, exported SEs, "
+                f"correlation {rho:.2f})"
+            )
+        else:
+            words.append(
+                f"{spread.names[k]}: {FALLBACK} (independent normals with the exported SEs; "
+                "no joint draws or covariance stored, so conservative)"
+            )
+    draws[:, [1, 3]] = np.maximum(draws[:, [1, 3]], 0.0)
+    by_function = tuple(zip(spread.names, methods, strict=True))
+    if methods == (FALLBACK, FALLBACK):
+        return draws, METHOD, by_function
+    return draws, "; ".join(words), by_function
 
 
 def _forward(

@@ -140,7 +140,7 @@ def display_geometry(
     section = getattr(config, "display", None) if config is not None else None
     source = getattr(config, "path", None) or "the device config"
     explicit = {"width_mm": width_mm, "width_px": width_px, "height_px": height_px}
-    values = {
+    values: dict[str, Any] = {  # Any: from the config; DisplayGeometry checks each value
         key: value if value is not None else getattr(section, key, None)
         for key, value in explicit.items()
     }
@@ -302,6 +302,26 @@ class PsychoPyWindowResponder:
         )
 
     # -- Responder protocol -------------------------------------------------------------------
+
+    def ask_info(self, fields: Any, given: dict[str, str]) -> dict[str, str]:
+        """Ask the protocol's participant fields not in ``given`` in this window (before set 1).
+
+        See :func:`masking_lab.responders.window_form.ask_in_window`; Esc raises
+        KeyboardInterrupt.
+        """
+        from masking_lab.responders.window_form import ask_in_window
+
+        text_px = self._px(self.look.text_mm)
+        return ask_in_window(
+            self.win,
+            self._visual,
+            self._event,
+            fields,
+            given,
+            self._flip,
+            text_px=text_px,
+            colour=TEXT,
+        )
 
     def start_set(self, info: SetInfo) -> None:
         """Show the instructions for a set; with ``wait_for_start``, wait for the space bar."""

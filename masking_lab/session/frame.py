@@ -77,18 +77,31 @@ ResponderFactory = Callable[[str, Any], Any]
 
 
 class StartOptions(Protocol):
-    """What every ``run`` states, whatever the session kind (the kind's options add more)."""
+    """What every ``run`` states, whatever the session kind (the kind's options add more).
 
-    participant: str
-    device: str
-    responder: str
-    data_dir: Path
-    seed: int | None
-    real_time: bool
-    ground_truth: Path | None
-    device_config: Path | None
-    progress: bool | None
-    participant_tty: str | None
+    Read-only properties, so that a frozen dataclass of options satisfies the protocol.
+    """
+
+    @property
+    def participant(self) -> str: ...
+    @property
+    def device(self) -> str: ...
+    @property
+    def responder(self) -> str: ...
+    @property
+    def data_dir(self) -> Path: ...
+    @property
+    def seed(self) -> int | None: ...
+    @property
+    def real_time(self) -> bool: ...
+    @property
+    def ground_truth(self) -> Path | None: ...
+    @property
+    def device_config(self) -> Path | None: ...
+    @property
+    def progress(self) -> bool | None: ...
+    @property
+    def participant_tty(self) -> str | None: ...
 
 
 @dataclass(frozen=True)
@@ -237,7 +250,10 @@ class Opened:
 class SessionPlan(Protocol[ResultT]):
     """One session kind's plan for one process, made before any device or window opens."""
 
-    experiment: str
+    @property
+    def experiment(self) -> str:
+        """The experiment id the log's file name and header carry."""
+        ...
 
     def context(self, opening: Opening) -> Any:
         """What the responder factory gets (the kind's context object)."""
@@ -249,6 +265,11 @@ class SessionPlan(Protocol[ResultT]):
 
     def check_device(self, device: Device, out: ProgressLine) -> None:
         """Checks that need the opened device (limits, watchdog); raise to close it again."""
+        ...
+
+    def ask_participant(self, responder: Any, out: ProgressLine) -> None:
+        """Questions asked through the opened responder before the log exists (the window's
+        participant form); KeyboardInterrupt stops the start with nothing logged."""
         ...
 
     def header(self, opening: Opening, device: Device) -> dict[str, Any]:
@@ -280,6 +301,9 @@ class PlanDefaults:
     def check_device(self, device: Device, out: ProgressLine) -> None:
         """The frame's checks of the opened device are enough."""
 
+    def ask_participant(self, responder: Any, out: ProgressLine) -> None:
+        """Nothing is asked through the responder."""
+
     def resume_message(self, path: Path) -> str:
         """``resuming <path>``."""
         return f"resuming {path}"
@@ -288,7 +312,10 @@ class PlanDefaults:
 class SessionKind(Protocol[ResultT]):
     """A kind of session (threshold, user test): its responders and how it plans a session."""
 
-    responders: tuple[str, ...]
+    @property
+    def responders(self) -> tuple[str, ...]:
+        """The responder names the kind accepts."""
+        ...
 
     def responder_error(self, name: str) -> str:
         """The message for an unknown responder name."""
@@ -412,6 +439,7 @@ def _start_locked(
     device, responder, opening = _open_in_device_time(frame, plan, opening, options)
     with close_on_failure(device, responder):
         plan.check_device(device, frame.out)
+        plan.ask_participant(responder, frame.out)  # before the log: Esc leaves nothing behind
         header = plan.header(opening, device)
         writer = create_log(
             Path(options.data_dir),

@@ -23,12 +23,16 @@ __all__ = ["RunSource", "session_header"]
 
 
 class RunSource(Protocol):
-    """What a session runs: a threshold protocol or a user-test design."""
+    """What a session runs: a threshold protocol or a user-test design (read-only)."""
 
-    path: str
-    sha256: str
-    experiment: str
-    content: Any
+    @property
+    def path(self) -> str: ...
+    @property
+    def sha256(self) -> str: ...
+    @property
+    def experiment(self) -> str: ...
+    @property
+    def content(self) -> Any: ...
 
 
 def session_header(

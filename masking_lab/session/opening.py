@@ -34,7 +34,7 @@ ResponderT = TypeVar("ResponderT", bound=Closable)
 ContextT = TypeVar("ContextT")
 
 
-def check_participant(participant: str) -> str:
+def check_participant(participant: object) -> str:
     """The participant id, if it can name a data folder.
 
     Raises

@@ -57,6 +57,7 @@ def session_time_left_s(
     if finished_set_trials:
         per_set = float(np.mean(finished_set_trials))
     else:
+        # every procedure kind carries its settings; the Procedure protocol does not declare them
         per_set = track_trials_left(state.settings.start())  # type: ignore[attr-defined]
     trials = current + sets_after_current * per_set
     return max(0.0, trials * seconds_per_trial + sets_after_current * rest_between_sets_s)

@@ -8,9 +8,11 @@ A protocol declares its fields in an ``info`` section::
       - {name: skin_temperature, type: number, unit: degC}
       - {name: notes, type: text, description: experimenter's notes}
 
-``run`` takes the values from ``--info key=value`` and, on a terminal, asks for the missing
-ones; they are checked here (type, choices, required, unknown names: every problem at once) and
-written into the session header's ``info``. ``analyze`` gathers them into ``participants.tsv``.
+``run`` takes the values from ``--info key=value`` and asks for the missing ones: on a terminal,
+or with ``--responder psychopy`` in the participant's window
+(:mod:`masking_lab.responders.window_form`); they are checked here (type, choices, required,
+unknown names: every problem at once) and written into the session header's ``info``.
+``analyze`` gathers them into ``participants.tsv``.
 """
 
 from __future__ import annotations
@@ -143,7 +145,11 @@ def parse_info_args(items: Sequence[str]) -> dict[str, str]:
 
 
 def resolve_info(
-    fields: Sequence[InfoField], given: Mapping[str, str], source: str = "protocol"
+    fields: Sequence[InfoField],
+    given: Mapping[str, str],
+    source: str = "protocol",
+    *,
+    require: bool = True,
 ) -> dict[str, Any]:
     """Check and convert the given values against the fields; every problem in one error.
 
@@ -155,6 +161,9 @@ def resolve_info(
         Values as typed (``--info`` or the prompts); empty text counts as not given.
     source : str
         The protocol file, named in the error.
+    require : bool
+        Refuse missing required fields; False checks only what was given (the window asks
+        for the rest).
 
     Returns
     -------
@@ -193,7 +202,7 @@ def resolve_info(
             out[f.name] = f.convert(text)
         except ValueError as exc:
             problems.append(str(exc))
-    missing = [f.name for f in fields if f.required and f.name not in out and f.name not in unknown]
+    missing = [f.name for f in fields if f.required and f.name not in out] if require else []
     missing = [m for m in missing if not any(p.startswith(f"{m}:") for p in problems)]
     if missing:
         problems.append(

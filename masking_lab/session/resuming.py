@@ -34,7 +34,7 @@ def check_header(header: Mapping[str, Any], path: Path) -> None:
             "resumed"
         )
     try:  # the id names folders and files: hold it to what `run` accepts
-        check_participant(header.get("participant"))  # type: ignore[arg-type]
+        check_participant(header.get("participant"))
     except MaskingLabError as exc:
         raise LogError(
             f"{path}: line 1: the header's participant id is not one `run` accepts ({exc}); this "

@@ -212,8 +212,10 @@ class ThresholdKind:
             calibration = {name: float(cal.unmasked_al_db_v[name]) for name in sorted(needed)}
         # Every level the sets may ask for must be playable on this rig (converter resolution).
         refuse_unplayable(protocol, order, calibration, options.device_config)
-        info = _participant_info(protocol, options.info)
-        return _ThresholdPlan(protocol, data_dir, order, calibration, {}, (None, None), info)
+        info, pending = _participant_info(protocol, options.info, options.responder)
+        return _ThresholdPlan(
+            protocol, data_dir, order, calibration, {}, (None, None), info, pending
+        )
 
     def plan_resume(
         self,
@@ -238,16 +240,26 @@ class ThresholdKind:
         )
 
 
-def _participant_info(protocol: Protocol, given: Mapping[str, str]) -> dict[str, Any]:
-    """The protocol's ``info`` fields: ``--info`` values, the missing ones asked on a terminal."""
+def _participant_info(
+    protocol: Protocol, given: Mapping[str, str], responder: str
+) -> tuple[dict[str, Any], tuple[list[Any], dict[str, str]] | None]:
+    """The protocol's ``info`` fields: ``--info`` values, the missing ones asked on a terminal.
+
+    With the PsychoPy window the missing ones are asked in the window once it is open: the
+    given values are checked now (a typo is refused before anything opens) and the fields with
+    them are returned as pending.
+    """
     import sys
 
     from masking_lab.session.participant_info import ask_missing, info_fields, resolve_info
 
     fields = info_fields(protocol.content)
+    source = str(protocol.path)
+    if responder == "psychopy" and any(not given.get(f.name, "").strip() for f in fields):
+        return resolve_info(fields, given, source, require=False), (fields, dict(given))
     if fields and sys.stdin is not None and sys.stdin.isatty():
         given = ask_missing(fields, given)
-    return resolve_info(fields, given, str(protocol.path))
+    return resolve_info(fields, given, source), None
 
 
 @dataclass
@@ -261,10 +273,29 @@ class _ThresholdPlan(frame.PlanDefaults):
     existing: Mapping[str, SetRecords]
     stopped_at: tuple[str | None, int | None]
     info: Mapping[str, Any] = field(default_factory=dict)
+    # (fields, --info values) still to ask in the participant's window, or None
+    info_in_window: tuple[list[Any], dict[str, str]] | None = None
 
     @property
     def experiment(self) -> str:
         return self.protocol.experiment
+
+    def ask_participant(self, responder: Any, out: ProgressLine) -> None:
+        if self.info_in_window is None:
+            return
+        from masking_lab.session.participant_info import resolve_info
+
+        fields, given = self.info_in_window
+        ask = getattr(responder, "ask_info", None)
+        if ask is not None:
+            out.message("participant information: asked in the participant window (Esc stops)")
+            try:
+                given = ask(fields, given)
+            except KeyboardInterrupt:
+                out.message("stopped in the participant form: nothing was played or logged")
+                raise
+        self.info = resolve_info(fields, given, str(self.protocol.path))
+        self.info_in_window = None
 
     def context(self, opening: frame.Opening) -> SessionContext:
         return opening.context(SessionContext, protocol=self.protocol)
@@ -276,8 +307,11 @@ class _ThresholdPlan(frame.PlanDefaults):
             device=device.identity,
             order=self.order,
             **opening.header_fields(),
-            **({"info": dict(self.info)} if self.info else {}),
+            **self._info_field(),
         )
+
+    def _info_field(self) -> dict[str, Any]:
+        return {"info": dict(self.info)} if self.info else {}
 
     def position(self) -> tuple[str | None, int | None]:
         return self.stopped_at
@@ -314,7 +348,7 @@ def _default_responder(name: str, context: SessionContext) -> Responder:
     if name == "psychopy":
         from masking_lab.responders import psychopy_window
 
-        return psychopy_window.make_responder(context)  # type: ignore[attr-defined]
+        return psychopy_window.make_responder(context)
     raise MaskingLabError(f"responder {name!r}: choose one of {', '.join(RESPONDERS)}")
 
 

@@ -122,6 +122,10 @@ class SessionShell(Generic[ResultT]):
 
     # -- the frame --------------------------------------------------------------------------
 
+    def run(self) -> ResultT:
+        """Run the session to its end; a subclass calls :meth:`run_guarded` with its body."""
+        raise NotImplementedError(f"{type(self).__name__} must define run()")
+
     def run_guarded(self, body: Callable[[], None]) -> ResultT:
         """Run ``body`` under :class:`SessionSignals`, then log ``session_end``.
 

@@ -190,13 +190,13 @@ class ThresholdSession(SessionShell[SessionResult]):
             return
         first = True
         for k, set_id in enumerate(self.order):
-            rec = self.existing.get(set_id)
-            if rec is not None and rec.end is not None:
+            logged = self.existing.get(set_id)
+            if logged is not None and logged.end is not None:
                 continue
             if not first:
                 self._rest(k)
             first = False
-            opened = self._open_set(self.protocol.set_by_id(set_id), rec)
+            opened = self._open_set(self.protocol.set_by_id(set_id), logged)
             if opened is None:
                 continue
             plan, state = opened

@@ -80,7 +80,8 @@ def watch_view(log: SessionLog, *, width: int = 60) -> list[str]:
     'sets 0/2 done; 1 trial done; trials left: unknown until a set ends'
     """
     h = log.header if isinstance(log.header, Mapping) else {}
-    protocol = h.get("protocol") if isinstance(h.get("protocol"), Mapping) else {}
+    raw_protocol = h.get("protocol")
+    protocol = raw_protocol if isinstance(raw_protocol, Mapping) else {}
     order = [str(s) for s in h.get("set_order") or []]
     sets = log.sets()
     done = {sid: r for sid, r in sets.items() if r.end is not None}
@@ -89,7 +90,11 @@ def watch_view(log: SessionLog, *, width: int = 60) -> list[str]:
         f"participant {h.get('participant', '?')} | {protocol.get('experiment', '?')} | "
         f"session {h.get('session_id', '?')} | {log.path.name}"
     ]
-    finished = [len(r.trials) for r in done.values() if r.end.get("status") != "aborted"]
+    finished = [
+        len(r.trials)
+        for r in sets.values()
+        if r.end is not None and r.end.get("status") != "aborted"
+    ]
     current = next((sid for sid, r in sets.items() if r.end is None), None)
     left_text = "unknown until a set ends"
     if finished:

@@ -176,7 +176,7 @@ def read_ground_truth(path: str | Path | None = None) -> tuple[Any, str]:
     """
     if path is None:
         source = "protocols/simulation/ground_truth.yaml"
-        doc = load_document(shipped("protocols", "simulation/ground_truth.yaml"), what="x")
+        doc = load_document(str(shipped("protocols", "simulation/ground_truth.yaml")), what="x")
     else:
         source = str(path)
         doc = load_document(path, what="ground truth")

@@ -120,6 +120,7 @@ def simulate_session(
         masker_db_v = None
         true_masker_sl = None
         if masker is not None:
+            # a set with a masker has its level (the protocol loader checks that)
             masker_db_v = float(spec.masker_level_db_sl) + calibration[masker]  # type: ignore[arg-type]
             true_masker_sl = masker_db_v - participant.unmasked_al_db_v[masker]
         settings = spec.settings
@@ -142,7 +143,7 @@ def simulate_session(
         sc = settings.start()
         while not sc.finished:
             level = sc.next_level()
-            level_v = level + unmasked if masked else level  # type: ignore[operator]
+            level_v = level + unmasked if masked else level
             p = participant.p_correct(target, level_v, masker, true_masker_sl or 0.0)
             correct = bool(rng.random() < p)
             interval = int(rng.integers(1, 4))
@@ -182,7 +183,7 @@ def simulate_session(
             "set_id": set_id,
             "status": sc.status,
             "al_db": al,
-            "al_db_v": None if al is None else (al + unmasked if masked else al),  # type: ignore[operator]
+            "al_db_v": None if al is None else (al + unmasked if masked else al),
             "al_db_sl": al if masked else None,
             "n_trials": sc.n_trials,
             "reversal_levels_db": ends["reversal_levels_db"],

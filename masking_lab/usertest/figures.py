@@ -74,9 +74,9 @@ def figure8a_png(model: UserTestReportModel, *, dpi: int = 110) -> bytes:
                 )
             for i, (m, sd) in enumerate(zip(means, sds, strict=True)):
                 tops[i] = max(tops[i], m + (sd or 0.0))
-        for i, m in enumerate(MEASURES):
+        for i, measure in enumerate(MEASURES):
             ax.hlines(
-                model.chance[m],
+                model.chance[measure],
                 i - 0.45,
                 i + 0.45,
                 colors="#b22222",

@@ -249,7 +249,7 @@ def trial_levels_db_v(
             )
         x = finger_x_mm
     else:
-        x = path_position_mm(design, t_s)  # type: ignore[assignment]
+        x = path_position_mm(design, t_s)  # type: ignore[assignment]  # not None: presenting
     r = objects[trial.object]
     ev_sl, mv_sl = levels_at(r, x, compensated=trial.compensated)
     scene = r.scene

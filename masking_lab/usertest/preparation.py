@@ -341,18 +341,18 @@ def design_from_header(
     except ProtocolError as exc:
         raise LogError(f"{path}: the user test stored in the header is invalid: {exc}") from exc
     sources = {s["object"]: (str(s["path"]), str(s["sha256"])) for s in ut["scenes"]}
-    scenes = {}
+    by_pair = {}
     for (g, t), scene in design.scenes.items():
         source, sha = sources[f"{g}_{t}"]
         if scene.sha256 != sha:
             raise LogError(f"{path}: the stored copy of scene {g}_{t} does not match its hash")
-        scenes[(g, t)] = dataclasses.replace(scene, source=source)
+        by_pair[(g, t)] = dataclasses.replace(scene, source=source)
     return dataclasses.replace(
         design,
         path=str(meta["path"]),
         sha256=str(meta["sha256"]),
         content=dict(meta["content"]),
-        scenes=scenes,
+        scenes=by_pair,
     )
 
 

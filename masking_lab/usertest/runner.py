@@ -338,7 +338,7 @@ class _UserTestPlan(frame.PlanDefaults):
 
     participant: str
     design: UserTestDesign
-    objects: Mapping[tuple[str, str], Rendering]
+    objects: dict[tuple[str, str], Rendering]  # mapped in place once the device is open
     pairs: Mapping[tuple[str, str], MutualMasking]
     params_record: dict[str, Any] | None
     calibration: dict[str, float]
@@ -381,8 +381,8 @@ class _UserTestPlan(frame.PlanDefaults):
             # lower), now that the device's drive limit is known. In place: the responder's
             # context already holds this mapping.
             mapped = _objects(self.design, self.pairs, self.limits, self.gamut_map)
-            self.objects.clear()  # type: ignore[attr-defined]
-            self.objects.update(mapped)  # type: ignore[attr-defined]
+            self.objects.clear()
+            self.objects.update(mapped)
         self.over = exceedances(self.design, self.objects, self.limits)
         refuse_or_warn(self.over, self.allow_clipping, self.participant, out)
 
@@ -428,7 +428,7 @@ class _UserTestPlan(frame.PlanDefaults):
 USERTEST = UserTestKind()
 
 
-def _objects(design, pairs, limits, gamut_map):  # type: ignore[no-untyped-def]
+def _objects(design, pairs, limits, gamut_map):
     """The objects rendered; unless ``gamut_map`` is ``none``, each object mapped into the gamut
     of its own stimuli's limits (``limits``: channel or stimulus name → dB SL or StimulusLimit).
     """

@@ -215,7 +215,7 @@ class UserTestSession(SessionShell[UserTestResult]):
             for ch in CHANNELS:
                 held[ch].append(plan.held_db_v[ch])
                 excess[ch].append(plan.excess_db[ch])
-        clipped = {}
+        clipped: dict[str, ClipStats] = {}
         for ch in CHANNELS:
             e = np.concatenate(excess[ch])
             if np.any(e > 1e-6):
@@ -226,7 +226,7 @@ class UserTestSession(SessionShell[UserTestResult]):
             tick_s=np.concatenate(ticks),
             x_mm=np.concatenate(xs),
             held_v={ch: _volts(np.concatenate(held[ch])) for ch in CHANNELS},
-            stimuli=dict(names),
+            stimuli={str(ch): name for ch, name in names.items()},
             n_frames=n_frames,
             clipped=clipped,
         )
@@ -242,9 +242,10 @@ class UserTestSession(SessionShell[UserTestResult]):
         r = self.objects[trial.object]
         ev, mv = path_levels_db_sl(r, x_mm, compensated=trial.compensated)
         out: dict[Channel, np.ndarray] = {}
-        for ch, levels in (("EV", ev), ("MV", mv)):
-            name = object_stimuli(r)[ch]  # type: ignore[index]
-            out[ch] = (  # type: ignore[index]
+        by_channel: tuple[tuple[Channel, np.ndarray], ...] = (("EV", ev), ("MV", mv))
+        for ch, levels in by_channel:
+            name = object_stimuli(r)[ch]
+            out[ch] = (
                 np.full(levels.shape, SILENT)
                 if name is None
                 else to_db_v(levels, self.limits[name].unmasked_al_db_v)

@@ -1,0 +1,228 @@
+"""``psychometric.csv``: a psychometric function per set attempt (*shell side of the fits*).
+
+:func:`pf_job` turns one set's trials (:class:`SetTrials`, gathered by :func:`set_trials` from
+a parsed log) into the fit its row reports, :func:`fit_all` makes every fit of a study at
+once (batched by :func:`masking_lab.analysis.psychometric.fit_pf_many`, in parallel processes
+for many sets: each fit is the same whichever batch or process makes it), and :func:`pf_row`
+lays one fit out in :data:`PF_COLUMNS` (levels and thresholds in dB of the set's unit, slopes
+in 1/dB).
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+from collections.abc import Callable, Mapping, Sequence
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field
+from typing import Any
+
+from masking_lab.analysis.psychometric import PFFit, PFJob, fit_pf_many
+from masking_lab.core.errors import MaskingLabError
+from masking_lab.core.psychometric import GUESS_3IFC
+from masking_lab.formats.session_log import SessionLog
+
+__all__ = ["PF_BOOTSTRAP", "PF_COLUMNS", "SetTrials", "fit_all", "pf_job", "pf_row", "set_trials"]
+
+PF_BOOTSTRAP = 200  # parametric-bootstrap data sets per psychometric function
+PF_PARALLEL_FROM = 256  # fewer sets than this are fitted in-process (workers cost ~0.3 s)
+_PF_CHUNK = 128  # sets per worker task: batches large enough for numpy, small for progress
+PF_COLUMNS = [
+    "participant",
+    "experiment",
+    "set_id",
+    "target",
+    "masker",
+    "masker_level_db_sl",
+    "level_unit",
+    "procedure",
+    "n_trials",
+    "n_levels",
+    "guess",
+    "p_target",
+    "threshold_db",
+    "threshold_ci95_low_db",
+    "threshold_ci95_high_db",
+    "slope_per_db",
+    "slope_ci95_low_per_db",
+    "slope_ci95_high_per_db",
+    "lapse",
+    "lapse_ci95_low",
+    "lapse_ci95_high",
+    "al_db",
+    "al_sd_db",
+    "al_ci95_low_db",
+    "al_ci95_high_db",
+    "deviance",
+    "deviance_df",
+    "deviance_p",
+    "n_bootstrap",
+    "status",
+    "note",
+    "session_id",
+    "log",
+]
+
+
+@dataclass
+class SetTrials:
+    """One set attempt's trials for the psychometric fit."""
+
+    start: Mapping[str, Any]
+    levels: list[float] = field(default_factory=list)
+    correct: list[bool] = field(default_factory=list)
+
+
+def set_trials(log: SessionLog) -> dict[str, SetTrials]:
+    """Each started set's trials in a parsed log (levels in dB of the set's unit): set id →
+    :class:`SetTrials`; trials without a numeric level or a true/false answer are left out."""
+    out: dict[str, SetTrials] = {}
+    for rec in log.records:
+        sid = rec.get("set_id")
+        if rec.get("record") == "set_start" and isinstance(sid, str):
+            out.setdefault(sid, SetTrials(rec)).start = rec
+        elif rec.get("record") == "trial" and sid in out:
+            st = out[sid]
+            key = "level_db_sl" if st.start.get("level_unit") == "db_sl" else "level_db_v"
+            lv, ok = rec.get(key), rec.get("correct")
+            if isinstance(lv, int | float) and not isinstance(lv, bool) and isinstance(ok, bool):
+                st.levels.append(float(lv))
+                st.correct.append(ok)
+    return out
+
+
+@functools.lru_cache(maxsize=256)
+def _target_p(n_up: int, n_down: int, down_up_ratio: float) -> float:
+    """The staircase's target p (a root search, ~7 ms): a study has a handful of rules and
+    thousands of sets, so each rule is solved once (bounded: the rules come from files)."""
+    from masking_lab.procedures.staircase import implied_target_p_for
+
+    return implied_target_p_for(n_up, n_down, down_up_ratio)
+
+
+def _model(start: Mapping[str, Any]) -> tuple[str, float, float]:
+    """The set's procedure kind, guess rate and the p its AL is read at."""
+    proc = start.get("procedure")
+    if isinstance(proc, Mapping):
+        # the registry rebuilds any kind's settings; a kind without a guess rate or threshold
+        # point (or unreadable settings) is read as a 3IFC track at the 1-up-3-down point
+        from masking_lab.procedures.registry import settings_from_start
+
+        try:
+            s = settings_from_start(start, None)
+            guess = float(getattr(s, "guess", GUESS_3IFC))
+            return str(proc.get("kind")), guess, float(getattr(s, "p_at_threshold", 0.5 ** (1 / 3)))
+        except (MaskingLabError, TypeError, ValueError):
+            return str(proc.get("kind")), GUESS_3IFC, 0.5 ** (1 / 3)
+    raw_st = start.get("staircase")
+    st = raw_st if isinstance(raw_st, Mapping) else {}
+    try:
+        p = _target_p(
+            int(st.get("n_up", 1)), int(st.get("n_down", 3)), float(st.get("down_up_ratio", 1.0))
+        )
+    except (TypeError, ValueError, ArithmeticError):
+        p = 0.5 ** (1 / 3)
+    return "staircase", GUESS_3IFC, p
+
+
+def pf_job(st: SetTrials, seed: int, n_boot: int = PF_BOOTSTRAP) -> PFJob:
+    """The fit of one set's trials for ``psychometric.csv``: λ fitted in [0, 0.1].
+
+    Examples
+    --------
+    >>> job = pf_job(SetTrials({"level_unit": "db_sl"}, [0.0, 2.0], [False, True]), seed=1)
+    >>> job.lapse is None, job.n_boot, round(job.p_target, 3)
+    (True, 200, 0.794)
+    """
+    _, guess, p_target = _model(st.start)
+    return PFJob(st.levels, st.correct, guess, p_target, None, n_boot, seed)
+
+
+def pf_row(
+    base: Mapping[str, Any],
+    st: SetTrials,
+    seed: int,
+    n_boot: int = PF_BOOTSTRAP,
+    fit: PFFit | None = None,
+) -> dict:
+    """The ``psychometric.csv`` row of one set: the fit of its trials, λ fitted in [0, 0.1].
+
+    ``fit`` is that fit when already made (:func:`pf_job` through
+    :func:`~masking_lab.analysis.psychometric.fit_pf_many`); else it is made here.
+
+    Examples
+    --------
+    >>> st = SetTrials({"level_unit": "db_sl"}, [0.0, 2.0, 4.0] * 10, [False, True, True] * 10)
+    >>> row = pf_row({"participant": "P1"}, st, seed=1, n_boot=0)
+    >>> row["status"], row["n_levels"], row["deviance_df"]
+    ('fitted', 3, 0)
+    """
+    kind, guess, p_target = _model(st.start)
+    if fit is None:
+        fit = fit_pf_many([pf_job(st, seed, n_boot)])[0]
+
+    def ci(v: tuple[float, float] | None, i: int) -> float | None:
+        return None if v is None else v[i]
+
+    return {
+        **base,
+        "level_unit": "db_sl" if st.start.get("level_unit") == "db_sl" else "db_v",
+        "procedure": kind,
+        "n_trials": fit.n_trials,
+        "n_levels": fit.n_levels,
+        "guess": guess,
+        "p_target": p_target,
+        "threshold_db": fit.threshold_db,
+        "threshold_ci95_low_db": ci(fit.threshold_ci_db, 0),
+        "threshold_ci95_high_db": ci(fit.threshold_ci_db, 1),
+        "slope_per_db": fit.slope_per_db,
+        "slope_ci95_low_per_db": ci(fit.slope_ci_per_db, 0),
+        "slope_ci95_high_per_db": ci(fit.slope_ci_per_db, 1),
+        "lapse": fit.lapse,
+        "lapse_ci95_low": ci(fit.lapse_ci, 0),
+        "lapse_ci95_high": ci(fit.lapse_ci, 1),
+        "al_db": fit.al_db,
+        "al_sd_db": fit.al_sd_db,
+        "al_ci95_low_db": ci(fit.al_ci_db, 0),
+        "al_ci95_high_db": ci(fit.al_ci_db, 1),
+        "deviance": fit.deviance,
+        "deviance_df": max(fit.n_levels - 3, 0),
+        "deviance_p": fit.deviance_p,
+        "n_bootstrap": fit.n_boot,
+        "status": "fitted" if fit.ok else "failed",
+        "note": fit.message,
+        "_fit": fit,
+    }
+
+
+def fit_all(
+    jobs: Sequence[PFJob],
+    *,
+    workers: int | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> list[PFFit]:
+    """:func:`~masking_lab.analysis.psychometric.fit_pf_many` of every job, in chunks spread
+    over processes for many sets (each fit is the same whichever chunk holds it).
+
+    Examples
+    --------
+    >>> fit_all([])
+    []
+    """
+    n = len(jobs)
+    if workers is None:
+        workers = (os.cpu_count() or 1) if n >= PF_PARALLEL_FROM else 1
+    chunks = [list(jobs[i : i + _PF_CHUNK]) for i in range(0, n, _PF_CHUNK)]
+    fits: list[PFFit] = []
+    if workers <= 1 or len(chunks) < 2:
+        for chunk in chunks:
+            fits += fit_pf_many(chunk)
+            if progress:
+                progress(len(fits), n)
+        return fits
+    with ProcessPoolExecutor(max_workers=min(workers, len(chunks))) as pool:
+        for done in pool.map(fit_pf_many, chunks):
+            fits += done
+            if progress:
+                progress(len(fits), n)
+    return fits

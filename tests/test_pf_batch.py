@@ -1,0 +1,76 @@
+"""Psychometric fits made many at once (issue 22): a set's fit must not depend on the sets
+batched beside it, nor on the process that made it, so psychometric.csv keeps its bytes."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from masking_lab.analysis import pf_table, psychometric
+from masking_lab.analysis.pf_table import SetTrials, fit_all, pf_job
+from masking_lab.analysis.psychometric import PFJob, fit_pf, fit_pf_many, pf_curve
+
+
+def _track(rng: np.random.Generator, n_levels: int, n_per: int) -> tuple[list, list]:
+    x = np.repeat(np.linspace(-6.0, 6.0, n_levels), n_per)
+    truth = (rng.uniform(-2, 2), rng.uniform(0.4, 1.5), rng.uniform(0.0, 0.06))
+    r = rng.random(x.size) < pf_curve(x, *truth, 1 / 3)
+    return x.tolist(), r.tolist()
+
+
+def _jobs() -> list[PFJob]:
+    """Mixed batches: levels counts, guess rates, fixed and fitted λ, given estimates, and
+    sets that cannot be fitted, interleaved."""
+    rng = np.random.default_rng(11)
+    jobs = []
+    for i in range(24):
+        x, r = _track(rng, n_levels=3 + i % 5, n_per=6 + i % 7)
+        jobs.append(PFJob(x, r, n_boot=60, seed=i))
+        if i % 6 == 0:
+            jobs.append(PFJob(x, r, guess=0.5, p_target=0.75, lapse=0.02, n_boot=40, seed=i))
+        if i % 8 == 0:
+            jobs.append(PFJob(x, r, lapse=0.02, n_boot=30, seed=i, estimate=(0.2, 1.0, 0.02)))
+    jobs += [PFJob([1.0] * 20, [True] * 20), PFJob([1.0, 2.0], [True, False], n_boot=0)]
+    jobs.append(PFJob([float("nan")] * 12, [True, False] * 6))
+    return jobs
+
+
+def _alone(job: PFJob):
+    return fit_pf(
+        job.levels_db, job.correct, guess=job.guess, p_target=job.p_target, lapse=job.lapse,
+        n_boot=job.n_boot, seed=job.seed, estimate=job.estimate,
+    )  # fmt: skip
+
+
+def test_a_batched_fit_is_bit_for_bit_the_fit_alone(monkeypatch):
+    jobs = _jobs()
+    alone = [_alone(j) for j in jobs]
+    assert sum(f.ok for f in alone) > 20 and sum(not f.ok for f in alone) >= 3
+    assert any(f.message and "at least" in f.message for f in alone)
+    together = fit_pf_many(jobs)
+    assert [repr(f) for f in together] == [repr(f) for f in alone]  # repr: NaN-safe, exact
+    # Small batches split the same sets differently; the fits stay the same.
+    monkeypatch.setattr(psychometric, "_BATCH_ROWS", 50)
+    assert [repr(f) for f in fit_pf_many(jobs[::-1])] == [repr(f) for f in alone[::-1]]
+
+
+def test_fits_spread_over_processes_are_the_fits_made_in_process(monkeypatch):
+    monkeypatch.setattr(pf_table, "_PF_CHUNK", 4)  # three chunks, so two workers share them
+    rng = np.random.default_rng(5)
+    jobs = []
+    for i in range(9):
+        x, r = _track(rng, n_levels=4 + i % 3, n_per=8)
+        jobs.append(pf_job(SetTrials({"level_unit": "db_sl"}, x, r), seed=i, n_boot=30))
+    seen: list[tuple[int, int]] = []
+    serial = fit_all(jobs, workers=1)
+    parallel = fit_all(jobs, workers=2, progress=lambda i, n: seen.append((i, n)))
+    assert [repr(f) for f in parallel] == [repr(f) for f in serial]
+    assert seen and seen[-1] == (9, 9)
+
+
+def test_an_empty_batch_and_a_bad_track_are_answered_not_raised():
+    assert fit_pf_many([]) == []
+    (fit,) = fit_pf_many([PFJob([0.0] * 10, [False] * 10)])
+    assert not fit.ok and "wrong" in fit.message
+    with pytest.raises(Exception, match="2 levels but 1 answers"):
+        fit_pf_many([PFJob([0.0, 1.0], [True])])
