@@ -127,4 +127,7 @@ def expected_entropy(
 
 def _xlogx(a: NDArray[np.float64]) -> NDArray[np.float64]:
     """a·log a with 0·log 0 = 0 (posterior cells that underflowed)."""
-    return a * np.log(np.where(a > 0, a, 1.0))
+    out = np.zeros_like(a)
+    np.log(a, out=out, where=a > 0)  # no log of the cells that stay 0: one pass fewer
+    out *= a
+    return out
