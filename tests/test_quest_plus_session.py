@@ -272,3 +272,31 @@ def test_the_device_limit_caps_the_quest_plus_grid_on_its_own_steps():
     assert kept.procedure.threshold_range_db == (-20.0, 45.0)
     with pytest.raises(LevelError, match="less than one grid step"):
         plan_set(spec(), "db_sl", CAL, {"EV": 10 ** (-33.8 / 20), "MV": 10.0})
+
+
+def test_the_session_places_its_trials_on_one_blas_thread(tmp_path, monkeypatch):
+    """A session's placements run with BLAS pinned to one thread (a busy core cannot stall a
+    trial); the process's own limit comes back afterwards."""
+    threadpoolctl = pytest.importorskip("threadpoolctl")
+    from masking_lab.procedures import quest_plus
+
+    def blas_threads():
+        return {
+            p["num_threads"] for p in threadpoolctl.threadpool_info() if p["user_api"] == "blas"
+        }
+
+    if not blas_threads():
+        pytest.skip("this numpy has no BLAS thread pool")
+    seen = []
+    original = quest_plus.expected_entropy
+
+    def spying(*args, **kwargs):
+        seen.append(blas_threads())
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(quest_plus, "expected_entropy", spying)
+    sets = [{"id": "A5", "masker": "MV120", "masker_level_db_sl": 5}]
+    with threadpoolctl.threadpool_limits(limits=2, user_api="blas"):
+        run(tmp_path, quest_protocol(tmp_path, sets=sets))
+        assert blas_threads() == {2}
+    assert len(seen) >= 5 and all(s == {1} for s in seen)

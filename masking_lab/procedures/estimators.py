@@ -21,7 +21,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.optimize import minimize
 
 from masking_lab.core.errors import AnalysisError
 from masking_lab.core.psychometric import GUESS_3IFC, LEVITT_1U3D
@@ -196,6 +195,8 @@ def ml_threshold(
     profile = grid_nll[best_t, np.arange(grid_s.size)]
     padded = np.concatenate([[np.inf], profile, [np.inf]])
     local = np.flatnonzero((profile <= padded[:-2]) & (profile <= padded[2:]))
+    from scipy.optimize import minimize  # here, not at import: sessions and plan never fit
+
     res = None
     for j in local[np.argsort(profile[local])][:_MAX_STARTS]:
         start = (float(grid_t[best_t[j]]), float(np.log(grid_s[j])))

@@ -11,6 +11,7 @@ derivatives the batch fitter (:mod:`masking_lab.procedures.ml_batch`) climbs. Pu
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -47,6 +48,21 @@ class LevelCounts:
     level_db: NDArray[np.float64]
     n_trials: NDArray[np.float64]
     n_correct: NDArray[np.float64]
+
+    @functools.cached_property
+    def n_wrong(self) -> NDArray[np.float64]:
+        """Wrong answers at each level (n_trials − n_correct), computed once per counts."""
+        return self.n_trials - self.n_correct
+
+    @functools.cached_property
+    def any_correct(self) -> NDArray[np.bool_]:
+        """Levels with at least one correct answer (where ln p(correct) is weighed)."""
+        return self.n_correct > 0
+
+    @functools.cached_property
+    def any_wrong(self) -> NDArray[np.bool_]:
+        """Levels with at least one wrong answer (where ln p(wrong) is weighed)."""
+        return self.n_wrong > 0
 
 
 @dataclass(frozen=True)
@@ -210,7 +226,13 @@ class LogisticModel:
         tiny = np.finfo(float).tiny
         p = np.maximum(self.guess + self.rise * f, tiny)
         q = np.maximum(self.lapse + self.rise * g, tiny)  # 1 − p without cancellation
-        ll = counts.n_correct * np.log(p) + (counts.n_trials - counts.n_correct) * np.log(q)
+        # k·ln p + (n − k)·ln q, skipping the logarithms whose weight is 0: a staircase answers
+        # most of its levels all right or all wrong, and rows are padded, so this halves the
+        # logarithms; the sums are the same numbers (a zero term adds nothing).
+        k, m = counts.n_correct, counts.n_wrong
+        ln_p = np.log(p, out=np.zeros_like(p), where=counts.any_correct)
+        ln_q = np.log(q, out=np.zeros_like(q), where=counts.any_wrong)
+        ll = k * ln_p + m * ln_q
         return ll.sum(axis=1)
 
     def derivatives(

@@ -40,14 +40,25 @@ from masking_lab.core.psychometric import LEVITT_1U3D
 from masking_lab.procedures.base import ThresholdEstimate
 from masking_lab.procedures.base import replay as _replay
 from masking_lab.procedures.limits import grid_memory_problem, grid_points, normal_prior_problem
-from masking_lab.procedures.quest_plus_model import grid_db, psychometric_table
+from masking_lab.procedures.quest_plus_model import (
+    EntropyOver,
+    expected_entropy,
+    grid_db,
+    psychometric_table,
+)
+
+__all__ = [
+    "QuestPlus",
+    "QuestPlusSettings",
+    "Tables",
+    "expected_entropy",
+    "replay",
+    "stop_status",
+    "tables",
+    "threshold_moments",
+]
 
 Status = Literal["running", "completed", "ceiling", "floor", "trial_cap"]
-EntropyOver = Literal["threshold", "all"]
-
-#: Elements of the (tracks × stimuli × thresholds) work array per chunk in
-#: :func:`expected_entropy`; bounds its memory to ~50 MB whatever the batch size.
-_CHUNK_ELEMENTS = 6_000_000
 
 
 @dataclass(frozen=True)
@@ -316,6 +327,30 @@ class Tables:
     prior: NDArray[np.float64]
     first_level_db: float
 
+    @functools.cached_property
+    def xlogx_tables(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """L·ln L of ``p_correct`` and ``p_wrong``, flattened to shape (S, T·N), nats.
+
+        The answer-independent term of the joint expected entropy: computed on first use and
+        kept with the tables, so a trial costs two matrix products instead of a logarithm of
+        every table cell (only the joint path needs it, so psi-marginal grids never pay its
+        memory).
+
+        Examples
+        --------
+        >>> t = tables(QuestPlusSettings(0.0, 5.0, max_trials=5))
+        >>> c, w = t.xlogx_tables
+        >>> c.shape, bool((c <= 0).all()), t.xlogx_tables[0] is c
+        ((11, 11), True, True)
+        """
+        out = []
+        for like in (self.p_correct, self.p_wrong):
+            lf = like.reshape(like.shape[0], -1)
+            xlogx = lf * np.log(lf)
+            xlogx.flags.writeable = False
+            out.append(xlogx)
+        return out[0], out[1]
+
 
 @functools.lru_cache(maxsize=16)
 def tables(settings: QuestPlusSettings) -> Tables:
@@ -346,60 +381,6 @@ def tables(settings: QuestPlusSettings) -> Tables:
     for a in (levels, thresholds, nuisance, p_c, p_w, prior):
         a.flags.writeable = False
     return out
-
-
-def expected_entropy(
-    t: Tables, posterior: NDArray[np.float64], entropy_over: EntropyOver = "threshold"
-) -> NDArray[np.float64]:
-    """Expected posterior entropy (nats) after one trial at each stimulus level, per track.
-
-    Parameters
-    ----------
-    t : Tables
-        From :func:`tables`.
-    posterior : ndarray, shape (R, T, N)
-        Current posteriors of R tracks (each summing to 1).
-    entropy_over : {"threshold", "all"}
-        Entropy of the threshold's marginal posterior (psi-marginal) or of the joint one.
-
-    Returns
-    -------
-    ndarray, shape (R, S)
-        Σ over answers of p(answer) · H(posterior after that answer).
-
-    Examples
-    --------
-    >>> t = tables(QuestPlusSettings(0.0, 5.0, max_trials=5))
-    >>> expected_entropy(t, t.prior[None]).shape
-    (1, 11)
-    """
-    r, n_t, n_n = posterior.shape
-    out = np.zeros((r, t.levels_db.size))
-    if n_n == 1 or entropy_over == "all":
-        # Σ j·log j over the grid with j = post·L is linear in post·log post and in post, so the
-        # entropies for all levels come from two matrix products (no (R, S, P) array).
-        flat = posterior.reshape(r, -1)
-        plogp = _xlogx(flat)
-        for like in (t.p_correct, t.p_wrong):
-            lf = like.reshape(like.shape[0], -1)
-            pk = flat @ lf.T
-            sj = plogp @ lf.T + flat @ (lf * np.log(lf)).T
-            out += pk * np.log(pk) - sj
-        return out
-    # psi-marginal: the threshold's marginal after the answer needs the (R, S, T) array.
-    per_row = max(1, _CHUNK_ELEMENTS // (t.levels_db.size * n_t))
-    for a in range(0, r, per_row):
-        post_t = np.ascontiguousarray(posterior[a : a + per_row].transpose(1, 0, 2))  # (T, R, N)
-        for like in (t.p_correct, t.p_wrong):
-            m = post_t @ like.transpose(1, 2, 0)  # (T, R, S): Σ_n post·L
-            pk = m.sum(axis=0)
-            out[a : a + per_row] += pk * np.log(pk) - _xlogx(m).sum(axis=0)
-    return out
-
-
-def _xlogx(a: NDArray[np.float64]) -> NDArray[np.float64]:
-    """a·log a with 0·log 0 = 0 (posterior cells that underflowed)."""
-    return a * np.log(np.where(a > 0, a, 1.0))
 
 
 def threshold_moments(

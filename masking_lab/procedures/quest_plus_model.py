@@ -1,12 +1,23 @@
-"""The QUEST+ grids and likelihood table: the forced-choice logistic on a (level × threshold ×
-nuisance) grid, in dB. Used by :mod:`masking_lab.procedures.quest_plus`."""
+"""The QUEST+ grids, likelihood table and placement rule: the forced-choice logistic on a (level
+× threshold × nuisance) grid, in dB, and the expected posterior entropy of each level. Used by
+:mod:`masking_lab.procedures.quest_plus` (which re-exports :func:`expected_entropy`)."""
 
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 from numpy.typing import NDArray
+
+if TYPE_CHECKING:
+    from masking_lab.procedures.quest_plus import Tables
+
+EntropyOver = Literal["threshold", "all"]
+
+#: Elements of the (tracks × stimuli × thresholds) work array per chunk in
+#: :func:`expected_entropy`; bounds its memory to ~50 MB whatever the batch size.
+_CHUNK_ELEMENTS = 6_000_000
 
 
 def grid_db(lo: float, hi: float, step: float) -> NDArray[np.float64]:
@@ -62,3 +73,61 @@ def psychometric_table(
     f = np.where(z >= 0, big, small)  # F(z)
     g = np.where(z >= 0, small, big)  # 1 − F(z), without cancellation
     return guess + rise * f, lapse + rise * g
+
+
+def expected_entropy(
+    t: Tables, posterior: NDArray[np.float64], entropy_over: EntropyOver = "threshold"
+) -> NDArray[np.float64]:
+    """Expected posterior entropy (nats) after one trial at each stimulus level, per track.
+
+    Parameters
+    ----------
+    t : Tables
+        From :func:`masking_lab.procedures.quest_plus.tables`.
+    posterior : ndarray, shape (R, T, N)
+        Current posteriors of R tracks (each summing to 1).
+    entropy_over : {"threshold", "all"}
+        Entropy of the threshold's marginal posterior (psi-marginal) or of the joint one.
+
+    Returns
+    -------
+    ndarray, shape (R, S)
+        Σ over answers of p(answer) · H(posterior after that answer).
+
+    Examples
+    --------
+    >>> from masking_lab.procedures.quest_plus import QuestPlusSettings, tables
+    >>> t = tables(QuestPlusSettings(0.0, 5.0, max_trials=5))
+    >>> expected_entropy(t, t.prior[None]).shape
+    (1, 11)
+    """
+    r, n_t, n_n = posterior.shape
+    out = np.zeros((r, t.levels_db.size))
+    if n_n == 1 or entropy_over == "all":
+        # Σ j·log j over the grid with j = post·L is linear in post·log post and in post, so the
+        # entropies for all levels come from two matrix products (no (R, S, P) array).
+        flat = posterior.reshape(r, -1)
+        plogp = _xlogx(flat)
+        for like, llogl in zip((t.p_correct, t.p_wrong), t.xlogx_tables, strict=True):
+            lf = like.reshape(like.shape[0], -1)
+            pk = flat @ lf.T
+            sj = plogp @ lf.T + flat @ llogl.T
+            out += pk * np.log(pk) - sj
+        return out
+    # psi-marginal: the threshold's marginal after the answer needs the (R, S, T) array.
+    per_row = max(1, _CHUNK_ELEMENTS // (t.levels_db.size * n_t))
+    for a in range(0, r, per_row):
+        post_t = np.ascontiguousarray(posterior[a : a + per_row].transpose(1, 0, 2))  # (T, R, N)
+        for like in (t.p_correct, t.p_wrong):
+            m = post_t @ like.transpose(1, 2, 0)  # (T, R, S): Σ_n post·L
+            pk = m.sum(axis=0)
+            out[a : a + per_row] += pk * np.log(pk) - _xlogx(m).sum(axis=0)
+    return out
+
+
+def _xlogx(a: NDArray[np.float64]) -> NDArray[np.float64]:
+    """a·log a with 0·log 0 = 0 (posterior cells that underflowed)."""
+    out = np.zeros_like(a)
+    np.log(a, out=out, where=a > 0)  # no log of the cells that stay 0: one pass fewer
+    out *= a
+    return out

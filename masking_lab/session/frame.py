@@ -28,6 +28,7 @@ from masking_lab.core.errors import DeviceTimeModeError, LogError, MaskingLabErr
 from masking_lab.device.base import Device
 from masking_lab.formats.log_lock import LogLock, RunnerLock
 from masking_lab.formats.session_log import SessionLog, SessionLogWriter, read_log
+from masking_lab.session.blas_threads import one_blas_thread
 from masking_lab.session.opening import (
     DeviceOpener,
     ResponderContext,
@@ -578,4 +579,5 @@ def _resume_runner_locked(
 def _run(plan: SessionPlan[ResultT], opening: Opening, opened: Opened, spec: str) -> ResultT:
     session = plan.session(opening, opened)
     session.resume_command = resume_command(opened.writer.path, spec, opening.device_config)
-    return session.run()
+    with one_blas_thread():  # a busy core must not stall a trial's placement (blas_threads)
+        return session.run()

@@ -1,0 +1,45 @@
+"""The batch ML likelihood skips logarithms whose weight is 0 (levels answered all right or all
+wrong, padding): it must give the plain binomial sum k·ln p + (n − k)·ln q bit for bit."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from masking_lab.procedures import ml_counts
+from masking_lab.procedures.ml_counts import level_counts, logistic_model
+from masking_lab.procedures.staircase import StaircaseSettings
+from masking_lab.procedures.staircase_batch import Observer, simulate
+
+
+def _plain(model, counts, t, s):
+    """The log-likelihood with every logarithm taken (the formula before the shortcut)."""
+    y = (counts.level_db - t[:, None]) / s[:, None]
+    f = 1.0 / (1.0 + np.exp(-(y + model.c)))
+    p = model.guess + model.rise * f
+    q = model.lapse + model.rise * (1.0 - f)
+    return (counts.n_correct * np.log(p) + (counts.n_trials - counts.n_correct) * np.log(q)).sum(1)
+
+
+def test_skipped_logarithms_leave_the_likelihood_unchanged():
+    s = StaircaseSettings(start_level_db=12.0, step_sizes_db=(4.0, 4.0, 4.0, 2.0), max_trials=60)
+    thr = np.random.default_rng(5).uniform(0, 8, 300)
+    tracks = simulate(s, thr, Observer(scale_db=1.5), np.random.default_rng(6))
+    counts = level_counts(tracks.levels_db, tracks.correct)
+    weightless = (counts.n_correct == 0) | (counts.n_correct == counts.n_trials)
+    assert weightless.mean() > 0.3  # the shortcut is exercised, padding included
+    assert (counts.n_trials == 0).any()
+    model = logistic_model(1 / 3, 0.02, 0.794)
+    rng = np.random.default_rng(7)
+    for _ in range(5):
+        t = rng.uniform(-5.0, 15.0, thr.size)
+        sc = rng.uniform(0.2, 5.0, thr.size)
+        ours = model.log_likelihood(counts, t, sc)
+        # Same parts as the model computes them (one exp, no cancellation): bit for bit.
+        _, f, g = ml_counts._logistic_parts(counts, t, sc, model.c)
+        tiny = np.finfo(float).tiny
+        p = np.maximum(model.guess + model.rise * f, tiny)
+        q = np.maximum(model.lapse + model.rise * g, tiny)
+        every_log = (counts.n_correct * np.log(p) + counts.n_wrong * np.log(q)).sum(axis=1)
+        np.testing.assert_array_equal(ours, every_log)
+        # and the textbook formula to rounding
+        np.testing.assert_allclose(ours, _plain(model, counts, t, sc), rtol=1e-12, atol=1e-9)
