@@ -108,3 +108,28 @@ def test_the_shipped_protocols_are_within_the_session_limits():
         assert sum(s.trial_cap * trial_work(s.settings) for s in p.sets) <= MAX_SESSION_WORK
     p = load_protocol(shipped("protocols", "experiment1_functional.yaml"))
     assert 0 < sum(s.trial_cap * trial_work(s.settings) for s in p.sets) <= MAX_SESSION_WORK
+
+
+# -- campaign finding (seed 41): a hostile level in a log overflowed the played-level check ----
+
+
+@pytest.mark.parametrize(
+    "fields",
+    [
+        {"level_db_v": 1e5},  # 10 ** (1e5 / 20) overflows a float
+        {"level_db_v": -1e5, "played_target_v": 1e300},
+        {"device_extra": {"requested_target_v": 1e308}, "played_target_v": 1e-300},
+        {"device_extra": {"requested_target_v": float("inf")}},
+        {"played_target_v": float("nan")},
+    ],
+)
+def test_hostile_played_levels_are_a_note_or_nothing_never_a_traceback(fields):
+    from masking_lab.analysis.played_levels import played_level_problems
+
+    trial = {"record": "trial", "set_id": "A", "trial_index": 0, "level_db_v": -40.0}
+    trial["played_target_v"] = 0.0105
+    trial.update(fields)
+    notes = played_level_problems([trial], [7])
+    assert notes == [] or notes[0].startswith("line 7: 1 trial(s) played more than 0.1 dB off")
+    if fields.get("level_db_v") == 1e5:
+        assert notes  # 0.0105 V is far below a 1e5 dB request: named, not skipped
