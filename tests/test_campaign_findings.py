@@ -133,3 +133,20 @@ def test_hostile_played_levels_are_a_note_or_nothing_never_a_traceback(fields):
     assert notes == [] or notes[0].startswith("line 7: 1 trial(s) played more than 0.1 dB off")
     if fields.get("level_db_v") == 1e5:
         assert notes  # 0.0105 V is far below a 1e5 dB request: named, not skipped
+
+
+# -- campaign finding (seed 44, hostile boards): a HELLO sample rate no board can have ---------
+
+
+@pytest.mark.parametrize("fs", ["nan", "inf", "-1", "0", "1e999", "1e308"])
+def test_a_hello_whose_sample_rate_is_not_a_positive_finite_number_is_refused(fs):
+    from masking_lab.device import protocol as proto
+
+    line = proto.encode_ok(1, {"proto": 1, "max_ev": 5.0, "max_mv": 10.0, "wd_ms": 0})
+    body = line[: line.rindex(b"*")].decode() + f" fs={fs}"
+    frame = proto.decode(body.encode() + b"*" + f"{proto.crc16(body.encode()):04X}".encode())
+    with pytest.raises(proto.FrameError, match=r"fs|number"):
+        proto.parse_hello(frame)
+    good = body.replace(f"fs={fs}", "fs=20000")
+    ok = proto.decode(good.encode() + b"*" + f"{proto.crc16(good.encode()):04X}".encode())
+    assert proto.parse_hello(ok).max_v["EV"] == 5.0
