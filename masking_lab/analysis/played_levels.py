@@ -62,13 +62,16 @@ def played_level_problems(records: Iterable[Any], lines: Iterable[int] | None = 
         played, level = _get(rec, "played_target_v"), _get(rec, "level_db_v")
         extra = _get(rec, "device_extra") or {}
         requested = extra.get("requested_target_v") if isinstance(extra, Mapping) else None
-        if requested is None and isinstance(level, (int, float)) and math.isfinite(level):
-            requested = 10.0 ** (level / 20.0)
-        if not isinstance(played, (int, float)) or not isinstance(requested, (int, float)):
+        # Compared in dB: a hostile level (1e5 dB) overflows 10 ** (level / 20) as a ratio.
+        if isinstance(requested, (int, float)) and math.isfinite(requested) and requested > 0:
+            requested_db = 20.0 * math.log10(requested)
+        elif requested is None and isinstance(level, (int, float)) and math.isfinite(level):
+            requested_db = float(level)
+        else:
             continue
-        if requested <= 0:
+        if not (isinstance(played, (int, float)) and math.isfinite(played)):
             continue
-        diff = math.inf if played <= 0 else abs(20.0 * math.log10(played / requested))
+        diff = math.inf if played <= 0 else abs(20.0 * math.log10(played) - requested_db)
         if diff > MAX_DIFF_DB:
             line = numbers[i] if numbers is not None and i < len(numbers) else i + 1
             off.append((diff, line, rec))

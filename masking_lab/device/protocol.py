@@ -50,6 +50,7 @@ _INTEGER = re.compile(r"^(0|[1-9][0-9]{0,9})$")
 
 #: HELLO ranges the host accepts (anything outside is a firmware bug or a foreign device).
 MAX_WATCHDOG_MS = 60_000
+MAX_SAMPLE_RATE_HZ = 10_000_000.0  # a HELLO's fs beyond 10 MHz is no DAC board's
 MAX_LIMIT_V = 1000.0
 MAX_ONSETS = 16
 #: Largest device time the host accepts, s: 2**53 µs, beyond which a float64 in seconds no
@@ -223,7 +224,8 @@ def parse_hello(frame: Frame) -> Hello:
     ------
     FrameError
         A missing field, a fractional or negative version or watchdog period, a limit that is
-        not in (0, 1000] V, ``vt``/``il`` values other than ``0``/``1`` and ``open``/``closed``,
+        not in (0, 1000] V, a sample rate ``fs`` not in (0, 10 MHz], ``vt``/``il`` values other
+        than ``0``/``1`` and ``open``/``closed``,
         or a protocol-2 field out of range (bits not in 1..32, a full scale not in (0, 1000] V,
         attenuation steps not ascending from 0, an unknown clock source or reset cause, a
         linear range ``lin`` that is not two whole codes within the converters).
@@ -242,6 +244,12 @@ def parse_hello(frame: Frame) -> Hello:
                 f"HELLO: max_{channel.lower()}={value:g} V: a limit must be > 0 V and ≤ 1000 V"
             )
     watchdog_ms = frame.integer("wd_ms", 0, MAX_WATCHDOG_MS)
+    if "fs" in frame.fields:  # the sample rate: the host does not use it, but a board whose
+        fs = frame.number("fs")  # own rate is not a positive finite number is broken
+        if not 0 < fs <= MAX_SAMPLE_RATE_HZ:
+            raise FrameError(
+                f"HELLO: fs={fs:g} Hz: a sample rate must be > 0 and ≤ {MAX_SAMPLE_RATE_HZ:g} Hz"
+            )
     vt = frame.fields.get("vt", "0")
     il = frame.fields.get("il", "closed")
     if vt not in ("0", "1"):

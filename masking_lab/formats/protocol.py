@@ -23,6 +23,7 @@ from masking_lab.core.errors import ProcedureError, ProtocolError
 from masking_lab.core.stimulus import Stimulus, parse_stimulus
 from masking_lab.formats.reader import decode_utf8, excerpt, parse_yaml, read_limited, where
 from masking_lab.formats.schemas import describe_type_error, key_path, load_schema, schema_errors
+from masking_lab.procedures.limits import session_work_problem, trial_work
 from masking_lab.procedures.registry import (
     DEFAULT_KIND,
     ProtocolContext,
@@ -267,6 +268,11 @@ def protocol_from_mapping(
     if problems:
         raise ProtocolError(source, problems[0][0], _join(problems))
     protocol, problems = _build(data, source, sha256, lines)
+    if protocol is not None:
+        # What validate accepts must run: the session's trials and placement work are bounded.
+        work = session_work_problem([(s.trial_cap, trial_work(s.settings)) for s in protocol.sets])
+        if work is not None:
+            problems.append((_where("sets", lines), work))
     if max_level_db_sl is not None and protocol is not None:
         problems += list(_limit_problems(protocol, data, lines, max_level_db_sl))
     if problems or protocol is None:

@@ -217,8 +217,7 @@ class QuestPlusSettings:
             isinstance(v, int | float) and math.isfinite(v) for v in (lo, hi, t_lo, t_hi)
         ) or not (step > 0 and t_step > 0):
             return
-        cells = grid_points(lo, hi, step) * grid_points(t_lo, t_hi, t_step)
-        cells *= max(1, len(self.scales_db) * len(self.lapses))
+        cells = self.table_cells
         problem = grid_memory_problem(cells, "QUEST+ grid (stimuli × thresholds × nuisance)")
         if problem is not None:
             yield "level_step_db", problem
@@ -240,6 +239,21 @@ class QuestPlusSettings:
         lo = self.min_level_db if self.threshold_min_db is None else self.threshold_min_db
         hi = self.max_level_db if self.threshold_max_db is None else self.threshold_max_db
         return lo, hi
+
+    @property
+    def table_cells(self) -> int:
+        """Cells of one likelihood table (stimuli × thresholds × nuisance), without building
+        it (0 for settings whose grid is invalid: those are refused for that)."""
+        lo, hi = self.min_level_db, self.max_level_db
+        t_lo, t_hi = self.threshold_range_db
+        step = self.level_step_db
+        t_step = self.threshold_step_db or step
+        if not all(
+            isinstance(v, int | float) and math.isfinite(v) for v in (lo, hi, t_lo, t_hi, step)
+        ) or not (step > 0 and isinstance(t_step, int | float) and t_step > 0):
+            return 0
+        cells = grid_points(lo, hi, step) * grid_points(t_lo, t_hi, t_step)
+        return cells * max(1, len(self.scales_db) * len(self.lapses))
 
     @property
     def kind(self) -> str:

@@ -115,7 +115,8 @@ class SessionResult:
     log_path : Path
         The session log.
     exit_code : int
-        0 completed, 3 device fault, 130 interrupted.
+        0 completed, 2 every set refused before its first trial (nothing played), 3 device
+        fault, 130 interrupted.
     outcomes : list[SetOutcome]
         Every finished set of the session (including those finished before a resume).
     message : str
@@ -161,6 +162,7 @@ class ThresholdSession(SessionShell[SessionResult]):
         self.trial_seconds: list[float] = []
         self.where: tuple[str | None, int | None] = (None, None)
         self.interleaved_tracks: dict[str, tuple[int, SetPlan, Procedure]] = {}
+        self.refused: list[str] = []  # sets refused in this process (nothing played)
 
     # -- top level --------------------------------------------------------------------------
 
@@ -168,6 +170,17 @@ class ThresholdSession(SessionShell[SessionResult]):
         return self.run_guarded(self._run_sets)
 
     def _result(self, code: int, message: str) -> SessionResult:
+        nothing = all(o.n_trials == 0 for o in self.outcomes)
+        if code == 0 and self.refused and len(self.refused) == len(self.outcomes) and nothing:
+            # Nothing was measured: a session that "completed" by refusing every set is a bad
+            # input (protocol, calibration or rig config), not a success (issue 21.9).
+            code = 2
+            message = (
+                f"every set was refused, nothing was played ({len(self.refused)} sets: "
+                f"{', '.join(self.refused)}); fix the protocol, the calibration or the rig "
+                "config as each refusal above says"
+            )
+            self.out.message(message)
         return SessionResult(self.writer.path, code, self.outcomes, message)
 
     def _where_text(self) -> str:
@@ -429,6 +442,7 @@ class ThresholdSession(SessionShell[SessionResult]):
             }
         )
         self.outcomes.append(SetOutcome(spec.id, "aborted", None, unit, n, str(exc)))
+        self.refused.append(spec.id)
         self.out.message(f"set {spec.id} refused, nothing played: {exc}")
 
     # -- helpers ----------------------------------------------------------------------------

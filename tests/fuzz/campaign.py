@@ -1,6 +1,7 @@
 """The fuzz campaign: mutated inputs of every file kind through every command that reads them,
 the generators of issue 21's classes (hostile logs and CSVs, schema-driven ground truths, scenes,
-calibrations and protocols: :mod:`fuzz_hostile`), plus hostile serial frames; prints tried /
+calibrations and protocols: :mod:`fuzz_hostile`), hostile boards through a whole ``run``
+(:mod:`fuzz_board`), plus hostile serial frames; prints tried /
 clean errors / accepted / tracebacks / hangs / non-finite / silently wrong / validate gaps.
 
 Usage (from the repository root)::
@@ -26,11 +27,14 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+from fuzz_board import board_trial
 from fuzz_corpus import KINDS, RandomPicker, mutate, seed, trial
 from fuzz_hostile import HOSTILE_KINDS, hostile_trial
 from fuzz_serial import serial_trial
 
-ALL_KINDS = (*KINDS, *HOSTILE_KINDS)
+ALL_KINDS = (*KINDS, *HOSTILE_KINDS, "board_hostile")
+# Kinds whose inputs are never right to accept (a hostile device ends every run in a fault).
+NEVER_ACCEPTED = ("serial", "board_hostile")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -65,7 +69,11 @@ def main(argv: list[str] | None = None) -> int:
                 kind = "serial"
                 status, detail = serial_trial(picker, timeout_s=args.timeout)
                 outcomes = [(status, ("serial",), 1, detail)]
-            elif (kind := args.kinds[i % len(args.kinds)]) in HOSTILE_KINDS:
+            elif (kind := args.kinds[i % len(args.kinds)]) == "board_hostile":
+                data = b""
+                done, _ = board_trial(rng, work, args.timeout)
+                outcomes = [(o.kind, o.argv, o.code, o.detail) for o in done]
+            elif kind in HOSTILE_KINDS:
                 data = b""
                 done, accepted = hostile_trial(kind, rng, work, args.timeout)
                 accepted_per_kind[kind] += accepted
@@ -105,7 +113,7 @@ def main(argv: list[str] | None = None) -> int:
         print(finding)
     print(f"kinds: {dict(sorted(per_kind.items()))}")
     accepted = dict(sorted(accepted_per_kind.items()))
-    print(f"accepted by validate (serial: not counted): {accepted}")
+    print(f"accepted by validate (serial, board_hostile: not counted): {accepted}")
     print(
         f"tried {counts['tried']} inputs ({counts['runs']} command runs, seed {args.seed}, "
         f"{time.monotonic() - started:.0f} s): clean errors {counts['clean_error']} / accepted "
@@ -117,7 +125,7 @@ def main(argv: list[str] | None = None) -> int:
         "command runs with findings: "
         + ", ".join(f"{k[8:]} {v}" for k, v in sorted(counts.items()) if k.startswith("finding_"))
     )
-    refused = [k for k in per_kind if k != "serial" and not accepted_per_kind[k]]
+    refused = [k for k in per_kind if k not in NEVER_ACCEPTED and not accepted_per_kind[k]]
     if refused:
         print(
             f"every input was refused for: {', '.join(sorted(refused))} (the generator tests "

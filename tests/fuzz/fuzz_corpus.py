@@ -479,7 +479,9 @@ def run_command(argv: Sequence[str], timeout_s: float) -> tuple[str, int | None,
     try:
         with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
             code = main(list(argv))
-        return "clean", code, err.getvalue()[-600:]  # the message, for findings of oracles
+        # The message, for the oracles: its head (a long message cut at its tail lost the
+        # reason the oracles look for, e.g. "refused before the first trial").
+        return "clean", code, err.getvalue()[:2000]
     except SystemExit as exc:  # argparse usage errors
         return "clean", exc.code if isinstance(exc.code, int) else 2, ""
     except Hang:

@@ -271,8 +271,9 @@ def _schema_trial(
 # that measure the pair, as designed.
 # Likewise a calibration whose ALs put a protocol's level below what the rig's converter and
 # attenuator steps can play: that needs calibration, protocol and rig config together, and run
-# refuses it before the first trial, as designed.
-_CROSS_FILE = ("Measure the pair", "refused before the first trial")
+# refuses it before the first trial, as designed; and ALs (calibration) plus sensation levels
+# (protocol) beyond the rig's drive limit refuse every set, so run exits 2 saying so.
+_CROSS_FILE = ("Measure the pair", "refused before the first trial", "every set was refused")
 
 
 def _cross_file(detail: str) -> bool:
