@@ -356,6 +356,13 @@ int main(int argc, char **argv)
     }
 
     fw_init(&fw, &cfg, il_open);
+    if (!fw_hello_fits(&fw)) {
+        fprintf(stderr,
+                "masking-fw: HELLO would exceed %d bytes with these options: shorten --sn "
+                "(or --model, --att)\n",
+                FRAME_MAX_BYTES);
+        return 2;
+    }
     printf("%s\n", slave_name);
     fflush(stdout);
     fprintf(stderr,
