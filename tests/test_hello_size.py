@@ -12,7 +12,7 @@ import time
 
 import pytest
 import serial
-from firmware_support import HOST_FW, TARGETS, Link, require_build, rig_config, start
+from firmware_support import HOST_FW, TARGETS, require_build, rig_config, start
 
 from masking_lab.device import protocol as proto
 from masking_lab.device.emulator import FirmwareEmulator
