@@ -12,7 +12,8 @@ import time
 
 import pytest
 import serial
-from firmware_support import HOST_FW, TARGETS, require_build, rig_config, start
+from firmware_board_support import require_tools
+from firmware_support import FIRMWARE, HOST_FW, TARGETS, require_build, rig_config, start
 
 from masking_lab.device import protocol as proto
 from masking_lab.device.emulator import FirmwareEmulator
@@ -106,3 +107,21 @@ def test_emulator_sends_fault_size_for_an_event_too_long():
     emu._send_event("DONE", {"x": "y" * 300})
     frame = proto.decode(bytes(emu._out).splitlines(keepends=True)[-1])
     assert (frame.kind, frame.name, frame.fields) == ("event", "FAULT", {"code": "SIZE"})
+
+
+# The QEMU image's model (ML-FW-2CH-QEMU) and its longest reset cause (watchdog) are longer
+# than the host build's: the make-time check uses them, so this refuses while the same
+# options on the host build (LONG_HOST, 253 bytes) start.
+QEMU_WORST = ["SERIAL_NUMBER=" + SN24, "FSV_EV_UV=3333333", "FSV_MV_UV=7777777"]
+QEMU_WORST += ["ATT_STEPS_DB=0,10,20,30", "LIMIT_EV_UV=2500000", "LIMIT_MV_UV=7000000"]
+
+
+@pytest.mark.parametrize(("settings", "fits"), [(QEMU_WORST, False), (QEMU_WORST[:1], True)])
+def test_make_refuses_an_image_whose_hello_would_not_fit(settings, fits, tmp_path):
+    require_tools("make", "arm-none-eabi-gcc")
+    cmd = ["make", "--no-print-directory", "-C", str(FIRMWARE), f"BUILD={tmp_path}", "qemu"]
+    done = subprocess.run([*cmd, *settings], capture_output=True, text=True, timeout=600)
+    assert (done.returncode == 0) is fits, done.stderr
+    assert (tmp_path / "qemu" / "masking-fw.elf").exists() is fits
+    if not fits:
+        assert "shorten SERIAL_NUMBER" in done.stderr

@@ -37,7 +37,7 @@ SIZE_TEXT = "reply longer than 256 bytes not sent"
 
 COMMANDS = ("HELLO", "TIME", "SETUP", "AMP", "PLAY", "STOP", "PING")
 EVENTS = ("DONE", "ABORTED", "WATCHDOG", "FAULT", "BOOT")
-ERROR_CODES = ("UNKNOWN", "ARGS", "LIMIT", "STATE", "BUSY")
+ERROR_CODES = ("UNKNOWN", "ARGS", "LIMIT", "STATE", "BUSY", "INTERLOCK", "SIZE")
 
 FrameKind = Literal["command", "reply", "event"]
 
