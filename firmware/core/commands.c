@@ -185,10 +185,10 @@ static void ok_begin(fw_t *fw, uint16_t seq)
     frame_begin_reply(&fw->tx, seq, true);
 }
 
-static void cmd_hello(fw_t *fw, const command_t *cmd)
+/* HELLO's fields into fw->tx (not sent). */
+static void hello_build(fw_t *fw, uint16_t seq)
 {
-    fw_zero(fw, NULL); /* a new host session starts from silence */
-    ok_begin(fw, cmd->seq);
+    ok_begin(fw, seq);
     frame_add_int(&fw->tx, "proto", FW_PROTOCOL_VERSION);
     frame_add_str(&fw->tx, "fw", fw->cfg.fw_version);
     frame_add_str(&fw->tx, "model", fw->cfg.model);
@@ -214,6 +214,20 @@ static void cmd_hello(fw_t *fw, const command_t *cmd)
     /* linear range per channel, codes around mid-scale (EV,MV): one field keeps HELLO short */
     int64_t lin[CH_COUNT] = {fw->cfg.lin_code[CH_EV] * FX_ONE, fw->cfg.lin_code[CH_MV] * FX_ONE};
     frame_add_micro_list(&fw->tx, "lin", lin, CH_COUNT);
+}
+
+bool fw_hello_fits(fw_t *fw)
+{
+    hello_build(fw, 65535); /* the longest sequence number */
+    bool fits = !fw->tx.overflow;
+    frame_begin_reply(&fw->tx, 0, true); /* leave no half-built frame behind */
+    return fits;
+}
+
+static void cmd_hello(fw_t *fw, const command_t *cmd)
+{
+    fw_zero(fw, NULL); /* a new host session starts from silence */
+    hello_build(fw, cmd->seq);
     fw_send_frame(fw);
 }
 

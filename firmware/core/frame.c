@@ -237,6 +237,8 @@ void frame_begin_reply(frame_tx_t *f, uint16_t seq, bool ok)
 {
     f->len = 0;
     f->overflow = false;
+    f->reply = true;
+    f->seq = seq;
     put_u(f, seq);
     put_s(f, ok ? " OK" : " ERR");
 }
@@ -245,6 +247,7 @@ void frame_begin_event(frame_tx_t *f, uint16_t number, const char *name)
 {
     f->len = 0;
     f->overflow = false;
+    f->reply = false;
     put_s(f, "!");
     put_u(f, number);
     put_s(f, " ");

@@ -55,6 +55,8 @@ typedef struct {
     char buf[FRAME_MAX_BYTES + 1];
     size_t len;
     bool overflow;
+    bool reply;   /* a reply (seq below) rather than an event: what to send if it overflows */
+    uint16_t seq; /* the reply's sequence number */
 } frame_tx_t;
 
 void frame_begin_reply(frame_tx_t *f, uint16_t seq, bool ok);

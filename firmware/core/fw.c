@@ -67,9 +67,20 @@ int64_t fw_now_us(const fw_t *fw)
 void fw_send_frame(fw_t *fw)
 {
     size_t n = frame_finish(&fw->tx);
-    if (n) {
-        board_tx(fw->tx.buf, n);
+    if (!n) {
+        /* Never drop a frame silently: a host waiting for a reply would see a dead board. */
+        if (fw->tx.reply) {
+            frame_begin_reply(&fw->tx, fw->tx.seq, false);
+            frame_add_text(&fw->tx, "SIZE");
+            frame_add_text(&fw->tx, FW_SIZE_TEXT);
+        } else {
+            fw->event_no = (uint16_t)(fw->event_no + 1u);
+            frame_begin_event(&fw->tx, fw->event_no, "FAULT");
+            frame_add_str(&fw->tx, "code", "SIZE");
+        }
+        n = frame_finish(&fw->tx);
     }
+    board_tx(fw->tx.buf, n);
 }
 
 void fw_begin_event(fw_t *fw, const char *name)

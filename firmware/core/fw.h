@@ -95,6 +95,12 @@ uint64_t fw_next_due(const fw_t *fw);
 void fw_set_interlock(fw_t *fw, bool open);
 /* The host link dropped (board-detected): zero like HELLO does. */
 void fw_link_lost(fw_t *fw);
+/* Text of `ERR SIZE`, sent in place of a reply that would not fit in FRAME_MAX_BYTES
+ * (an event that would not fit becomes `FAULT code=SIZE`). */
+#define FW_SIZE_TEXT "reply longer than 256 bytes not sent"
+/* Whether this configuration's HELLO fits in one frame at the longest seq (65535). A build
+ * whose HELLO does not fit must refuse to start: shorten the serial number (or model). */
+bool fw_hello_fits(fw_t *fw);
 /* Device time now, µs (virtual or real). */
 int64_t fw_now_us(const fw_t *fw);
 /* The board's output-stage refill (its run of fw_render() calls) has ended: record how long

@@ -174,7 +174,7 @@ static void usage(const char *argv0)
             "          [--ramp-us N] [--jitter-us N] [--seed N] [--sn TEXT] [--model TEXT]\n"
             "          [--interlock-open] [--bits-ev N] [--bits-mv N] [--fsv-ev V]\n"
             "          [--fsv-mv V] [--att DB,DB,..] [--lin-ev N] [--lin-mv N]\n"
-            "          [--iwdg-ms N] [--vt-render]\n"
+            "          [--iwdg-ms N] [--vt-render] [--check-hello]\n"
             "  test-only fault injection: [--test-overdrive-pct P] [--test-stall-ms N]\n"
             "          [--clock-start-us N] [--test-clock-stepback-us N]\n"
             "Serves the masking-lab device protocol on a new pseudo-terminal; prints its path.\n"
@@ -238,6 +238,7 @@ int main(int argc, char **argv)
         .serial_number = "HOST-0001",
     };
     bool il_open = false;
+    bool check_hello = false;
     for (int i = 1; i < argc; i++) {
         const char *a = argv[i];
         const char *v = (i + 1 < argc) ? argv[i + 1] : NULL;
@@ -247,6 +248,8 @@ int main(int argc, char **argv)
             cfg.vt_render = true;
         } else if (strcmp(a, "--interlock-open") == 0) {
             il_open = true;
+        } else if (strcmp(a, "--check-hello") == 0) {
+            check_hello = true;
         } else if (strcmp(a, "-h") == 0 || strcmp(a, "--help") == 0) {
             usage(argv[0]);
             return 0;
@@ -327,6 +330,18 @@ int main(int argc, char **argv)
         return 2;
     }
     clock_gettime(CLOCK_MONOTONIC, &t_boot);
+    if (check_hello) {
+        /* The Makefile's build-time check of the STM32/QEMU options: HELLO with the longest
+         * reset cause (8 characters; clk "host" is at least as long as "hse"/"hsi"). */
+        reset_cause = "watchdog";
+        fw_init(&fw, &cfg, il_open);
+        bool fits = fw_hello_fits(&fw);
+        if (!fits) {
+            fprintf(stderr, "masking-fw: HELLO would exceed %d bytes with these options\n",
+                    FRAME_MAX_BYTES);
+        }
+        return fits ? 0 : 2;
+    }
 
     master_fd = posix_openpt(O_RDWR | O_NOCTTY);
     if (master_fd < 0 || grantpt(master_fd) || unlockpt(master_fd)) {
@@ -356,6 +371,13 @@ int main(int argc, char **argv)
     }
 
     fw_init(&fw, &cfg, il_open);
+    if (!fw_hello_fits(&fw)) {
+        fprintf(stderr,
+                "masking-fw: HELLO would exceed %d bytes with these options: shorten --sn "
+                "(or --model, --att)\n",
+                FRAME_MAX_BYTES);
+        return 2;
+    }
     printf("%s\n", slave_name);
     fflush(stdout);
     fprintf(stderr,

@@ -158,6 +158,14 @@ class FirmwareEmulator(EmulatorCommands):
         self._wd_trips = 0
         self._event_no = 0
         self.commands_received = 0  # valid commands handled (tests: "nothing was sent")
+        hello = self._hello_fields()
+        try:
+            proto.encode_ok(proto.SEQ_MODULO - 1, hello)  # the longest seq
+        except proto.FrameError:
+            raise ValueError(
+                f"HELLO would exceed {proto.MAX_FRAME_BYTES} bytes: shorten [emulator] "
+                f"serial_number ({hello['sn']!r}) or model, or use fewer att steps"
+            ) from None
         self._rx = bytearray()
         self._rx_discard = False  # skipping the tail of an over-long line
         self._out = bytearray()
@@ -485,7 +493,11 @@ class FirmwareEmulator(EmulatorCommands):
         return False
 
     def _ok(self, seq: int, fields: dict[str, Any] | None = None) -> None:
-        self._send(proto.encode_ok(seq, fields))
+        try:
+            frame = proto.encode_ok(seq, fields)
+        except proto.FrameError:  # too long: say so rather than go silent (as the C core)
+            frame = proto.encode_err(seq, "SIZE", proto.SIZE_TEXT)
+        self._send(frame)
 
     def _err(self, seq: int, code: str, text: str) -> None:
         self._note(f"ERR #{seq} {code} {text}: outputs zeroed")
@@ -494,7 +506,12 @@ class FirmwareEmulator(EmulatorCommands):
 
     def _send_event(self, name: str, fields: dict[str, Any]) -> None:
         self._event_no = proto.next_seq(self._event_no)
-        self._send(proto.encode_event(self._event_no, name, fields))
+        try:
+            frame = proto.encode_event(self._event_no, name, fields)
+        except proto.FrameError:  # too long: a FAULT rather than silence (as the C core)
+            self._event_no = proto.next_seq(self._event_no)
+            frame = proto.encode_event(self._event_no, "FAULT", {"code": "SIZE"})
+        self._send(frame)
 
     def _send(self, frame: bytes) -> None:
         while self._take_fault("garbage"):

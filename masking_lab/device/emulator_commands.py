@@ -68,15 +68,18 @@ class EmulatorCommands:
 
     def _cmd_hello(self, frame: proto.Frame) -> None:
         self._zero("HELLO (new host session)")
-        emu = self.config.emulator
         self._note(f"HELLO from host #{frame.seq}")
+        self._ok(frame.seq, self._hello_fields())
+
+    def _hello_fields(self) -> dict[str, Any]:
+        emu = self.config.emulator
         fields: dict[str, Any] = {"proto": PROTOCOL_VERSION, "fw": FIRMWARE_VERSION}
         fields.update(model=emu.model.replace(" ", "_"), sn=emu.serial_number.replace(" ", "_"))
         fields.update(max_ev=self.limits["EV"], max_mv=self.limits["MV"])
         fields.update(wd_ms=round(self.watchdog_s * 1000), fs=self.config.waveform.sample_rate_hz)
         fields.update(vt=int(self.virtual_time), il=interlock_text(self._interlock_open))
         fields.update(build=self.build, clk="host", rst="power", **self.checker.hello_fields())
-        self._ok(frame.seq, fields)
+        return fields
 
     def _cmd_time(self, frame: proto.Frame) -> None:
         self._ok(frame.seq, {"t": self._device_now()})

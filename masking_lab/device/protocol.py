@@ -31,10 +31,13 @@ MIN_PROTOCOL = 2
 MIN_FIRMWARE = "fw-2.0.0"
 SEQ_MODULO = 65536
 MAX_FRAME_BYTES = 256  # longest line either side accepts, terminator included
+#: ``ERR SIZE`` text a device sends in place of a reply longer than MAX_FRAME_BYTES (the C
+#: firmware's FW_SIZE_TEXT); an event that long becomes ``FAULT code=SIZE``.
+SIZE_TEXT = "reply longer than 256 bytes not sent"
 
 COMMANDS = ("HELLO", "TIME", "SETUP", "AMP", "PLAY", "STOP", "PING")
 EVENTS = ("DONE", "ABORTED", "WATCHDOG", "FAULT", "BOOT")
-ERROR_CODES = ("UNKNOWN", "ARGS", "LIMIT", "STATE", "BUSY")
+ERROR_CODES = ("UNKNOWN", "ARGS", "LIMIT", "STATE", "BUSY", "INTERLOCK", "SIZE")
 
 FrameKind = Literal["command", "reply", "event"]
 
