@@ -150,3 +150,48 @@ def test_a_hello_whose_sample_rate_is_not_a_positive_finite_number_is_refused(fs
     good = body.replace(f"fs={fs}", "fs=20000")
     ok = proto.decode(good.encode() + b"*" + f"{proto.crc16(good.encode()):04X}".encode())
     assert proto.parse_hello(ok).max_v["EV"] == 5.0
+
+
+# -- campaign findings (seed 46): a deeply nested log line, a converter whose LSB is nothing ---
+
+
+def test_a_log_line_nested_deeper_than_the_fast_decoder_recurses_is_a_problem_not_a_traceback(
+    tmp_path,
+):
+    from masking_lab.analysis.log_reading import fast_parse
+    from masking_lab.commands.cli import main
+    from masking_lab.simulation.synthetic_logs import simulate_study
+
+    simulate_study(tmp_path / "data", n_participants=1, seed=5, baseline_start_above_db=10.0)
+    log = next((tmp_path / "data").rglob("*experiment1.jsonl"))
+    lines = log.read_bytes().split(b"\n")
+    k = next(i for i, line in enumerate(lines) if b'"record":"trial"' in line)
+    deep = b"[" * 100_000 + b"]" * 100_000
+    lines[k] = lines[k][:-1] + b',"x":' + deep + b"}"
+    log.write_bytes(b"\n".join(lines))
+    assert (
+        fast_parse(log.read_bytes(), log) is None
+    )  # msgspec recursed: the general reader reads it
+    out = tmp_path / "out"
+    assert main(["analyze", str(tmp_path / "data"), "--out", str(out), "--quiet"]) == 0
+    problems = (out / "problems.csv").read_text(encoding="utf-8")
+    assert log.name in problems and f"line {k + 1}" in problems
+
+
+def test_a_converter_full_scale_whose_lsb_underflows_is_refused_with_its_field(tmp_path, capsys):
+    from masking_lab.commands.cli import main
+    from masking_lab.formats.resources import shipped
+
+    rig = shipped("protocols", "devices/default.yaml").read_text(encoding="utf-8")
+    assert rig.count("full_scale_v: 10.0") == 2
+    (tmp_path / "rig.yaml").write_text(rig.replace("full_scale_v: 10.0", "full_scale_v: 5e-324"))
+    protocol = str(shipped("protocols", "baseline.yaml"))
+    for argv in (
+        ["validate", protocol, "--device-config", str(tmp_path / "rig.yaml")],
+        ["run", protocol, "--participant", "P1", "--device", "sim", "--responder", "sim",
+         "--device-config", str(tmp_path / "rig.yaml"), "--data", str(tmp_path / "data")],
+    ):  # fmt: skip
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert "channels.EV.converter.full_scale_v (line" in err and "Traceback" not in err
+    assert not (tmp_path / "data").exists() or not any((tmp_path / "data").rglob("*.jsonl"))

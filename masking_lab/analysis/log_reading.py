@@ -101,7 +101,9 @@ def fast_parse(raw: bytes, path: str | Path) -> SessionLog | None:
         return None
     try:
         recs = ANALYSIS_DECODER.decode_lines(raw)
-    except (msgspec.DecodeError, UnicodeDecodeError):  # a bad byte inside a decoded string
+    # a bad byte inside a decoded string, or nesting deeper than msgspec recurses: the general
+    # reader (its own depth limit) says what is wrong and where
+    except (msgspec.DecodeError, UnicodeDecodeError, RecursionError):
         return None
     if not recs or len(recs) != raw.count(b"\n") or not isinstance(recs[0], AHeader):
         return None
