@@ -35,8 +35,11 @@ PLAY = {
     "lead": 0.02,
     "n": 3,
 }
-# how late a scheduler-timed onset may be reported (device clock), s
-LATE_S = {"emulator": 0.02, "host": 0.02, "qemu": 0.05}
+# How late a scheduler-timed onset may be reported (device clock), s. QEMU runs the image in
+# real time on a shared host: a descheduled vCPU starts the DMA late and says so (66 ms was
+# seen with both cores busy), so its bound is looser; onset latency itself is measured in
+# benchmarks/bench_device.py, not asserted here.
+LATE_S = {"emulator": 0.02, "host": 0.02, "qemu": 0.25}
 
 
 @pytest.fixture(params=TARGETS)

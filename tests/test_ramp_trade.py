@@ -52,22 +52,13 @@ def test_the_cramer_rao_bound_falls_as_one_over_root_n():
 
 
 def test_plan_on_a_functional_protocol_prints_the_trade(tmp_path, capsys):
-    import argparse
-
     from test_functional_session import functional_protocol
 
-    from masking_lab.commands.plan import run
+    from masking_lab.commands.cli import main
 
-    args = argparse.Namespace(
-        protocol=str(functional_protocol(tmp_path)),
-        ground_truth=None,
-        replicates=2,
-        seed=1,
-        out=str(tmp_path / "plan"),
-        force=False,
-        scheduler="synchronous",
-    )
-    assert run(args) == 0
+    argv = ["plan", str(functional_protocol(tmp_path)), "--replicates", "2", "--seed", "1"]
+    argv += ["--out", str(tmp_path / "plan"), "--scheduler", "synchronous", "--no-progress"]
+    assert main(argv) == 0
     text = capsys.readouterr().out
     assert "paper" in text and "functional (14)" in text and "Cramér-Rao" in text
     assert (tmp_path / "plan" / "masking_function_trade.txt").read_text(encoding="utf-8") == text

@@ -17,9 +17,9 @@ CONFIG = ROOT / "pyproject.toml"
 CACHE = ROOT / ".mypy_cache"  # the one `mypy masking_lab` run from the checkout uses
 
 
-def _mypy(*targets: str) -> tuple[str, int]:
+def _mypy(*targets: str, cache: Path = CACHE) -> tuple[str, int]:
     out, err, status = api.run(
-        [*targets, "--config-file", str(CONFIG), "--cache-dir", str(CACHE), "--no-pretty"]
+        [*targets, "--config-file", str(CONFIG), "--cache-dir", str(cache), "--no-pretty"]
     )
     return out + err, status
 
@@ -46,7 +46,9 @@ def test_the_configuration_catches_drift(tmp_path):
         "ok = 1  # type: ignore[assignment]\n",
         encoding="utf-8",
     )
-    report, status = _mypy(str(bad))
+    # a cache of its own: the two tests may run at once on two xdist workers, and mypy's cache
+    # is not safe for concurrent writers
+    report, status = _mypy(str(bad), cache=tmp_path / "mypy_cache")
     assert status == 1, report
     assert 'Unsupported operand types for < ("int" and "None")' in report
     assert "[arg-type]" in report and "Literal['EV', 'MV']" in report

@@ -35,6 +35,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from masking_lab.analysis.pf_likelihood import nll as _nll
+from masking_lab.analysis.pf_likelihood import refit as _refit
 from masking_lab.core.errors import AnalysisError
 from masking_lab.core.psychometric import GUESS_3IFC, LEVITT_1U3D
 
@@ -43,7 +45,6 @@ __all__ = ["PFFit", "PFJob", "binned", "deviance", "fit_pf", "fit_pf_many", "pf_
 MAX_LAPSE = 0.1
 MIN_TRIALS = 10
 SCALE_BOUNDS_DB = (0.1, 20.0)  # as ml_threshold: 1/β between 0.1 and 20 dB
-_ITERATIONS = 25
 
 
 @dataclass(frozen=True)
@@ -178,97 +179,6 @@ def deviance(n: ArrayLike, k: ArrayLike, p: ArrayLike) -> NDArray[np.float64]:
 def _al(alpha: NDArray, beta: NDArray, lam: NDArray, guess: float, p_target: float) -> NDArray:
     q = (p_target - guess) / (1.0 - guess - lam)
     return alpha + np.log(q / (1.0 - q)) / beta
-
-
-def _nll(x: NDArray, n: NDArray, k: NDArray, th: NDArray, guess: float) -> NDArray:
-    """Negative log-likelihood of each row's (α, log s, λ) for its counts ``k`` (rows).
-
-    ``x`` and ``n`` are one set's levels and trials (1-D) or one row per data set (2-D).
-    """
-    xs = x[None, :] if x.ndim == 1 else x
-    z = (xs - th[:, :1]) * np.exp(-th[:, 1:2])
-    p = guess + (1.0 - guess - th[:, 2:3]) * (0.5 + 0.5 * np.tanh(0.5 * z))
-    p = np.clip(p, 1e-12, 1 - 1e-12)
-    return -(k * np.log(p) + (n - k) * np.log1p(-p)).sum(axis=1)
-
-
-def _refit(
-    x: NDArray[np.float64],
-    n: NDArray[np.float64],
-    k: NDArray[np.float64],
-    start: NDArray[np.float64],
-    bounds: NDArray[np.float64],
-    guess: float,
-    fit_lapse: bool,
-) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
-    """Maximum-likelihood fits of many data sets at once (rows of ``k``) by Fisher scoring.
-
-    Parameters are (α, log scale, λ); ``start`` is one row or one per data set. Steps are
-    halved while the likelihood falls and clipped to ``bounds`` (rows: α, log scale, λ;
-    columns low, high; or one such block per data set); a λ held on a bound by the score is
-    kept there (active set). ``x`` and ``n`` are shared levels and trials (1-D) or one row
-    per data set, so the data sets of many psychometric functions with the same number of
-    levels climb together: every operation is per row, so a row's fit does not depend on
-    the rows beside it. Returns the parameters and which rows converged inside the α and
-    scale bounds.
-    """
-    b = k.shape[0]
-    xr = np.broadcast_to(x, k.shape)
-    nr = np.broadcast_to(n, k.shape)
-    br = np.broadcast_to(bounds, (b, 3, 2))
-    lo_all, hi_all = br[:, :, 0], br[:, :, 1]
-    theta = np.array(np.broadcast_to(start, (b, 3)), dtype=float)
-    n_par = 3 if fit_lapse else 2
-    cur = _nll(xr, nr, k, theta, guess)
-    active = np.ones(b, dtype=bool)
-    for _ in range(_ITERATIONS):
-        idx = np.flatnonzero(active)
-        if idx.size == 0:
-            break
-        th, kk, xx, nn = theta[idx], k[idx], xr[idx], nr[idx]
-        lo, hi = lo_all[idx], hi_all[idx]
-        s = np.exp(th[:, 1:2])
-        z = (xx - th[:, :1]) / s
-        f = 0.5 + 0.5 * np.tanh(0.5 * z)
-        amp = 1.0 - guess - th[:, 2:3]
-        p = np.clip(guess + amp * f, 1e-9, 1 - 1e-9)
-        dfdz = f * (1.0 - f)
-        g = np.stack([-amp * dfdz / s, -amp * dfdz * z, -f][:n_par], axis=-1)  # dp/dθ
-        v = p * (1.0 - p)
-        score = np.einsum("bl,blp->bp", (kk - nn * p) / v, g)
-        info = np.einsum("bl,blp,blq->bpq", nn / v, g, g) + 1e-9 * np.eye(n_par)
-        # A parameter on a bound with the score pushing outwards is held there (active set)
-        # and the others step alone: clipping the joint step would stall the climb.
-        on = th[:, :n_par]
-        held = ((on <= lo[:, :n_par]) & (score < 0)) | ((on >= hi[:, :n_par]) & (score > 0))
-        if held.any():
-            free = (~held).astype(float)
-            info = info * free[:, :, None] * free[:, None, :] + held[:, :, None] * np.eye(n_par)
-            score = score * free
-        step = np.zeros_like(th)
-        step[:, :n_par] = np.linalg.solve(info, score[..., None])[..., 0]
-        # Halve the step of the rows whose likelihood fell, and only theirs.
-        scale = np.ones(idx.size)
-        new, val, was = th.copy(), cur[idx], cur[idx]
-        pending = np.arange(idx.size)
-        for _half in range(10):
-            cand = np.clip(
-                th[pending] + scale[pending, None] * step[pending], lo[pending], hi[pending]
-            )
-            cv = _nll(xx[pending], nn[pending], kk[pending], cand, guess)
-            ok = cv <= was[pending] + 1e-12
-            new[pending[ok]] = cand[ok]
-            val[pending[ok]] = cv[ok]
-            pending = pending[~ok]
-            if pending.size == 0:
-                break
-            scale[pending] /= 2
-        gain = was - val
-        theta[idx], cur[idx] = new, val
-        active[idx] = gain > 1e-6  # log-likelihood units: far below any difference that matters
-    inside = (theta[:, 0] > lo_all[:, 0] + 1e-6) & (theta[:, 0] < hi_all[:, 0] - 1e-6)
-    inside &= theta[:, 1] < hi_all[:, 1] - 1e-6
-    return theta, inside  # a row still climbing after _ITERATIONS sits on a flat ridge
 
 
 def _interval(values: NDArray[np.float64]) -> tuple[float, float] | None:

@@ -6,9 +6,8 @@ opens, so this module imports (and fails with a clear message) without it.
 During a trial the device plays in a background thread (the ``play`` callable from the runner)
 while the main thread draws one frame after another: the cue's position comes from the session
 clock (``clock.now() − presentation.start_s``) through :mod:`masking_lab.responders.cue`, so the
-cue sweeps
-lane *k* exactly while the device plays interval *k*. The pointer (a touch panel reports the
-finger as a mouse) is sampled every frame while a lane is swept and logged as
+cue sweeps lane *k* exactly while the device plays interval *k*. The pointer (a touch panel
+reports the finger as a mouse) is sampled every frame while a lane is swept and logged as
 ``[t_s, x_mm, y_mm]``. After the last interval the participant answers with 1, 2 or 3 (number row
 or keypad); keys pressed earlier are discarded. Escape stops the session like Ctrl-C (after the
 trial in flight has finished playing).
@@ -304,24 +303,12 @@ class PsychoPyWindowResponder:
     # -- Responder protocol -------------------------------------------------------------------
 
     def ask_info(self, fields: Any, given: dict[str, str]) -> dict[str, str]:
-        """Ask the protocol's participant fields not in ``given`` in this window (before set 1).
-
-        See :func:`masking_lab.responders.window_form.ask_in_window`; Esc raises
-        KeyboardInterrupt.
-        """
+        """Ask the protocol's participant fields not in ``given`` in this window (before set 1):
+        :func:`masking_lab.responders.window_form.ask_in_window` (Esc: KeyboardInterrupt)."""
         from masking_lab.responders.window_form import ask_in_window
 
-        text_px = self._px(self.look.text_mm)
-        return ask_in_window(
-            self.win,
-            self._visual,
-            self._event,
-            fields,
-            given,
-            self._flip,
-            text_px=text_px,
-            colour=TEXT,
-        )
+        where = (self.win, self._visual, self._event, fields, given, self._flip)
+        return ask_in_window(*where, text_px=self._px(self.look.text_mm), colour=TEXT)
 
     def start_set(self, info: SetInfo) -> None:
         """Show the instructions for a set; with ``wait_for_start``, wait for the space bar."""
