@@ -30,6 +30,9 @@ from masking_lab.device.config import parse_device_config
 from masking_lab.device.emulator import FirmwareEmulator
 
 SENTINEL_SEQ = 65000  # corpus frames use 1..60000, so the batch-end PING is unmistakable
+# Bytes sent before the sentinel's reply is awaited: with the sentinel PING, within the STM32
+# image's 512-byte RX ring (firmware/stm32/usart.c RX_SIZE), so QEMU never drops a byte
+IN_FLIGHT_BYTES = 448
 HUGE = "999999999999.999999"
 
 
@@ -419,7 +422,25 @@ class Port:
         )
 
     def batch(self, frames: list[bytes], timeout: float) -> list[proto.Frame]:
-        """Send frames plus a sentinel PING; every frame the device sent before its reply."""
+        """Send frames, each chunk of at most :data:`IN_FLIGHT_BYTES` followed by a sentinel PING
+        whose reply is awaited; every frame the device sent before the last sentinel's reply.
+
+        A real link paces bytes at its baud rate, but a pty into QEMU delivers them as fast as
+        the guest takes them, and the image's 512-byte RX ring then overflows while its main
+        loop refills the DAC: bytes are dropped (a garbled frame, a lost sentinel). Keeping no
+        more bytes in flight than the ring holds is what a host does anyway (one command at a
+        time), and the same chunks go to every implementation.
+        """
+        got: list[proto.Frame] = []
+        chunk: list[bytes] = []
+        for frame in frames:
+            if chunk and sum(map(len, chunk)) + len(frame) > IN_FLIGHT_BYTES:
+                got += self._send(chunk, timeout)
+                chunk = []
+            chunk.append(frame)
+        return got + self._send(chunk, timeout)
+
+    def _send(self, frames: list[bytes], timeout: float) -> list[proto.Frame]:
         self.ser.write(b"".join(frames) + proto.encode_command(SENTINEL_SEQ, "PING"))
         return self._frames_until_sentinel(timeout)
 
