@@ -62,15 +62,17 @@ def expected_codes(fields: dict[str, object]) -> int:
     return codes
 
 
-def outcome(link: Link, timeout: float = 10.0) -> proto.Frame:
-    """The DONE or FAULT event that ends an accepted PLAY, PINGing to keep the watchdog fed."""
-    deadline = time.monotonic() + timeout
+def outcome(link: Link, within_s: float = 10.0) -> proto.Frame:
+    """The DONE or FAULT event that ends an accepted PLAY, asking the device's TIME meanwhile
+    (which also feeds its watchdog). The bound is in device time, so a loaded host that
+    deschedules the device cannot trip it."""
+    deadline = link.call("TIME").number("t") + within_s
     while True:
         for i, f in enumerate(link.events):
             if f.name in ("DONE", "FAULT"):
                 return link.events.pop(i)
-        assert time.monotonic() < deadline, f"neither DONE nor FAULT within {timeout} s"
-        link.call("PING")
+        now = link.call("TIME").number("t")
+        assert now < deadline, f"neither DONE nor FAULT within {within_s} s of device time"
         time.sleep(0.03)
 
 
