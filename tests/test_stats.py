@@ -14,6 +14,7 @@ from masking_lab.analysis.stats import (
     mauchly,
     one_sample_t,
     paired_comparisons,
+    paired_t,
     rm_anova,
     rm_design,
 )
@@ -228,6 +229,32 @@ def test_one_sample_degenerate_cases_have_notes_not_nan():
     assert flat.t is None and "zero variance" in flat.note
     with pytest.raises(AnalysisError):
         one_sample_t([1.0, np.nan])
+
+
+# R's `sleep` data set; R 4.x prints for t.test(extra ~ group, data = sleep, paired = TRUE):
+# t = -4.0621, df = 9, p-value = 0.002833, mean difference -1.58.
+SLEEP_1 = [0.7, -1.6, -0.2, -1.2, -0.1, 3.4, 3.7, 0.8, 0.0, 2.0]
+SLEEP_2 = [1.9, 0.8, 1.1, 0.1, -0.1, 4.4, 5.5, 1.6, 4.6, 3.4]
+
+
+def test_paired_t_matches_r_on_the_sleep_data():
+    r = paired_t(SLEEP_1, SLEEP_2)
+    assert r.t == pytest.approx(-4.0621, abs=5e-5)
+    assert r.p == pytest.approx(0.002833, abs=5e-7)
+    assert (r.df, r.n) == (9, 10) and r.mean == pytest.approx(-1.58)
+    flipped = paired_t(SLEEP_2, SLEEP_1)
+    assert flipped.t == pytest.approx(-r.t) and flipped.p == pytest.approx(r.p)
+
+
+def test_paired_t_degenerate_cases_have_notes_and_bad_input_raises():
+    single = paired_t([0.5], [0.25])
+    assert single.t is None and single.p is None and "one value" in single.note
+    same = paired_t([0.5, 0.75, 1.0], [0.25, 0.5, 0.75])
+    assert same.t is None and same.p is None and "zero variance" in same.note
+    with pytest.raises(AnalysisError, match="3 values against 2"):
+        paired_t([1.0, 2.0, 3.0], [1.0, 2.0])
+    with pytest.raises(AnalysisError, match="NaN"):
+        paired_t([1.0, np.nan], [1.0, 2.0])
 
 
 def test_paired_comparison_of_identical_levels_has_a_note():

@@ -326,6 +326,7 @@ def test_analysis_notes_when_a_paired_test_is_impossible():
     only_comp = [r for r in _hand_records() if r["condition"] == "compensated"]
     tests = {t.measure: t for t in analyze_usertest(only_comp, G, T).tests}
     assert tests["texture"].t is None and "needs both conditions" in tests["texture"].note
+    assert tests["texture"].mean_compensated is None  # never NaN
 
 
 @pytest.mark.parametrize(

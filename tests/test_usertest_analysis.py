@@ -260,6 +260,22 @@ def test_one_participant_reports_no_paired_test(tmp_path):
     assert math.isnan(report.analysis.summary["sd"].iloc[0])
 
 
+def test_participants_with_one_condition_each_report_no_test_and_no_nan(tmp_path):
+    # A did only the compensated block, B only the uncompensated: no pair to compare.
+    folder = tmp_path / "data"
+    for p, condition in (("A", "compensated"), ("B", "uncompensated")):
+        recs = [r for r in trial_records(p) if r["condition"] == condition]
+        write_log(folder / f"usertest-{p}.jsonl", [header(p), *recs])
+    report = write_usertest_report(folder, tmp_path / "out", figure=False)
+    for t in report.analysis.tests:
+        assert t.n == 0 and t.t is None and t.mean_difference is None
+        assert "no participant has both conditions" in t.note
+    for name in ("tests.csv", "summary.csv", "rates.csv", "report.txt"):
+        assert "nan" not in (tmp_path / "out" / name).read_text(encoding="utf-8").lower(), name
+    text = (tmp_path / "out" / "report.txt").read_text(encoding="utf-8")
+    assert "not tested: no participant has both conditions" in text
+
+
 def test_a_log_with_a_trial_twice_is_skipped(data, tmp_path):
     recs = trial_records("A")
     write_log(data / "D" / "usertest-D.jsonl", [header("D"), *recs, recs[2]])

@@ -6,6 +6,8 @@
 * :func:`paired_comparisons` — Bonferroni-corrected paired t-tests between the levels of one
   factor, on each participant's mean over the other factor (marginal means).
 * :func:`one_sample_t` — two-tailed one-sample t-test of shifts against 0.
+* :func:`paired_t` — the paired t-test (one-sample test of the differences), also used by the
+  user-test analysis.
 
 Every effect is computed from orthonormal contrasts: for an effect with ``d`` degrees of freedom
 and contrast matrix ``C`` (cells × d), the scores ``Z = Y·C`` give ``SS_effect = n·|mean(Z)|²``
@@ -535,6 +537,48 @@ def paired_comparisons(marginal: ArrayLike, labels: Sequence[object]) -> list[Pa
             PairedTest(labels[i], labels[j], n, res.mean, res.t, res.df, res.p, p_bonf, dz, note)
         )
     return out
+
+
+def paired_t(a: ArrayLike, b: ArrayLike) -> OneSampleT:
+    """Two-tailed paired t-test of ``a`` against ``b``: the one-sample test of ``a − b`` against 0.
+
+    The project's one paired t-test (R's ``t.test(a, b, paired = TRUE)``); undefined cases
+    (fewer than two pairs, every difference the same) return ``t`` and ``p`` None with a
+    ``note``, as :func:`one_sample_t` does.
+
+    Parameters
+    ----------
+    a, b : array_like
+        Finite values in one unit (dB, or a correct rate 0–1), one per participant, paired by
+        position.
+
+    Returns
+    -------
+    OneSampleT
+        Of the differences ``a − b`` (``mean`` is the mean difference, in the values' unit).
+
+    Raises
+    ------
+    AnalysisError
+        If ``a`` and ``b`` differ in length, are empty, or hold NaN or ±inf.
+
+    Examples
+    --------
+    R's ``sleep`` data (extra hours of sleep of ten patients under two drugs):
+
+    >>> drug1 = [0.7, -1.6, -0.2, -1.2, -0.1, 3.4, 3.7, 0.8, 0.0, 2.0]
+    >>> drug2 = [1.9, 0.8, 1.1, 0.1, -0.1, 4.4, 5.5, 1.6, 4.6, 3.4]
+    >>> r = paired_t(drug1, drug2)
+    >>> print(f"{r.mean:+.2f} h, t({r.df}) = {r.t:.4f}, p = {r.p:.6f}")
+    -1.58 h, t(9) = -4.0621, p = 0.002833
+    """
+    x = np.asarray(a, dtype=float).ravel()
+    y = np.asarray(b, dtype=float).ravel()
+    if x.shape != y.shape:
+        raise AnalysisError(
+            f"paired t-test: {x.size} values against {y.size}; give one pair per participant"
+        )
+    return one_sample_t(x - y)
 
 
 def one_sample_t(values: ArrayLike, popmean: float = 0.0) -> OneSampleT:

@@ -2,8 +2,9 @@
 
 :func:`analyze_usertest` takes logged trial records (:func:`~masking_lab.usertest.design
 .trial_record`): correct rates (0–1) per participant and condition, a paired t-test per measure
-(both answers, geometry, texture) with Cohen's d_z, and confusion matrices (counts) per
-condition. Pure: pandas and scipy are imported when it runs.
+(both answers, geometry, texture) with Cohen's d_z — the one paired t-test of
+:func:`masking_lab.analysis.stats.paired_t` — and confusion matrices (counts) per condition.
+Pure: pandas is imported when it runs.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from masking_lab.analysis.stats import paired_t
 from masking_lab.core.errors import AnalysisError
 from masking_lab.usertest.design import CONDITIONS, MEASURES
 
@@ -31,10 +33,10 @@ class PairedComparison:
         Which answers had to be right.
     n : int
         Participants with both conditions.
-    mean_compensated, mean_uncompensated : float
-        Mean correct rate (0–1).
-    mean_difference : float
-        Compensated minus uncompensated, mean over participants.
+    mean_compensated, mean_uncompensated : float or None
+        Mean correct rate (0–1); None when no participant has both conditions.
+    mean_difference : float or None
+        Compensated minus uncompensated, mean over participants; None as above.
     t : float or None
         Paired t statistic (df = n − 1); None when it cannot be computed.
     p : float or None
@@ -47,9 +49,9 @@ class PairedComparison:
 
     measure: str
     n: int
-    mean_compensated: float
-    mean_uncompensated: float
-    mean_difference: float
+    mean_compensated: float | None
+    mean_uncompensated: float | None
+    mean_difference: float | None
     t: float | None
     p: float | None
     dz: float | None
@@ -128,7 +130,6 @@ def analyze_usertest(
     [[5, 1, 0], [5, 1, 0]]
     """
     import pandas as pd
-    from scipy import stats
 
     rows = []
     for i, rec in enumerate(records):
@@ -158,7 +159,7 @@ def analyze_usertest(
     tests = []
     wide = rates.pivot(index="participant", columns="condition", values=list(MEASURES))
     for m in MEASURES:
-        tests.append(_paired(wide, m, stats))
+        tests.append(_paired(wide, m))
     confusion: dict[str, dict[str, Any]] = {}
     for cond, part in df.groupby("condition", sort=True):
         confusion[str(cond)] = {
@@ -217,42 +218,30 @@ def _sd(values: Any) -> float:
     return float(np.std(values, ddof=1)) if len(values) > 1 else math.nan
 
 
-def _paired(wide: Any, measure: str, stats: Any) -> PairedComparison:
+def _paired(wide: Any, measure: str) -> PairedComparison:
     cols = [(measure, c) for c in CONDITIONS]
     if any(c not in wide.columns for c in cols):
         present = sorted({c for _, c in wide.columns})
-        return PairedComparison(
-            measure,
-            0,
-            math.nan,
-            math.nan,
-            math.nan,
-            None,
-            None,
-            None,
-            f"needs both conditions; the records have only {present}",
-        )
+        note = f"needs both conditions; the records have only {present}"
+        return PairedComparison(measure, 0, None, None, None, None, None, None, note)
     both = wide[cols].dropna()
     comp = both[(measure, "compensated")].to_numpy(dtype=float)
     unc = both[(measure, "uncompensated")].to_numpy(dtype=float)
     n = comp.size
-    diff = comp - unc
-    mean_c = float(comp.mean()) if n else math.nan
-    mean_u = float(unc.mean()) if n else math.nan
-    mean_d = float(diff.mean()) if n else math.nan
-    sd = float(np.std(diff, ddof=1)) if n >= 2 else math.nan
-    note = ""
-    if n < 2:
-        note = f"a paired test needs ≥ 2 participants with both conditions, got {n}"
-    # Rates are multiples of 1/trials: equal differences can differ in the last bits.
-    elif sd <= 1e-12 * max(1.0, float(np.max(np.abs(diff)))):
-        note = "every participant's difference is the same; the paired t-test is undefined"
-    if note:
-        return PairedComparison(measure, n, mean_c, mean_u, mean_d, None, None, None, note)
-    res = stats.ttest_rel(comp, unc)
-    return PairedComparison(
-        measure, n, mean_c, mean_u, mean_d, float(res.statistic), float(res.pvalue), mean_d / sd
-    )
+    if n == 0:
+        note = "no participant has both conditions; a paired test needs ≥ 2 participants"
+        return PairedComparison(measure, 0, None, None, None, None, None, None, note)
+    res = paired_t(comp, unc)
+    mean_c, mean_u = float(comp.mean()), float(unc.mean())
+    if res.t is None:
+        note = (
+            f"a paired test needs ≥ 2 participants with both conditions, got {n}"
+            if n < 2
+            else "every participant's difference is the same; the paired t-test is undefined"
+        )
+        return PairedComparison(measure, n, mean_c, mean_u, res.mean, None, None, None, note)
+    dz = res.mean / res.sd if res.sd else None
+    return PairedComparison(measure, n, mean_c, mean_u, res.mean, res.t, res.p, dz)
 
 
 def _confusion(part: Any, presented: str, answered: str, labels: Sequence[str]) -> Any:
