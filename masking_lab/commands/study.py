@@ -1,13 +1,12 @@
-"""``masking-lab study``: regenerate the speed–accuracy study (docs/speed-accuracy.md and
-docs/study/).
+"""``masking-lab study --out OUT``: run the speed–accuracy study (docs/speed-accuracy.md).
 
-Simulate the speed–accuracy study and rewrite its tables, figures and the generated blocks of
-the study document. Same arguments, same bytes.
+Simulate the speed–accuracy study and write its tables, figures and the study document's
+generated blocks (blocks/NAME.md) into OUT. Same arguments, same bytes.
 
 Convergence of 1-up-3-down tracks by step size in 3IFC and 2AFC, the stop-rule / schedule /
 estimator grid on experiment I, and the procedures (staircase settings, QUEST+) against the
-Cramér-Rao bound; tables and figures go to ``--out``, the generated blocks of ``--doc`` are
-rewritten (:mod:`masking_lab.planning.study`).
+Cramér-Rao bound (:mod:`masking_lab.planning.study`). The command writes only into OUT;
+``python docs/generate.py study`` regenerates the repository's docs from it.
 """
 
 from __future__ import annotations
@@ -24,15 +23,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("study", **command_texts(__doc__))
     p.add_argument(
         "--out",
-        default=None,
-        help="folder for the CSV and PNG files (default: docs/study inside the repository, "
-        "./study_out elsewhere)",
-    )
-    p.add_argument(
-        "--doc",
-        default=None,
-        help="study document whose generated blocks are rewritten; '' skips it (default: "
-        "docs/speed-accuracy.md when run in the repository, else skipped)",
+        default="study_out",
+        help="folder for the CSV, PNG and blocks/*.md files (default: study_out)",
     )
     p.add_argument(
         "--replicates",
@@ -71,37 +63,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(handler=run)
 
 
-def study_paths(out: str | None, doc: str | None, cwd: Path) -> tuple[Path, Path | None]:
-    """Where the study writes: the repository's docs when run in it, else ``./study_out``.
-
-    Examples
-    --------
-    >>> study_paths(None, None, Path("/nonexistent"))
-    (PosixPath('study_out'), None)
-    >>> study_paths("x", "", Path("/nonexistent"))
-    (PosixPath('x'), None)
-    """
-    in_repo = (cwd / _DOC).is_file()
-    out_path = Path(out) if out else Path("docs/study" if in_repo else "study_out")
-    if doc is None:
-        return out_path, Path(_DOC) if in_repo else None
-    return out_path, Path(doc) if doc else None
-
-
-_DOC = "docs/speed-accuracy.md"
-
-
 def run(args: argparse.Namespace) -> int:
     from masking_lab.planning.study import regenerate
 
     say = step_bar("study", progress_wanted(args.progress))
-
-    out, doc = study_paths(args.out, args.doc, Path.cwd())
-    if doc is None and args.doc is None:
-        say(f"no {_DOC} here (not the repository): tables and figures only, into {out}")
     regenerate(
-        out,
-        doc,
+        Path(args.out),
         replicates=args.replicates,
         ml_replicates=args.ml_replicates,
         convergence_replicates=args.convergence_replicates,

@@ -6,8 +6,8 @@ against the same simulated observers, and reports for each the trials used, the 
 its threshold estimates, and its efficiency: the Cramér-Rao trials for the SD it achieved
 (:mod:`masking_lab.procedures.fisher`) divided by the trials it used.
 
-Run ``python -m masking_lab.procedures.efficiency`` to print the table of docs/procedures.md
-(:func:`report`; command-line options live in ``masking-lab plan`` and ``masking-lab study``).
+:func:`report` formats the table of docs/procedures.md (``python docs/generate.py efficiency``
+prints it; command-line options live in ``masking-lab plan`` and ``masking-lab study``).
 """
 
 from __future__ import annotations
@@ -199,8 +199,8 @@ def report(
 ) -> str:
     """The efficiency table of docs/procedures.md (``psi=False`` skips the slow psi-marginal).
 
-    ``python -m masking_lab.procedures.efficiency`` prints it with the defaults; ``masking-lab
-    study`` and ``masking-lab plan`` give the same comparison for any protocol.
+    ``python docs/generate.py efficiency`` prints it with the defaults; ``masking-lab study``
+    and ``masking-lab plan`` give the same comparison for any protocol.
     """
     rows = compare(
         experiment1_thresholds_db(),
@@ -211,7 +211,3 @@ def report(
         psi=psi,
     )
     return format_table(rows, scale_db=scale_db, lapse=lapse)
-
-
-if __name__ == "__main__":
-    print(report())
