@@ -153,14 +153,6 @@ class MutualMasking:
 
     # ----------------------------------------------------------------------------- forward
 
-    def mv_masking_db(self, ev_input_db_sl: float) -> float:
-        """f(e_i): the MV stimulus's masked AL in dB SL (its AL shift, dB) with EV at e_i."""
-        return _ramp(self.a_db, self.b, ev_input_db_sl)
-
-    def ev_masking_db(self, mv_input_db_sl: float) -> float:
-        """g(m_i): EV's masked AL in dB SL (its AL shift, dB) with MV at m_i."""
-        return _ramp(self.c_db, self.d, mv_input_db_sl)
-
     def forward_point(self, mv_input_db_sl: float, ev_input_db_sl: float) -> tuple[float, float]:
         """Perceived (m_p, e_p) in dB SL for inputs (m_i, e_i) in dB SL (paper Eq. 3–4)."""
         m_i = float(mv_input_db_sl)
