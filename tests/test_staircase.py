@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from masking_lab.core.errors import StaircaseError
+from masking_lab.core.errors import ProcedureError, StaircaseError
 from masking_lab.procedures.staircase import (
     StaircaseSettings,
     implied_target_p,
@@ -111,7 +111,7 @@ def test_finished_staircase_refuses_more_responses():
     track = run(s, [True])
     with pytest.raises(StaircaseError, match="finished"):
         track.update(True)
-    with pytest.raises(StaircaseError, match="after the staircase finished"):
+    with pytest.raises(ProcedureError, match="after the staircase finished"):
         replay(s, [True, True])
 
 

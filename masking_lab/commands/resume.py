@@ -45,7 +45,7 @@ def run(args: argparse.Namespace) -> int:
 
     from masking_lab.commands.run import device_unavailable
     from masking_lab.commands.session_kinds import for_log
-    from masking_lab.core.errors import DeviceError
+    from masking_lab.core.errors import DeviceError, ResponderError
 
     kind = for_log(args.log)
     try:
@@ -58,6 +58,6 @@ def run(args: argparse.Namespace) -> int:
             participant_tty=args.participant_tty,
             progress=args.progress,
         )
-    except DeviceError as exc:
+    except (DeviceError, ResponderError) as exc:
         return device_unavailable(args.command, exc)
     return kind.print_result(result)

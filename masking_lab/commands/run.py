@@ -94,12 +94,12 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from masking_lab.commands.session_kinds import for_protocol
-    from masking_lab.core.errors import DeviceError
+    from masking_lab.core.errors import DeviceError, ResponderError
 
     kind = for_protocol(args.protocol)
     try:
         result = kind.start(args)
-    except DeviceError as exc:
+    except (DeviceError, ResponderError) as exc:
         return device_unavailable(args.command, exc)
     return kind.print_result(result)
 

@@ -44,14 +44,22 @@ class ProtocolError(MaskingLabError):
         super().__init__(f"{self.file}: {where}: {message}" if where else f"{self.file}: {message}")
 
 
-class StaircaseError(MaskingLabError, ValueError):
-    """Invalid staircase settings or a response given to a finished staircase."""
+class ProcedureError(MaskingLabError, ValueError):
+    """Invalid settings of an adaptive procedure (staircase, QUEST+, functional ramp), or a
+    response given to a finished track.
+
+    The common base of every procedure's errors: catch it to handle any of them.
+
+    Examples
+    --------
+    >>> issubclass(StaircaseError, ProcedureError), issubclass(ProcedureError, StaircaseError)
+    (True, False)
+    """
 
 
-class ProcedureError(StaircaseError):
-    """Invalid settings of an adaptive procedure other than the staircase (QUEST+, ...), or a
-    response given to a finished track. A :class:`StaircaseError`, so code that handles any
-    procedure's errors catches both."""
+class StaircaseError(ProcedureError):
+    """Invalid staircase settings (steps, stop rule, down/up ratio) or a response given to a
+    finished staircase; a :class:`ProcedureError` like every other procedure's."""
 
 
 class DeviceError(MaskingLabError):
@@ -76,10 +84,11 @@ class SafetyLimitError(DeviceError):
     """A requested amplitude exceeds the device's configured limit; nothing was played."""
 
 
-class ResponderError(DeviceError):
+class ResponderError(MaskingLabError):
     """The participant's terminal or window failed (not a terminal, closed, no display).
 
-    A kind of :class:`DeviceError`: the session stops like on a device fault and can be resumed.
+    Not a :class:`DeviceError` (the rig is fine), but handled alike: the session zeroes the
+    outputs, logs a ``responder`` fault and exits 3, and can be resumed.
     """
 
 

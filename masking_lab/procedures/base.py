@@ -18,7 +18,7 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
-from masking_lab.core.errors import StaircaseError
+from masking_lab.core.errors import ProcedureError
 
 __all__ = ["Procedure", "ProcedureSettings", "ThresholdEstimate", "replay"]
 
@@ -125,7 +125,7 @@ def replay(settings: ProcedureSettings, responses: Iterable[bool]) -> Procedure:
 
     Raises
     ------
-    StaircaseError
+    ProcedureError
         If a response comes after the track finished: the responses do not belong to these
         settings.
 
@@ -138,7 +138,7 @@ def replay(settings: ProcedureSettings, responses: Iterable[bool]) -> Procedure:
     state = settings.start()
     for i, correct in enumerate(responses):
         if state.finished:
-            raise StaircaseError(
+            raise ProcedureError(
                 f"response {i} comes after the {settings.kind} finished ({state.status}); "
                 "the responses do not belong to these settings"
             )

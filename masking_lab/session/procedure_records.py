@@ -9,7 +9,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
-from masking_lab.core.errors import LogError, StaircaseError
+from masking_lab.core.errors import LogError, ProcedureError
 from masking_lab.formats.protocol import SetSpec
 from masking_lab.procedures.base import Procedure
 from masking_lab.procedures.log_fields import (
@@ -51,7 +51,7 @@ def settings_from_record(start_record: Mapping[str, Any], spec: SetSpec) -> SetP
     """
     try:
         return settings_from_start(start_record, spec.settings)
-    except (StaircaseError, OverflowError, TypeError, ValueError) as exc:
+    except (ProcedureError, OverflowError, TypeError, ValueError) as exc:
         # Not only what the settings refuse: a crafted record's 400-digit number or wrong type.
         raise LogError(
             f"set {spec.id}: the settings in its set_start record: {str(exc)[:200]}"

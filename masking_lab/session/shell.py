@@ -23,7 +23,7 @@ from types import FrameType
 from typing import Any, Generic, Protocol, TypeVar
 
 from masking_lab.core.clock import Clock
-from masking_lab.core.errors import DeviceError, LogWriteError, MaskingLabError
+from masking_lab.core.errors import DeviceError, LogWriteError, MaskingLabError, ResponderError
 from masking_lab.device.base import Device, DeviceIdentity
 from masking_lab.formats.session_log import SessionLogWriter
 from masking_lab.session.progress import ProgressLine
@@ -141,7 +141,7 @@ class SessionShell(Generic[ResultT]):
                 )
             self.out.clear()
             return self._result(EXIT_COMPLETED, "")
-        except DeviceError as exc:
+        except (DeviceError, ResponderError) as exc:
             stopped = self._stop_device()
             kind = fault_kind(exc)
             note = (
@@ -216,7 +216,7 @@ class SessionShell(Generic[ResultT]):
             return False
 
 
-def fault_kind(exc: DeviceError) -> str:
+def fault_kind(exc: DeviceError | ResponderError) -> str:
     """The fault record's ``kind`` for a device or responder error."""
     kind = getattr(exc, "kind", None)
     if isinstance(kind, str) and kind:
