@@ -32,7 +32,7 @@ from masking_lab.commands.plan_scene import add_scene_options, run_scene
 from masking_lab.commands.progress_bars import add_progress_options
 
 if TYPE_CHECKING:  # `--help` must not import the protocol layer
-    from masking_lab.formats.protocol import Protocol
+    from masking_lab.formats.protocol import ThresholdProtocol
 
 
 def _checked(
@@ -238,7 +238,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(handler=run)
 
 
-def _places_masker(protocol: Protocol) -> bool:
+def _places_masker(protocol: ThresholdProtocol) -> bool:
     from masking_lab.procedures.registry import kind_of
 
     return any(kind_of(s.settings).places_masker for s in protocol.sets)

@@ -19,7 +19,7 @@ from masking_lab.core.levels import db_v_to_volts, volts_to_db_v
 from masking_lab.core.stimulus import Stimulus
 from masking_lab.device.config import load_device_config
 from masking_lab.device.levels_range import MAX_ERROR_DB, Converter
-from masking_lab.formats.protocol import Protocol
+from masking_lab.formats.protocol import ThresholdProtocol
 
 SAMPLE_DB = 0.05  # spacing of the levels checked across a range, dB
 
@@ -51,13 +51,15 @@ class LevelRange:
 
 
 def set_ranges(
-    protocol: Protocol, calibration_db_v: Mapping[str, float], max_drive_v: Mapping[str, float]
+    protocol: ThresholdProtocol,
+    calibration_db_v: Mapping[str, float],
+    max_drive_v: Mapping[str, float],
 ) -> list[LevelRange]:
     """The level range of every set of ``protocol`` that has a floor, dB re 1 V.
 
     Parameters
     ----------
-    protocol : Protocol
+    protocol : ThresholdProtocol
         The protocol.
     calibration_db_v : mapping of stimulus name → dB re 1 V
         Unmasked ALs (dB SL protocols); a set whose stimuli lack one is skipped.
@@ -118,7 +120,7 @@ def worst_in_range(converter: Converter, low_db_v: float, high_db_v: float) -> t
 
 
 def level_problems(
-    protocol: Protocol,
+    protocol: ThresholdProtocol,
     converters: Mapping[str, Converter],
     calibration_db_v: Mapping[str, float],
     max_drive_v: Mapping[str, float],
@@ -129,7 +131,7 @@ def level_problems(
 
     Parameters
     ----------
-    protocol : Protocol
+    protocol : ThresholdProtocol
         The protocol.
     converters : mapping of channel → Converter
         The rig's converters; a channel without one is not checked.
@@ -167,7 +169,7 @@ def level_problems(
 
 
 def refuse_unplayable(
-    protocol: Protocol,
+    protocol: ThresholdProtocol,
     set_ids: Collection[str],
     calibration_db_v: Mapping[str, float],
     device_config: str | Path | None,
@@ -176,7 +178,7 @@ def refuse_unplayable(
 
     Parameters
     ----------
-    protocol : Protocol
+    protocol : ThresholdProtocol
         The protocol.
     set_ids : collection of str
         The sets this session runs.

@@ -14,10 +14,10 @@ from masking_lab.core.exports import lazy_exports
 
 _HOME = {
     "Calibration": "calibration",
-    "Protocol": "protocol",
     "SessionLog": "session_log",
     "SessionLogWriter": "session_log",
     "SetSpec": "protocol",
+    "ThresholdProtocol": "protocol",
     "encode_record": "records",
     "jsonable": "records",
     "load_calibration": "calibration",

@@ -3,9 +3,10 @@
 :func:`load_protocol` reads a file safely (no object construction), validates it against the
 schema and against rules the schema cannot express (duplicate keys or sets, stimulus names, more
 reversals averaged than run, masker levels above the rig's limits), and returns an immutable
-:class:`Protocol`. Every problem is a :class:`~masking_lab.core.errors.ProtocolError` naming the
-file,
-the key path and the YAML line, and saying what to do.
+:class:`ThresholdProtocol` (named so beside :class:`typing.Protocol` and
+:mod:`masking_lab.device.protocol`, the wire protocol). Every problem is a
+:class:`~masking_lab.core.errors.ProtocolError` naming the file, the key path and the YAML line,
+and saying what to do.
 """
 
 from __future__ import annotations
@@ -96,8 +97,8 @@ class SetSpec:
 
 
 @dataclass(frozen=True)
-class Protocol:
-    """A validated protocol.
+class ThresholdProtocol:
+    """A validated threshold-session protocol: its sets, procedure settings and timing.
 
     Attributes
     ----------
@@ -185,7 +186,7 @@ class Protocol:
 
 def load_protocol(
     path: str | Path, *, max_level_db_sl: Mapping[str, float] | None = None
-) -> Protocol:
+) -> ThresholdProtocol:
     """Read, validate and build a protocol.
 
     Parameters
@@ -208,7 +209,7 @@ def load_protocol(
 
 def parse_protocol(
     raw: bytes, source: str, *, max_level_db_sl: Mapping[str, float] | None = None
-) -> Protocol:
+) -> ThresholdProtocol:
     """:func:`load_protocol` on bytes already read; ``source`` names them in messages."""
     data, lines = _safe_yaml(decode_utf8(raw, source), source)
     return protocol_from_mapping(
@@ -227,7 +228,7 @@ def protocol_from_mapping(
     sha256: str,
     lines: Mapping[str, int] | None = None,
     max_level_db_sl: Mapping[str, float] | None = None,
-) -> Protocol:
+) -> ThresholdProtocol:
     """Validate and build a protocol from an already parsed mapping (no file, no YAML).
 
     This is how ``resume`` rebuilds the protocol stored in a log header: the mapping is used as
@@ -240,7 +241,7 @@ def protocol_from_mapping(
     source : str
         Names the data in error messages.
     sha256 : str
-        Hash of the file the content came from (kept on the :class:`Protocol`).
+        Hash of the file the content came from (kept on the :class:`ThresholdProtocol`).
     lines : mapping of key path → line, optional
         Where each key stands in the source, for messages; none for data without a file.
     max_level_db_sl : mapping of channel → dB SL, optional
@@ -365,7 +366,7 @@ def _describe(err: Any, schema: Mapping[str, Any]) -> str:
 
 def _build(
     data: Mapping[str, Any], source: str, sha256: str, lines: Mapping[str, int]
-) -> tuple[Protocol | None, list[tuple[str, str]]]:
+) -> tuple[ThresholdProtocol | None, list[tuple[str, str]]]:
     problems: list[tuple[str, str]] = []
     kind: Kind = data["kind"]
     top_procedure = dict(data.get("procedure") or {"kind": DEFAULT_KIND})
@@ -455,7 +456,7 @@ def _build(
         sets.append(_set_spec(sid, target_name, masker_name, level, staircase, settings))
     if problems:
         return None, problems
-    protocol = Protocol(
+    protocol = ThresholdProtocol(
         path=source,
         sha256=sha256,
         experiment=data["experiment"],
@@ -499,7 +500,7 @@ def _set_procedure(top: Mapping[str, Any], own: Mapping[str, Any] | None) -> dic
 
 
 def _limit_problems(
-    protocol: Protocol,
+    protocol: ThresholdProtocol,
     data: Mapping[str, Any],
     lines: Mapping[str, int],
     max_level_db_sl: Mapping[str, float],

@@ -33,7 +33,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from masking_lab.core.errors import AnalysisError
-from masking_lab.formats.protocol import Protocol
+from masking_lab.formats.protocol import ThresholdProtocol
 from masking_lab.planning.settings import (
     ESTIMATOR_LABELS,
     ESTIMATORS,
@@ -269,7 +269,7 @@ class PlanResult:
 
 
 def run_plan(
-    protocol: Protocol,
+    protocol: ThresholdProtocol,
     settings: PlanSettings,
     thresholds_db: NDArray[np.float64],
     *,
@@ -279,7 +279,7 @@ def run_plan(
 
     Parameters
     ----------
-    protocol : Protocol
+    protocol : ThresholdProtocol
         Sets, staircase bounds, cap, start levels and timing.
     settings : PlanSettings
         The grid and the judgement.

@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from masking_lab.formats.protocol import Protocol
+from masking_lab.formats.protocol import ThresholdProtocol
 from masking_lab.planning.plan import PlanResult, efficiency_fields, pool, summarize
 from masking_lab.planning.settings import PlanSettings, trial_duration_s
 from masking_lab.procedures.fisher import max_information
@@ -94,7 +94,7 @@ class ProcedureComparison:
     z: float
 
 
-def protocol_quest_plus(protocol: Protocol) -> QuestPlusSettings | None:
+def protocol_quest_plus(protocol: ThresholdProtocol) -> QuestPlusSettings | None:
     """The QUEST+ settings the protocol's QUEST+ sets share (None if it has none).
 
     Examples
@@ -110,7 +110,7 @@ def protocol_quest_plus(protocol: Protocol) -> QuestPlusSettings | None:
 
 
 def _variants(
-    protocol: Protocol, observer: Observer, psi: bool, max_trials: int | None = None
+    protocol: ThresholdProtocol, observer: Observer, psi: bool, max_trials: int | None = None
 ) -> list[tuple[str, QuestPlusSettings]]:
     own = protocol_quest_plus(protocol)
     if own is None:
@@ -134,7 +134,7 @@ def _variants(
 
 
 def compare_procedures(
-    protocol: Protocol,
+    protocol: ThresholdProtocol,
     staircase: PlanResult | None,
     settings: PlanSettings,
     thresholds_db: NDArray[np.float64],
@@ -149,7 +149,7 @@ def compare_procedures(
 
     Parameters
     ----------
-    protocol : Protocol
+    protocol : ThresholdProtocol
         Sets, QUEST+ settings (or the staircase's bounds for a default QUEST+), timing.
     staircase : PlanResult or None
         The staircase plan of the same protocol and observers (its rows join the comparison).

@@ -18,7 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from masking_lab.core.errors import AnalysisError, ProtocolError, StaircaseError
-from masking_lab.formats.protocol import Protocol, Timing
+from masking_lab.formats.protocol import ThresholdProtocol, Timing
 from masking_lab.procedures.downup_ratio import GARCIA_PEREZ_2AFC_RATIO
 from masking_lab.procedures.staircase import StaircaseSettings
 from masking_lab.procedures.staircase_batch import Observer
@@ -255,7 +255,7 @@ def parse_ratios(text: str) -> tuple[float, ...]:
     return ratios
 
 
-def protocol_staircase(protocol: Protocol) -> StaircaseSettings:
+def protocol_staircase(protocol: ThresholdProtocol) -> StaircaseSettings:
     """The staircase settings the protocol's sets share (they may differ only in start level).
 
     Raises
@@ -278,7 +278,7 @@ def protocol_staircase(protocol: Protocol) -> StaircaseSettings:
     return base
 
 
-def paper_staircase(protocol: Protocol) -> StaircaseSettings:
+def paper_staircase(protocol: ThresholdProtocol) -> StaircaseSettings:
     """The paper's staircase (steps 4,4,4,2 dB, 11/8, start 20 dB, cap 150) within the range of
     a protocol whose sets run another procedure, so ``plan`` can set it beside them.
 
@@ -301,7 +301,7 @@ def paper_staircase(protocol: Protocol) -> StaircaseSettings:
     )
 
 
-def runs_staircase(protocol: Protocol) -> bool:
+def runs_staircase(protocol: ThresholdProtocol) -> bool:
     """Whether the protocol's sets run the staircase (else another procedure, e.g. QUEST+).
 
     Examples
@@ -314,7 +314,7 @@ def runs_staircase(protocol: Protocol) -> bool:
     return any(s.staircase is not None for s in protocol.sets)
 
 
-def protocol_procedure_text(protocol: Protocol) -> str:
+def protocol_procedure_text(protocol: ThresholdProtocol) -> str:
     """The protocol's own procedure and settings in words: what ``plan`` calls "this protocol".
 
     Examples
@@ -349,26 +349,26 @@ def protocol_procedure_text(protocol: Protocol) -> str:
     )
 
 
-def protocol_stop_rule(protocol: Protocol) -> StopRule:
+def protocol_stop_rule(protocol: ThresholdProtocol) -> StopRule:
     """The stop rule the protocol uses (11/8 in the paper)."""
     sc = protocol_staircase(protocol)
     return StopRule(sc.n_reversals, sc.n_reversals_averaged)
 
 
-def protocol_schedule(protocol: Protocol) -> Schedule:
+def protocol_schedule(protocol: ThresholdProtocol) -> Schedule:
     """The step schedule and ratio the protocol uses."""
     sc = protocol_staircase(protocol)
     return Schedule(sc.step_sizes_db, sc.down_up_ratio)
 
 
-def default_stop_rules(protocol: Protocol) -> tuple[StopRule, ...]:
+def default_stop_rules(protocol: ThresholdProtocol) -> tuple[StopRule, ...]:
     """7/4, 9/6, 11/8, 13/10, 15/12 and the protocol's own rule."""
     rules = {StopRule(n, n - 3) for n in (7, 9, 11, 13, 15)} | {protocol_stop_rule(protocol)}
     return tuple(sorted(rules))
 
 
 def default_schedules(
-    protocol: Protocol, ratios: Sequence[float] | None = None
+    protocol: ThresholdProtocol, ratios: Sequence[float] | None = None
 ) -> tuple[Schedule, ...]:
     """The protocol's schedule, its first step then its last, and its last step throughout."""
     own = protocol_schedule(protocol)
@@ -400,7 +400,7 @@ def ladder_rules(protocol_rule: StopRule, max_reversals: int) -> tuple[StopRule,
 
 
 def true_thresholds_db(
-    protocol: Protocol,
+    protocol: ThresholdProtocol,
     truth: GroundTruth,
     replicates: int,
     rng: np.random.Generator,

@@ -30,7 +30,7 @@ from masking_lab.device.base import Device
 from masking_lab.device.level_check import refuse_unplayable
 from masking_lab.device.rig_limits import max_level_db_sl
 from masking_lab.formats.calibration import load_calibration, require
-from masking_lab.formats.protocol import Protocol, load_protocol
+from masking_lab.formats.protocol import ThresholdProtocol, load_protocol
 from masking_lab.formats.session_log import SessionLog, SetRecords
 from masking_lab.responders.base import Responder
 from masking_lab.session import frame
@@ -120,11 +120,11 @@ class SessionContext(ResponderContext):
 
     Attributes
     ----------
-    protocol : Protocol
+    protocol : ThresholdProtocol
         The protocol being run.
     """
 
-    protocol: Protocol
+    protocol: ThresholdProtocol
 
 
 # --------------------------------------------------------------------------------------------
@@ -241,7 +241,7 @@ class ThresholdKind:
 
 
 def _participant_info(
-    protocol: Protocol, given: Mapping[str, str], responder: str
+    protocol: ThresholdProtocol, given: Mapping[str, str], responder: str
 ) -> tuple[dict[str, Any], tuple[list[Any], dict[str, str]] | None]:
     """The protocol's ``info`` fields: ``--info`` values, the missing ones asked on a terminal.
 
@@ -266,7 +266,7 @@ def _participant_info(
 class _ThresholdPlan(frame.PlanDefaults):
     """A threshold session's plan for this process (see :class:`frame.SessionPlan`)."""
 
-    protocol: Protocol
+    protocol: ThresholdProtocol
     data_dir: Path
     order: list[str]
     calibration: dict[str, float]

@@ -28,7 +28,7 @@ from masking_lab.core.seeding import draw_target_interval
 from masking_lab.core.trial import TrialPlan
 from masking_lab.device.base import Device
 from masking_lab.formats.calibration import record_al
-from masking_lab.formats.protocol import Protocol, SetSpec
+from masking_lab.formats.protocol import SetSpec, ThresholdProtocol
 from masking_lab.formats.records import jsonable
 from masking_lab.formats.session_log import SessionLogWriter, SetRecords
 from masking_lab.procedures.base import Procedure, replay
@@ -135,7 +135,7 @@ class ThresholdSession(SessionShell[SessionResult]):
     def __init__(
         self,
         *,
-        protocol: Protocol,
+        protocol: ThresholdProtocol,
         participant: str,
         data_dir: Path,
         seed: int,

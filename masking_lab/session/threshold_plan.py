@@ -16,7 +16,7 @@ from masking_lab.core.errors import (
     LogError,
     ProtocolError,
 )
-from masking_lab.formats.protocol import Protocol, protocol_from_mapping
+from masking_lab.formats.protocol import ThresholdProtocol, protocol_from_mapping
 from masking_lab.formats.session_log import SessionLog, SetRecords
 
 # EXIT_* and the signal classes were public here first; the noqa lines re-export them.
@@ -31,7 +31,9 @@ from masking_lab.session.shell import (
 )
 
 
-def select_sets(protocol: Protocol, order: list[str], wanted: Sequence[str] | None) -> list[str]:
+def select_sets(
+    protocol: ThresholdProtocol, order: list[str], wanted: Sequence[str] | None
+) -> list[str]:
     if not wanted:
         return order
     known = set(order)
@@ -47,7 +49,7 @@ def select_sets(protocol: Protocol, order: list[str], wanted: Sequence[str] | No
     return [s for s in order if s in chosen]
 
 
-def stimuli_of(protocol: Protocol, order: Sequence[str]) -> set[str]:
+def stimuli_of(protocol: ThresholdProtocol, order: Sequence[str]) -> set[str]:
     names: set[str] = set()
     for set_id in order:
         spec = protocol.set_by_id(set_id)
@@ -59,7 +61,7 @@ def stimuli_of(protocol: Protocol, order: Sequence[str]) -> set[str]:
 
 def protocol_from_header(
     header: Mapping[str, Any], path: Path, allow_changed: bool, out: ProgressLine
-) -> Protocol:
+) -> ThresholdProtocol:
     meta = header["protocol"]
     logged_sha = str(meta["sha256"])
     on_disk = Path(str(meta["path"]))
@@ -88,7 +90,9 @@ def protocol_from_header(
     return dataclasses.replace(protocol, path=str(meta["path"]))
 
 
-def check_trials(path: Path, protocol: Protocol, existing: Mapping[str, SetRecords]) -> None:
+def check_trials(
+    path: Path, protocol: ThresholdProtocol, existing: Mapping[str, SetRecords]
+) -> None:
     """Logged trials must be contiguous and replay to their logged levels (any procedure)."""
     level_key = "level_db_sl" if protocol.level_unit == "db_sl" else "level_db_v"
     for set_id, rec in existing.items():

@@ -25,7 +25,7 @@ import numpy as np
 import yaml
 
 from masking_lab import __version__
-from masking_lab.formats.protocol import Protocol, load_protocol, parse_protocol
+from masking_lab.formats.protocol import ThresholdProtocol, load_protocol, parse_protocol
 from masking_lab.formats.resources import shipped
 from masking_lab.formats.session_log import SessionLogWriter
 from masking_lab.procedures.log_fields import end_fields, start_fields, trial_fields
@@ -40,12 +40,12 @@ PAPER_PROTOCOLS = ("baseline", "experiment1", "experiment2")
 _EPOCH = datetime(2024, 3, 4, 9, 0, 0, tzinfo=UTC)
 
 
-def paper_protocol(name: str) -> Protocol:
+def paper_protocol(name: str) -> ThresholdProtocol:
     """Load a protocol shipped in ``protocols/`` (``"baseline"``, ``"experiment1"``, ...)."""
     return load_protocol(str(shipped("protocols", f"{name}.yaml")))
 
 
-def baseline_near(truth: GroundTruth, *, start_above_db: float = 10.0) -> Protocol:
+def baseline_near(truth: GroundTruth, *, start_above_db: float = 10.0) -> ThresholdProtocol:
     """The shipped baseline protocol with each set starting near the population's AL.
 
     The shipped protocol starts every baseline staircase at 0 dB re 1 V, 14–32 dB above the
@@ -63,7 +63,7 @@ def baseline_near(truth: GroundTruth, *, start_above_db: float = 10.0) -> Protoc
 
 
 def simulate_session(
-    protocol: Protocol,
+    protocol: ThresholdProtocol,
     participant: SimulatedParticipant,
     *,
     calibration: dict[str, float],
@@ -75,7 +75,7 @@ def simulate_session(
 
     Parameters
     ----------
-    protocol : Protocol
+    protocol : ThresholdProtocol
         What to run.
     participant : SimulatedParticipant
         Who answers.
@@ -218,7 +218,7 @@ def simulate_study(
     n_participants: int = 10,
     seed: int = 0,
     truth: GroundTruth | None = None,
-    protocols: Sequence[str | Protocol] = PAPER_PROTOCOLS,
+    protocols: Sequence[str | ThresholdProtocol] = PAPER_PROTOCOLS,
     baseline_start_above_db: float | None = None,
 ) -> list[Path]:
     """Simulate a whole study and write one log per participant and protocol.
@@ -245,8 +245,8 @@ def simulate_study(
     """
     truth = truth or load_ground_truth()
 
-    def load(p: str | Protocol) -> Protocol:
-        if isinstance(p, Protocol):
+    def load(p: str | ThresholdProtocol) -> ThresholdProtocol:
+        if isinstance(p, ThresholdProtocol):
             return p
         if p == "baseline" and baseline_start_above_db is not None:
             return baseline_near(truth, start_above_db=baseline_start_above_db)
