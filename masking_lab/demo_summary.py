@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from masking_lab.core.errors import MaskingLabError
+from masking_lab.core.errors import AnalysisError, MaskingLabError
 from masking_lab.simulation.observer import GroundTruth
 
 if TYPE_CHECKING:
@@ -73,7 +73,7 @@ def sample_truth(
     ]
     fit = fit_ramp(x, np.mean(shifts, axis=0))
     if fit.intercept_db is None or fit.slope is None:
-        raise ValueError(fit.message)
+        raise AnalysisError(fit.message)
     return float(fit.intercept_db), float(fit.slope)
 
 

@@ -65,3 +65,24 @@ def test_exit_code_of_a_device_failure_is_3_and_names_the_device(tmp_path, capsy
     assert code == 3
     assert "masking-lab run: device error: cannot open serial port" in err
     assert "responder error" not in err and "fix the device" in err and "Traceback" not in err
+
+
+def test_bad_values_a_user_can_give_are_core_errors_naming_the_field():
+    from masking_lab.core.errors import InputError, LevelError
+    from masking_lab.core.psychometric import Psychometric
+    from masking_lab.core.stimulus import Stimulus, as_channel, parse_stimulus
+    from masking_lab.core.waveforms import tone
+    from masking_lab.responders.cue import TrialTiming
+
+    cases = [
+        (lambda: parse_stimulus("LRA170"), InputError, "not a stimulus name"),
+        (lambda: as_channel("LRA", "channel"), InputError, "write EV or MV"),
+        (lambda: Stimulus("MV", 0), InputError, "carrier_hz"),
+        (lambda: Psychometric(0.0, -1.5, 1 / 3, 0.02), InputError, "scale_db"),
+        (lambda: TrialTiming(0.5, 0.0, 0.5), InputError, "stimulus_s"),
+        (lambda: tone(270.0, float("nan"), 0.1, 10_000.0), LevelError, "amplitude"),
+    ]
+    for make, kind, field in cases:
+        with pytest.raises(kind, match=field) as info:
+            make()
+        assert isinstance(info.value, MaskingLabError) and isinstance(info.value, ValueError)

@@ -35,7 +35,7 @@ from msgspec import UNSET
 
 from masking_lab.analysis.procedure_estimates import procedure_estimate
 from masking_lab.analysis.psychometric import fit_pf
-from masking_lab.core.errors import AnalysisError
+from masking_lab.core.errors import AnalysisError, LevelError
 from masking_lab.core.psychometric import GUESS_3IFC
 from masking_lab.core.stimulus import Stimulus, parse_stimulus
 from masking_lab.formats.log_records import ATrial
@@ -365,7 +365,7 @@ def _finite(value: Any, what: str) -> float:
     """``value`` as a finite float (dB), or ValueError naming ``what``."""
     x = float(value)
     if not math.isfinite(x):
-        raise ValueError(f"{what} {x} is not a finite number of dB")
+        raise LevelError(f"{what} {x} is not a finite number of dB")
     return x
 
 

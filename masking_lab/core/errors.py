@@ -19,6 +19,20 @@ class LevelError(MaskingLabError, ValueError):
     """A level or amplitude cannot be converted (0 V, NaN, ±inf, above the device's rating)."""
 
 
+class InputError(MaskingLabError, ValueError):
+    """A value given in a file, on the command line or in a form is malformed or out of range
+    (a stimulus name, a channel, a participant-info answer, a cue or observer setting).
+
+    The message names the field and what to write instead; a ``ValueError`` too, so callers that
+    check values with ``except ValueError`` keep working.
+
+    Examples
+    --------
+    >>> issubclass(InputError, ValueError)
+    True
+    """
+
+
 class ProtocolError(MaskingLabError):
     """A protocol, scene or config file is malformed.
 

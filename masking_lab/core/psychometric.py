@@ -15,6 +15,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from masking_lab.core.errors import InputError
+
 GUESS_3IFC = 1.0 / 3.0
 LEVITT_1U3D = 0.5 ** (1.0 / 3.0)
 
@@ -38,7 +40,7 @@ class Psychometric:
 
     Raises
     ------
-    ValueError
+    InputError
         For a non-positive scale, or a guess, lapse or ``p_at_threshold`` out of range.
 
     Examples
@@ -61,13 +63,13 @@ class Psychometric:
 
     def __post_init__(self) -> None:
         if not self.scale_db > 0:
-            raise ValueError(f"scale_db must be > 0 dB, got {self.scale_db}")
+            raise InputError(f"scale_db must be > 0 dB, got {self.scale_db}")
         if not 0 <= self.guess < 1:
-            raise ValueError(f"guess must be in [0, 1), got {self.guess}")
+            raise InputError(f"guess must be in [0, 1), got {self.guess}")
         if not 0 <= self.lapse < 1 - self.guess:
-            raise ValueError(f"lapse must be in [0, 1 - guess), got {self.lapse}")
+            raise InputError(f"lapse must be in [0, 1 - guess), got {self.lapse}")
         if not self.guess < self.p_at_threshold < 1 - self.lapse:
-            raise ValueError(
+            raise InputError(
                 f"p_at_threshold={self.p_at_threshold} must lie between guess={self.guess} "
                 f"and 1 - lapse={1 - self.lapse}"
             )

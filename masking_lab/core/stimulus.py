@@ -15,6 +15,8 @@ import re
 from dataclasses import dataclass
 from typing import Literal
 
+from masking_lab.core.errors import InputError
+
 Channel = Literal["EV", "MV"]
 CHANNELS: tuple[Channel, ...] = ("EV", "MV")
 
@@ -36,7 +38,7 @@ class Stimulus:
 
     Raises
     ------
-    ValueError
+    InputError
         For an unknown channel or a non-positive frequency.
 
     Examples
@@ -53,11 +55,11 @@ class Stimulus:
 
     def __post_init__(self) -> None:
         if self.channel not in CHANNELS:
-            raise ValueError(f"channel must be one of {CHANNELS}, got {self.channel!r}")
+            raise InputError(f"channel must be one of {CHANNELS}, got {self.channel!r}")
         if not self.carrier_hz > 0:
-            raise ValueError(f"carrier_hz must be > 0 Hz, got {self.carrier_hz!r}")
+            raise InputError(f"carrier_hz must be > 0 Hz, got {self.carrier_hz!r}")
         if self.envelope_hz is not None and not self.envelope_hz > 0:
-            raise ValueError(f"envelope_hz must be > 0 Hz or None, got {self.envelope_hz!r}")
+            raise InputError(f"envelope_hz must be > 0 Hz or None, got {self.envelope_hz!r}")
 
     @property
     def name(self) -> str:
@@ -97,16 +99,16 @@ def parse_stimulus(name: str) -> Stimulus:
     >>> parse_stimulus("LRA170")
     Traceback (most recent call last):
     ...
-    ValueError: 'LRA170' is not a stimulus name: write <EV|MV><carrier Hz>[am<envelope Hz>], ...
+    masking_lab.core.errors.InputError: 'LRA170' is not a stimulus name: write <EV|MV><carrier Hz>[am<envelope Hz>], ...
 
     Raises
     ------
-    ValueError
+    InputError
         If ``name`` does not follow ``<EV|MV><carrier Hz>[am<envelope Hz>]``.
     """
     match = _NAME.match(str(name).strip())
     if not match:
-        raise ValueError(
+        raise InputError(
             f"{name!r} is not a stimulus name: write <EV|MV><carrier Hz>[am<envelope Hz>], "
             "for example EV270, MV120 or MV120am40"
         )
@@ -152,7 +154,7 @@ def as_channel(value: object, what: str = "channel") -> Channel:
 
     Raises
     ------
-    ValueError
+    InputError
         If ``value`` is anything else.
 
     Examples
@@ -162,13 +164,13 @@ def as_channel(value: object, what: str = "channel") -> Channel:
     >>> as_channel("LRA", "tch")
     Traceback (most recent call last):
     ...
-    ValueError: tch is 'LRA': write EV or MV
+    masking_lab.core.errors.InputError: tch is 'LRA': write EV or MV
     """
     if value == "EV":
         return "EV"
     if value == "MV":
         return "MV"
-    raise ValueError(f"{what} is {value!r}: write EV or MV")
+    raise InputError(f"{what} is {value!r}: write EV or MV")
 
 
 def _num(x: float) -> str:

@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import NDArray
 
+from masking_lab.core.errors import InputError, LevelError
 from masking_lab.core.stimulus import Channel, Stimulus
 
 if TYPE_CHECKING:  # annotation only: the core does not import the device shell at run time
@@ -100,9 +101,12 @@ def tone(
 
     Raises
     ------
+    LevelError
+        For a non-finite or negative amplitude.
+    InputError
+        For frequencies at or above Nyquist, a non-positive ramp or duration.
     ValueError
-        For non-finite or negative amplitudes, frequencies at or above Nyquist, a non-positive
-        ramp, or a tone shorter than 3 samples.
+        For a tone shorter than 3 samples.
 
     Examples
     --------
@@ -114,17 +118,17 @@ def tone(
     """
     _check_rate(sample_rate_hz)
     if not (math.isfinite(amplitude_v) and amplitude_v >= 0):
-        raise ValueError(f"amplitude must be a finite peak ≥ 0 V, got {amplitude_v!r}")
+        raise LevelError(f"amplitude must be a finite peak ≥ 0 V, got {amplitude_v!r}")
     for name, f in (("carrier_hz", carrier_hz), ("envelope_hz", envelope_hz)):
         if f is not None and not (0 < f < sample_rate_hz / 2):
-            raise ValueError(
+            raise InputError(
                 f"{name}={f!r} must be between 0 and half the sample rate "
                 f"({sample_rate_hz / 2:g} Hz); raise waveform.sample_rate_hz"
             )
     if not ramp_s > 0:
-        raise ValueError(f"ramp_s must be > 0 s so tones do not click, got {ramp_s!r}")
+        raise InputError(f"ramp_s must be > 0 s so tones do not click, got {ramp_s!r}")
     if not (math.isfinite(duration_s) and duration_s > 0):
-        raise ValueError(f"duration must be a finite number of s > 0, got {duration_s!r}")
+        raise InputError(f"duration must be a finite number of s > 0, got {duration_s!r}")
     n = round(duration_s * sample_rate_hz) + 1
     t = np.arange(n) / sample_rate_hz
     unit = ramp_window(n, round(ramp_s * sample_rate_hz)) * np.sin(2 * np.pi * carrier_hz * t)

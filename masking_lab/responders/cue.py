@@ -18,7 +18,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, Literal
 
-from masking_lab.core.errors import ProtocolError
+from masking_lab.core.errors import InputError, ProtocolError
 
 CUE_SPEED_MM_S = 51.0
 """Sliding speed of the cue, mm/s (paper §2.3, after typical exploration speeds)."""
@@ -188,11 +188,11 @@ class TrialTiming:
         for key in ("lead_in_s", "stimulus_s", "gap_s"):
             value = getattr(self, key)
             if not math.isfinite(value) or value < 0:
-                raise ValueError(f"{key} must be a finite number of s ≥ 0, got {value!r}")
+                raise InputError(f"{key} must be a finite number of s ≥ 0, got {value!r}")
         if not self.stimulus_s > 0:
-            raise ValueError(f"stimulus_s must be > 0 s, got {self.stimulus_s!r}")
+            raise InputError(f"stimulus_s must be > 0 s, got {self.stimulus_s!r}")
         if self.n_intervals < 1:
-            raise ValueError(f"n_intervals must be ≥ 1, got {self.n_intervals!r}")
+            raise InputError(f"n_intervals must be ≥ 1, got {self.n_intervals!r}")
 
     @classmethod
     def from_plan(cls, plan: Any) -> TrialTiming:
@@ -299,9 +299,9 @@ class CueLayout:
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.speed_mm_s) and self.speed_mm_s > 0):
-            raise ValueError(f"speed_mm_s must be > 0 mm/s, got {self.speed_mm_s!r}")
+            raise InputError(f"speed_mm_s must be > 0 mm/s, got {self.speed_mm_s!r}")
         if not (math.isfinite(self.lane_spacing_mm) and self.lane_spacing_mm > 0):
-            raise ValueError(f"lane_spacing_mm must be > 0 mm, got {self.lane_spacing_mm!r}")
+            raise InputError(f"lane_spacing_mm must be > 0 mm, got {self.lane_spacing_mm!r}")
 
     @property
     def sweep_mm(self) -> float:

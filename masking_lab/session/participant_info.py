@@ -22,7 +22,7 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from masking_lab.core.errors import ProtocolError
+from masking_lab.core.errors import InputError, ProtocolError
 
 __all__ = [
     "INFO_TYPES",
@@ -69,7 +69,7 @@ class InfoField:
         return f"{what}{unit}{hint}{'' if self.required else ' (optional, Enter to skip)'}: "
 
     def convert(self, text: str) -> Any:
-        """The value of ``text``, or ValueError saying what is expected.
+        """The value of ``text``, or InputError (a ValueError) saying what is expected.
 
         Examples
         --------
@@ -78,24 +78,24 @@ class InfoField:
         >>> InfoField("hand", "choice", ("left", "right")).convert("up")
         Traceback (most recent call last):
         ...
-        ValueError: hand: 'up' is not one of left, right
+        masking_lab.core.errors.InputError: hand: 'up' is not one of left, right
         """
         text = text.strip()
         if self.type == "integer":
             try:
                 return int(text)
             except ValueError:
-                raise ValueError(f"{self.name}: {text!r} is not a whole number") from None
+                raise InputError(f"{self.name}: {text!r} is not a whole number") from None
         if self.type == "number":
             try:
                 value = float(text)
             except ValueError:
-                raise ValueError(f"{self.name}: {text!r} is not a number") from None
+                raise InputError(f"{self.name}: {text!r} is not a number") from None
             if not math.isfinite(value):
-                raise ValueError(f"{self.name}: {text!r} is not a finite number")
+                raise InputError(f"{self.name}: {text!r} is not a finite number")
             return value
         if self.type == "choice" and text not in self.choices:
-            raise ValueError(f"{self.name}: {text!r} is not one of {', '.join(self.choices)}")
+            raise InputError(f"{self.name}: {text!r} is not one of {', '.join(self.choices)}")
         return text
 
 

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from masking_lab.core.errors import CalibrationError
+from masking_lab.core.errors import CalibrationError, LevelError
 from masking_lab.core.levels import volts_to_db_v
 from masking_lab.core.stimulus import CHANNELS, Channel, parse_stimulus
 from masking_lab.rendering.render import Rendering, runs_mm
@@ -474,7 +474,7 @@ class Streamer:
         for ch in CHANNELS:
             new = float(levels_db_v.get(ch, SILENT))
             if math.isnan(new):
-                raise ValueError(f"{ch} level at {t_s} s is NaN; a level is dB re 1 V or -inf")
+                raise LevelError(f"{ch} level at {t_s} s is NaN; a level is dB re 1 V or -inf")
             old = self.held[ch]
             if new == old:
                 continue
