@@ -12,7 +12,7 @@ from masking_lab.analysis.pooling import (
     pool_all,
     pool_by_paired_tests,
 )
-from masking_lab.analysis.stats import PairedTest
+from masking_lab.analysis.t_tests import PairedTest
 from masking_lab.core.errors import AnalysisError
 
 LEVELS = ["MV120", "MV180", "MV270"]

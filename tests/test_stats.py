@@ -10,14 +10,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy import stats as sps
 
-from masking_lab.analysis.stats import (
-    mauchly,
-    one_sample_t,
-    paired_comparisons,
-    paired_t,
-    rm_anova,
-    rm_design,
-)
+from masking_lab.analysis.stats import mauchly, rm_anova, rm_design
+from masking_lab.analysis.t_tests import one_sample_t, paired_comparisons, paired_t
 from masking_lab.core.errors import AnalysisError
 
 pg = pytest.importorskip("pingouin")

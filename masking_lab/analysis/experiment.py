@@ -26,15 +26,8 @@ from masking_lab.analysis.pooling import (
 from masking_lab.analysis.pooling_lr import compare_pooling, comparison_lines
 from masking_lab.analysis.ramp_fit import RampFit, fit_ramp, participant_bootstrap, with_bootstrap
 from masking_lab.analysis.settings import AnalysisSettings
-from masking_lab.analysis.stats import (
-    Effect,
-    OneSampleT,
-    PairedTest,
-    one_sample_t,
-    paired_comparisons,
-    rm_anova,
-    rm_design,
-)
+from masking_lab.analysis.stats import Effect, rm_anova, rm_design
+from masking_lab.analysis.t_tests import OneSampleT, PairedTest, one_sample_t, paired_comparisons
 from masking_lab.core.errors import AnalysisError
 
 __all__ = [

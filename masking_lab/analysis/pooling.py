@@ -26,7 +26,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Literal
 
-from masking_lab.analysis.stats import PairedTest
+from masking_lab.analysis.t_tests import PairedTest
 from masking_lab.core.errors import AnalysisError
 from masking_lab.core.stimulus import is_stimulus_name, parse_stimulus
 
@@ -101,7 +101,7 @@ def pool_by_paired_tests(
         The frequency-factor levels.
     tests : sequence of PairedTest
         Paired comparisons between those levels (from
-        :func:`masking_lab.analysis.stats.paired_comparisons`).
+        :func:`masking_lab.analysis.t_tests.paired_comparisons`).
     alpha : float
         A pair with ``p_bonf ≥ alpha`` counts as "not different". A pair whose differences have
         zero variance counts as not different only if its mean difference is 0.

@@ -20,7 +20,8 @@ from masking_lab.analysis.experiment import ExperimentResult, GroupFit, result_w
 from masking_lab.analysis.pooling import PoolingDecision
 from masking_lab.analysis.report_lab import LabSection
 from masking_lab.analysis.settings import EPOCH_UTC, AnalysisSettings
-from masking_lab.analysis.stats import Effect, PairedTest
+from masking_lab.analysis.stats import Effect
+from masking_lab.analysis.t_tests import PairedTest
 
 __all__ = [
     "ExcludedSet",

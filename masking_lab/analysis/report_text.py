@@ -19,7 +19,7 @@ from masking_lab.analysis.report import (
     experiment_heading,
 )
 from masking_lab.analysis.report_lab import lab_text_sections
-from masking_lab.analysis.stats import PairedTest
+from masking_lab.analysis.t_tests import PairedTest
 
 __all__ = ["render_text"]
 

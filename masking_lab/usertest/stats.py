@@ -3,7 +3,7 @@
 :func:`analyze_usertest` takes logged trial records (:func:`~masking_lab.usertest.design
 .trial_record`): correct rates (0–1) per participant and condition, a paired t-test per measure
 (both answers, geometry, texture) with Cohen's d_z — the one paired t-test of
-:func:`masking_lab.analysis.stats.paired_t` — and confusion matrices (counts) per condition.
+:func:`masking_lab.analysis.t_tests.paired_t` — and confusion matrices (counts) per condition.
 Pure: pandas is imported when it runs.
 """
 
@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from masking_lab.analysis.stats import paired_t
+from masking_lab.analysis.t_tests import paired_t
 from masking_lab.core.errors import AnalysisError
 from masking_lab.usertest.design import CONDITIONS, MEASURES
 
