@@ -60,12 +60,9 @@ class VirtualClock:
     --------
     >>> clock = VirtualClock()
     >>> clock.sleep_until(2.5)
-    >>> clock.advance(0.5)
-    >>> clock.now()
-    3.0
     >>> clock.sleep_until(1.0)  # never goes backwards
     >>> clock.now()
-    3.0
+    2.5
     """
 
     virtual = True
@@ -78,15 +75,3 @@ class VirtualClock:
 
     def sleep_until(self, t: float) -> None:
         self._t = max(self._t, float(t))
-
-    def advance(self, dt: float) -> None:
-        """Move time forward by ``dt`` s (≥ 0).
-
-        Raises
-        ------
-        ValueError
-            If ``dt`` is negative.
-        """
-        if dt < 0:
-            raise ValueError(f"virtual time cannot go backwards (dt={dt} s)")
-        self._t += dt

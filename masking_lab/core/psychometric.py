@@ -51,8 +51,6 @@ class Psychometric:
     >>> psy = Psychometric(threshold_db=-30.0)
     >>> np.round(psy.p_correct([-1e6, -30.0, 1e6]), 3).tolist()
     [0.333, 0.794, 0.98]
-    >>> round(psy.level_at(LEVITT_1U3D), 6)
-    -30.0
     """
 
     threshold_db: float
@@ -113,31 +111,3 @@ class Psychometric:
         e = np.exp(-np.abs(z))
         f = np.where(z >= 0, 1.0 / (1.0 + e), e / (1.0 + e))
         return self.guess + (1.0 - self.guess - self.lapse) * f
-
-    def level_at(self, p: float) -> float:
-        """Inverse: the level in dB at which p(correct) = ``p`` (γ < p < 1 − λ).
-
-        Parameters
-        ----------
-        p : float
-            Probability correct, strictly between γ and 1 − λ.
-
-        Returns
-        -------
-        float
-            Level in dB (same reference as ``threshold_db``).
-
-        Raises
-        ------
-        ValueError
-            If ``p`` is outside (γ, 1 − λ).
-
-        Examples
-        --------
-        >>> round(Psychometric(threshold_db=-30.0).level_at(0.9), 2)
-        -28.42
-        """
-        if not self.guess < p < 1 - self.lapse:
-            raise ValueError(f"p={p} is outside ({self.guess}, {1 - self.lapse})")
-        q = (p - self.guess) / (1.0 - self.guess - self.lapse)
-        return self.location_db + self.scale_db * float(np.log(q / (1.0 - q)))
