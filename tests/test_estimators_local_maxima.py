@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from masking_lab.procedures.estimators import ml_threshold
-from masking_lab.procedures.ml_batch import ml_threshold_db
+from masking_lab.procedures.ml_batch import level_counts, ml_threshold_from_counts
 
 HARD_TRACKS = {
     "seed2_track151": (
@@ -55,6 +55,6 @@ def test_scalar_fit_reaches_the_global_maximum(name):
     best = np.max(np.where(r[None, :], np.log(p), np.log1p(-p)).sum(axis=1))
     assert fit.log_likelihood >= best - 1e-6
     # ... and the batch estimator, which found the higher maximum all along, agrees.
-    batch = ml_threshold_db(x[None, :], r[None, :], lapse=0.02)
+    batch = ml_threshold_from_counts(level_counts(x[None, :], r[None, :]), lapse=0.02)
     assert fit.log_likelihood == pytest.approx(batch.log_likelihood[0], abs=1e-5)
     assert fit.threshold_db == pytest.approx(batch.threshold_db[0], abs=0.02)

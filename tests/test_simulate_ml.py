@@ -21,12 +21,17 @@ from masking_lab.procedures.ml_batch import (
     index_levels,
     level_counts,
     log_likelihood,
-    ml_threshold_db,
+    ml_threshold_from_counts,
 )
 from masking_lab.procedures.staircase import StaircaseSettings
 from masking_lab.procedures.staircase_batch import Observer, simulate
 
 estimators = pytest.importorskip("masking_lab.procedures.estimators")
+
+
+def ml_threshold_db(levels_db, correct, **options):
+    """ML fit of every track of a (tracks × trials) level and answer matrix."""
+    return ml_threshold_from_counts(level_counts(levels_db, correct), **options)
 
 
 def staircase_tracks(n: int, seed: int, scale_db: float = 1.5):

@@ -28,10 +28,9 @@ tenths of a dB, at likelihoods equal to 1e-6); the threshold is then only known 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TypedDict, Unpack
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import NDArray
 
 from masking_lab.core.errors import AnalysisError
 from masking_lab.core.psychometric import GUESS_3IFC, LEVITT_1U3D
@@ -49,11 +48,9 @@ __all__ = [
     "LevelCounts",
     "LevelIndex",
     "MLFit",
-    "MLOptions",
     "index_levels",
     "level_counts",
     "log_likelihood",
-    "ml_threshold_db",
     "ml_threshold_from_counts",
 ]
 
@@ -91,40 +88,6 @@ class MLFit:
     log_likelihood: NDArray[np.float64]
 
 
-class MLOptions(TypedDict, total=False):
-    """The model and fit options of :func:`ml_threshold_from_counts`, by keyword."""
-
-    scale_db: float
-    lapse: float
-    guess: float
-    p_target: float
-    fit_scale: bool
-    scale_bounds_db: tuple[float, float]
-    min_trials: int
-
-
-def ml_threshold_db(
-    levels_db: ArrayLike, correct: ArrayLike, **options: Unpack[MLOptions]
-) -> MLFit:
-    """Maximum-likelihood threshold of every track (see the module docstring).
-
-    Parameters
-    ----------
-    levels_db : array, shape (R, T)
-        Trial levels in dB (NaN = no trial).
-    correct : array of bool, shape (R, T)
-        Answers.
-    **options
-        As for :func:`ml_threshold_from_counts`.
-
-    Raises
-    ------
-    AnalysisError
-        If the model parameters are impossible.
-    """
-    return ml_threshold_from_counts(level_counts(levels_db, correct), **options)
-
-
 def ml_threshold_from_counts(
     counts: LevelCounts,
     *,
@@ -136,7 +99,9 @@ def ml_threshold_from_counts(
     scale_bounds_db: tuple[float, float] = (0.1, 20.0),
     min_trials: int = 10,
 ) -> MLFit:
-    """:func:`ml_threshold_db` on counts from :func:`level_counts` or :meth:`LevelIndex.counts`.
+    """Maximum-likelihood threshold of every track (see the module docstring), from its counts:
+    :func:`level_counts` of a (tracks × trials) level and answer matrix, or
+    :meth:`LevelIndex.counts`.
 
     Parameters
     ----------
