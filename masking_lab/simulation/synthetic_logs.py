@@ -40,11 +40,6 @@ PAPER_PROTOCOLS = ("baseline", "experiment1", "experiment2")
 _EPOCH = datetime(2024, 3, 4, 9, 0, 0, tzinfo=UTC)
 
 
-def paper_protocol(name: str) -> ThresholdProtocol:
-    """Load a protocol shipped in ``protocols/`` (``"baseline"``, ``"experiment1"``, ...)."""
-    return load_protocol(str(shipped("protocols", f"{name}.yaml")))
-
-
 def baseline_near(truth: GroundTruth, *, start_above_db: float = 10.0) -> ThresholdProtocol:
     """The shipped baseline protocol with each set starting near the population's AL.
 
@@ -250,7 +245,7 @@ def simulate_study(
             return p
         if p == "baseline" and baseline_start_above_db is not None:
             return baseline_near(truth, start_above_db=baseline_start_above_db)
-        return paper_protocol(p)
+        return load_protocol(str(shipped("protocols", f"{p}.yaml")))  # a shipped protocol
 
     loaded = [load(p) for p in protocols]
     loaded.sort(key=lambda pr: pr.kind != "baseline")
