@@ -300,6 +300,8 @@ class NidaqDevice:
                 self._active = None
                 task.stop()
                 task.close()
+            # the Device contract: return once the trial has ended (a no-op after real hardware)
+            self.clock.sleep_until(start_s + plan.duration_s)
         except BaseException as exc:
             # Ctrl-C, SIGTERM's SystemExit, a driver error or STOP: abort the task, then 0 V.
             aborted = self._aborted
