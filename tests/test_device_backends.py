@@ -129,20 +129,20 @@ def test_factory_and_session_refuse_bad_specs_with_the_registrys_one_message(spe
     assert "serial:auto" in str(opened.value) and "nidaq[:DEVICE]" in str(opened.value)
 
 
-@pytest.mark.parametrize(
-    ("spec", "name", "arg"),
-    [
-        ("sim", "sim", ""),
-        (" emulator\n", "emulator", ""),
-        ("serial:/dev/pts/3", "serial", "/dev/pts/3"),
-        ("serial:auto", "serial", "auto"),
-        ("nidaq", "nidaq", ""),
-        ("nidaq:Dev1/ao0:1", "nidaq", "Dev1/ao0:1"),
-    ],
-)
-def test_registry_parses_every_form(spec, name, arg):
-    backend, parsed = parse_spec(spec)
-    assert (backend.name, parsed) == (name, arg)
+FORMS = {  # spec: (back-end, argument)
+    "sim": ("sim", ""),
+    " emulator\n": ("emulator", ""),
+    "serial:/dev/pts/3": ("serial", "/dev/pts/3"),
+    "serial:auto": ("serial", "auto"),
+    "nidaq": ("nidaq", ""),
+    "nidaq:Dev1/ao0:1": ("nidaq", "Dev1/ao0:1"),
+}
+
+
+@pytest.mark.parametrize("spec", FORMS)
+def test_registry_parses_every_form(spec):
+    backend, arg = parse_spec(spec)
+    assert (backend.name, arg) == FORMS[spec]
     assert opening.check_device_spec(spec) == spec.strip()
 
 

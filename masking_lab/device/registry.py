@@ -23,9 +23,6 @@ if TYPE_CHECKING:  # kept out of the import: checking a spec loads no device cod
     from masking_lab.device.base import Device
     from masking_lab.device.config import DeviceConfig
 
-#: ``(arg, config, clock, options) -> Device``; ``options`` holds ``seed`` and back-end extras.
-Opener = Callable[[str, "DeviceConfig", "Clock", Mapping[str, Any]], "Device"]
-
 
 @dataclass(frozen=True)
 class Capabilities:
@@ -56,6 +53,10 @@ class Capabilities:
     watchdog: bool
     faults: bool
     virtual_time: bool
+
+
+#: ``(arg, config, clock, options) -> Device``; ``options`` holds ``seed`` and back-end extras.
+Opener = Callable[[str, "DeviceConfig", "Clock", Mapping[str, Any]], "Device"]
 
 
 @dataclass(frozen=True)
