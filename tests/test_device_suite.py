@@ -127,5 +127,5 @@ def test_a_backend_that_misdeclares_fails_the_suite(tiny, claim, check):
 
 
 def test_registering_a_taken_name_is_refused(tiny):
-    with pytest.raises(ValueError, match="taken"):
+    with pytest.raises(MaskingLabError, match="taken"):
         registry.register(registry.BACKENDS["sim"])

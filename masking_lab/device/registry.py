@@ -112,7 +112,7 @@ def register(backend: Backend) -> Backend:
     True
     """
     if backend.name in BACKENDS or ":" in backend.name:
-        raise ValueError(f"device back-end name {backend.name!r} is taken or has a ':'")
+        raise MaskingLabError(f"device back-end name {backend.name!r} is taken or has a ':'")
     BACKENDS[backend.name] = backend
     return backend
 
