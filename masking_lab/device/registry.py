@@ -274,13 +274,12 @@ def _open_nidaq(arg: str, config: DeviceConfig, clock: Clock, options: Mapping[s
     return NidaqDevice(config, clock, device_name=arg or None)
 
 
+# What each declares (tests/test_device_suite.py checks every claim, the absences too).
+_SIM = Capabilities(streaming=True, watchdog=False, faults=False, virtual_time=True)
 _FIRMWARE = Capabilities(streaming=True, watchdog=True, faults=True, virtual_time=True)
-register(Backend("sim", "none", "sim", _open_sim, Capabilities(True, False, False, True)))
-register(Backend("emulator", "none", "emulator", _open_emulator, _FIRMWARE))
+_NIDAQ = Capabilities(streaming=False, watchdog=True, faults=True, virtual_time=False)
 _SERIAL_FORM = "serial:PORT (e.g. serial:/dev/ttyACM0), serial:auto (find the board by its HELLO)"
+register(Backend("sim", "none", "sim", _open_sim, _SIM))
+register(Backend("emulator", "none", "emulator", _open_emulator, _FIRMWARE))
 register(Backend("serial", "required", _SERIAL_FORM, _open_serial, _FIRMWARE))
-register(
-    Backend(
-        "nidaq", "optional", "nidaq[:DEVICE]", _open_nidaq, Capabilities(False, True, True, False)
-    )
-)
+register(Backend("nidaq", "optional", "nidaq[:DEVICE]", _open_nidaq, _NIDAQ))
