@@ -194,7 +194,9 @@ class NidaqStandinTarget(Target):
         self.state = nidaqmx_standin.install(self._patch)
 
     def open(self) -> Device:
-        self.state = self._standin.install(self._patch)  # a fresh model per device
+        import nidaqmx._standin
+
+        self.state = nidaqmx._standin.reset()  # a fresh model per device
         return open_device("nidaq", default_device_config(), RealClock())
 
     def outputs(self, device: Any) -> dict[str, float]:
@@ -231,8 +233,8 @@ class NidaqStandinTarget(Target):
             self.state.on_poll, self.state.polls_until_done = None, 3
 
     def close(self) -> None:
-        self._standin.uninstall()
         self._patch.undo()
+        self._standin.uninstall()  # after undo, which puts back what install() set aside
 
 
 #: Each target and the registered back-end it answers for.
