@@ -1,7 +1,9 @@
 """One conformance suite for every implementation of docs/device-protocol.md.
 
 The same tests run against the Python emulator, the C firmware built for the host and the
-STM32 image under QEMU (netduinoplus2), raw frames first and then through ``SerialDevice``.
+STM32 image under QEMU (netduinoplus2), in raw frames (and the interlock through
+``SerialDevice``); what a session sees through the Device interface is checked over these and
+the other back-ends by tests/test_device_suite.py.
 Timing is checked on device-reported times, never host wall time (QEMU runs on ``-icount``).
 """
 
