@@ -9,14 +9,15 @@ import pytest
 
 from masking_lab.core import waveforms
 from masking_lab.core.clock import RealClock, VirtualClock
-from masking_lab.core.errors import DeviceError, SafetyLimitError
+from masking_lab.core.errors import DeviceError, MaskingLabError, SafetyLimitError
 from masking_lab.core.stimulus import parse_stimulus
 from masking_lab.core.trial import TrialPlan
 from masking_lab.device.config import load_device_config
 from masking_lab.device.nidaq import build_output_buffer
-from masking_lab.device.registry import open_device
+from masking_lab.device.registry import open_device, parse_spec
 from masking_lab.device.serial_device import SerialDevice
 from masking_lab.device.sim import SimDevice
+from masking_lab.session import opening
 
 EV270, MV120 = parse_stimulus("EV270"), parse_stimulus("MV120")
 HAVE_NIDAQMX = importlib.util.find_spec("nidaqmx") is not None
@@ -104,10 +105,45 @@ def test_factory_loads_a_config_path(tmp_path):
     assert dev.identity.limits.max_drive_v == {"EV": 0.7, "MV": 1.0}
 
 
-@pytest.mark.parametrize("spec", ["", "serial", "serial:", "usb:/dev/x", "sim:extra", "emulators"])
-def test_factory_rejects_unknown_specs(spec):
-    with pytest.raises(DeviceError, match="choose sim, emulator, serial:PORT"):
+BAD_SPECS = [
+    "",
+    "serial",
+    "serial:",
+    "usb:/dev/x",
+    "sim:extra",
+    "emulators",
+    "nidaq:",
+    "serial:a\tb",
+]
+
+
+@pytest.mark.parametrize("spec", BAD_SPECS)
+def test_factory_and_session_refuse_bad_specs_with_the_registrys_one_message(spec):
+    # one grammar: the session's early check is the registry's, word for word
+    with pytest.raises(MaskingLabError, match="choose sim, emulator, serial:PORT") as opened:
         open_device(spec, None, VirtualClock())
+    with pytest.raises(MaskingLabError) as checked:
+        opening.check_device_spec(spec)
+    assert str(opened.value) == str(checked.value)
+    assert not isinstance(opened.value, DeviceError)  # bad input (exit 2), not a device fault
+    assert "serial:auto" in str(opened.value) and "nidaq[:DEVICE]" in str(opened.value)
+
+
+FORMS = {  # spec: (back-end, argument)
+    "sim": ("sim", ""),
+    " emulator\n": ("emulator", ""),
+    "serial:/dev/pts/3": ("serial", "/dev/pts/3"),
+    "serial:auto": ("serial", "auto"),
+    "nidaq": ("nidaq", ""),
+    "nidaq:Dev1/ao0:1": ("nidaq", "Dev1/ao0:1"),
+}
+
+
+@pytest.mark.parametrize("spec", FORMS)
+def test_registry_parses_every_form(spec):
+    backend, arg = parse_spec(spec)
+    assert (backend.name, arg) == FORMS[spec]
+    assert opening.check_device_spec(spec) == spec.strip()
 
 
 def test_factory_closes_its_emulator_when_the_handshake_fails():

@@ -182,3 +182,11 @@ def test_check_against_the_host_build_of_the_c_firmware(tmp_path, capsys):
     out = capsys.readouterr().out
     assert code == 0, out
     assert "protocol 2, firmware fw-2." in out and "ok    PLAY latency" in out
+
+
+@pytest.mark.parametrize(
+    "argv", [[], ["--device", "sim"], ["--device", "serial:"], ["--device", "x"]]
+)
+def test_device_check_takes_only_a_serial_spec_by_the_registrys_grammar(argv, capsys):
+    assert main(["device", "check", *argv]) == 2
+    assert "give PORT" in capsys.readouterr().err

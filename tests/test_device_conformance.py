@@ -1,7 +1,9 @@
 """One conformance suite for every implementation of docs/device-protocol.md.
 
 The same tests run against the Python emulator, the C firmware built for the host and the
-STM32 image under QEMU (netduinoplus2), raw frames first and then through ``SerialDevice``.
+STM32 image under QEMU (netduinoplus2), in raw frames (and the interlock through
+``SerialDevice``); what a session sees through the Device interface is checked over these and
+the other back-ends by tests/test_device_suite.py.
 Timing is checked on device-reported times, never host wall time (QEMU runs on ``-icount``).
 """
 
@@ -14,7 +16,7 @@ import pytest
 from firmware_support import TARGETS, Link, played, rig_config, start
 
 from masking_lab.core.clock import RealClock
-from masking_lab.core.errors import DeviceFaultError, SafetyLimitError
+from masking_lab.core.errors import DeviceFaultError
 from masking_lab.core.stimulus import Stimulus
 from masking_lab.device import protocol as proto
 from masking_lab.device.base import TrialPlan
@@ -208,13 +210,6 @@ def test_watchdog_zeroes_when_the_host_goes_quiet(device, link):
 # ------------------------------------------------------------------ through SerialDevice
 
 
-@pytest.fixture
-def serial_device(device):
-    dev = SerialDevice(device.port, rig_config(), RealClock(), backend="serial")
-    yield dev
-    dev.close()
-
-
 def _plan(amp_v: float = 0.5) -> TrialPlan:
     return TrialPlan(
         target=Stimulus("EV", 270.0),
@@ -228,33 +223,8 @@ def _plan(amp_v: float = 0.5) -> TrialPlan:
     )
 
 
-def test_serial_device_plays_trials_and_streams(device, serial_device):
-    dev = serial_device
-    assert dev.identity.limits.max_drive_v["EV"] <= 2.5
-    start = dev.clock.now() + 0.1
-    result = dev.play_trial(_plan(), start)
-    for actual, plan in zip(result.actual_onsets_s, result.planned_onsets_s, strict=True):
-        assert abs(actual - plan) < LATE_S[device.name] + 0.01  # offset estimate included
-    # DONE reports what the converter played: the request quantised at the step the host chose
-    conv = dev.converters
-    target_step, masker_step = result.extra["target_att_db"], result.extra["masker_att_db"]
-    assert result.played_target_v == pytest.approx(conv["EV"].played_v(0.5, target_step), abs=1e-6)
-    assert result.played_masker_v == pytest.approx(conv["MV"].played_v(0.3, masker_step), abs=1e-6)
-    assert abs(result.played_target_v - 0.5) <= conv["EV"].lsb_v(target_step) / 2 + 1e-6
-    dev.set_amplitude("MV", Stimulus("MV", 120.0), 0.2)
-    dev.set_amplitude("MV", Stimulus("MV", 120.0), 0.4)
-    assert dev._command("DIAG").number("mv") == pytest.approx(0.4, abs=20.0 / 4096)  # whole codes
-    dev.stop()
-    assert dev._command("DIAG").number("mv") == 0
-
-
-def test_serial_device_refuses_over_limit_before_sending(device, serial_device):
-    limit = serial_device.identity.limits.max_drive_v["EV"]
-    with pytest.raises(SafetyLimitError):
-        serial_device.play_trial(_plan(limit + 0.1), serial_device.clock.now())
-    with pytest.raises(SafetyLimitError):
-        serial_device.set_amplitude("EV", Stimulus("EV", 270.0), limit * 2)
-    assert serial_device._command("DIAG").fields["playing"] == "0"
+# Trials, streaming, stop and refused limits through SerialDevice: tests/test_device_suite.py
+# (the same checks over every back-end).
 
 
 def test_serial_device_reports_an_open_interlock(device):

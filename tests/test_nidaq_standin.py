@@ -91,7 +91,7 @@ def test_standin_identity_has_product_types_serials_chassis_driver_and_watchdog(
     header = device_record(ident)
     assert "NI 9264" in header["model"] and "1D4E5F6" in header["serial_number"]
     assert header["max_drive_v"] == {"EV": 5.0, "MV": 10.0}
-    assert device.details()["lines"] == {"EV": EV_LINE, "MV": MV_LINE}
+    assert device.lines == {"EV": EV_LINE, "MV": MV_LINE}
 
 
 def test_standin_opening_zeroes_and_arms_the_watchdog_with_0v_expiration_states(device, standin):

@@ -44,15 +44,19 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     import sys
 
-    from masking_lab.core.errors import DeviceError
+    from masking_lab.core.errors import DeviceError, MaskingLabError
+    from masking_lab.device import registry
     from masking_lab.device.check import format_report, run_checks
     from masking_lab.device.config import load_device_config
     from masking_lab.device.discovery import find_board
 
     config = load_device_config(args.device_config)
-    spec = args.device or (f"serial:{args.port}" if args.port else None)
-    kind, _, port = (spec or "").partition(":")
-    if kind != "serial" or not port:
+    spec = args.device or (f"serial:{args.port}" if args.port else "")
+    try:
+        kind, port = registry.parse_spec(spec)  # the one spec grammar
+    except MaskingLabError:
+        kind, port = None, ""
+    if kind is None or kind.name != "serial":
         print(
             "masking-lab device check: give PORT (e.g. /dev/ttyACM0) or --device serial:PORT "
             "or --device serial:auto",

@@ -45,7 +45,7 @@ class Check:
     detail: str
 
 
-def open_device(port: str, config: DeviceConfig) -> SerialDevice:
+def open_board(port: str, config: DeviceConfig) -> SerialDevice:
     """Open ``port`` with the clock its board runs on (a virtual-time emulator needs one)."""
     try:
         return SerialDevice(port, config, RealClock(), backend="serial")
@@ -68,7 +68,7 @@ def run_checks(port: str, config: DeviceConfig, *, watchdog: bool = True) -> lis
         Measure the watchdog trip time (streams :data:`WATCHDOG_PROBE_V` V on EV).
     """
     try:
-        dev = open_device(port, config)
+        dev = open_board(port, config)
     except DeviceFaultError as exc:
         name = "interlock" if getattr(exc, "kind", "") == "interlock" else "handshake"
         return [Check(name, "FAIL", str(exc))]

@@ -171,11 +171,6 @@ class CheckedPlay:
     lead_us: int
     at_us: int
 
-    @property
-    def duration_us(self) -> int:
-        """``lead + n·stim + (n−1)·gap``, µs."""
-        return self.lead_us + self.n * self.stim_us + (self.n - 1) * self.gap_us
-
 
 class Checker:
     """The firmware's command checks for one device configuration.

@@ -249,25 +249,6 @@ class NidaqDevice:
         self._closed = False
         safety.zero_on_exit(self)
 
-    def details(self) -> dict[str, Any]:
-        """Everything known about the hardware, as plain JSON-able data (for logs and reports).
-
-        Examples
-        --------
-        >>> sorted(dev.details())  # doctest: +SKIP
-        ['chassis', 'driver_version', 'lines', 'modules', 'sample_rate_hz', 'watchdog']
-        """
-        return {
-            "lines": dict(self.lines),
-            "modules": [dict(m) for m in self.hardware.modules],
-            "chassis": dict(self.hardware.chassis) if self.hardware.chassis else None,
-            "driver_version": self.hardware.driver_version,
-            "sample_rate_hz": self.sample_rate_hz,
-            "watchdog": self.watchdog.status,
-            "idle_output": self.idle_output,
-            "onsets": self.onset_source,
-        }
-
     def play_trial(self, plan: TrialPlan, start_s: float) -> PlayResult:
         """Play ``plan`` as one committed, hardware-timed finite task starting at ``start_s``.
 
@@ -300,6 +281,8 @@ class NidaqDevice:
                 self._active = None
                 task.stop()
                 task.close()
+            # the Device contract: return once the trial has ended (a no-op after real hardware)
+            self.clock.sleep_until(start_s + plan.duration_s)
         except BaseException as exc:
             # Ctrl-C, SIGTERM's SystemExit, a driver error or STOP: abort the task, then 0 V.
             aborted = self._aborted

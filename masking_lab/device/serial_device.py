@@ -265,7 +265,7 @@ class SerialDevice:
         next_ping = time.monotonic() + ping_every
         while seq not in self._done:
             if seq in self._aborted:
-                raise self._abort_error(seq, self._aborted.pop(seq))
+                raise serial_faults.abort_error(self.port, seq, self._aborted.pop(seq))
             now = time.monotonic()
             if now >= deadline:
                 raise DeviceTimeoutError(
@@ -426,7 +426,7 @@ class SerialDevice:
                 self._done.pop(seq, None)
                 self._aborted.pop(seq, None)
                 return frame
-            raise self._refusal(name, frame)
+            raise serial_faults.refusal_error(self.port, name, frame)
 
     def _dispatch_unsolicited(
         self, frame: proto.Frame, events: Literal["raise", "record", "ignore"] = "raise"
@@ -449,12 +449,6 @@ class SerialDevice:
         self._record(exc)
         if events == "raise":
             raise exc
-
-    def _abort_error(self, seq: int, frame: proto.Frame) -> DeviceError:
-        return serial_faults.abort_error(self.port, seq, frame)
-
-    def _refusal(self, name: str, frame: proto.Frame) -> DeviceError:
-        return serial_faults.refusal_error(self.port, name, frame)
 
     def _read_frame(
         self, deadline: float, what: str, *, wait_s: float = 0.0, quiet: bool = False

@@ -17,6 +17,7 @@ from typing import Any, TypeVar
 from masking_lab.core.clock import Clock
 from masking_lab.core.errors import LogError, MaskingLabError
 from masking_lab.device.base import Device
+from masking_lab.device.registry import check_device_spec as check_device_spec  # the one grammar
 from masking_lab.formats.session_log import SessionLogWriter, SyncPolicy
 from masking_lab.session.shell import Closable, close_quietly
 from masking_lab.simulation.observer import GroundTruth, ground_truth_from_dict, read_ground_truth
@@ -25,7 +26,6 @@ from masking_lab.simulation.observer import GroundTruth, ground_truth_from_dict,
 # keeps every file name built from the id far below NAME_MAX.
 MAX_PARTICIPANT_CHARS = 64
 _PARTICIPANT = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]*")
-_DEVICE_SPEC = re.compile(r"(sim|emulator|serial:[^\x00-\x1f]+|nidaq(:[^\x00-\x1f]+)?)")
 
 DeviceOpener = Callable[[str, Clock], Device]
 
@@ -60,22 +60,6 @@ def check_participant(participant: object) -> str:
             "(it names the participant's data folder), e.g. S01"
         )
     return participant
-
-
-def check_device_spec(spec: str) -> str:
-    """The device spec without surrounding blanks.
-
-    Raises
-    ------
-    MaskingLabError
-        Not ``sim``, ``emulator``, ``serial:PORT`` or ``nidaq[:DEVICE]``.
-    """
-    if not _DEVICE_SPEC.fullmatch(spec.strip()):
-        raise MaskingLabError(
-            f"--device {spec[:60]!a}: choose sim, emulator, serial:PORT (e.g. serial:/dev/ttyACM0) "
-            "or nidaq[:DEVICE]"
-        )
-    return spec.strip()
 
 
 def use_virtual_clock(device: str, responder: str, real_time: bool) -> bool:
@@ -193,7 +177,7 @@ def open_device_and_responder(
     opener : callable
         ``(spec, clock) -> Device``.
     spec : str
-        Checked device spec (see :func:`check_device_spec`).
+        Checked device spec (see :func:`masking_lab.device.registry.check_device_spec`).
     clock : Clock
         The session clock, handed to the device.
 
