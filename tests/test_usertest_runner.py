@@ -46,6 +46,7 @@ from masking_lab.core.errors import (
 )
 from masking_lab.formats.schemas import schema_errors
 from masking_lab.rendering.solver import MutualMasking
+from masking_lab.responders.keys import KeyReader
 from masking_lab.session.frame import SessionOptions
 from masking_lab.simulation.observer import load_ground_truth, make_participant
 from masking_lab.usertest.design import load_usertest, trial_list
@@ -758,7 +759,7 @@ def test_keys_take_the_geometry_then_the_texture(lab):
     design = lab["design"]
     pad = Keypad()
     try:
-        keys = UserTestKeysResponder(pad.slave, pad.slave, wait_for_start=True)
+        keys = UserTestKeysResponder(KeyReader(pad.slave, pad.slave), wait_for_start=True)
         info = UserTestInfo(design.geometries, design.textures, 24, 3, "cue")
         starter = threading.Thread(target=keys.start_session, args=(info,))
         starter.start()
@@ -801,7 +802,7 @@ def test_keys_give_no_answer_after_the_timeout(lab):
     timing = dataclasses.replace(design.timing, response_timeout_s=0.2)
     pad = Keypad()
     try:
-        keys = UserTestKeysResponder(pad.slave, pad.slave, wait_for_start=False)
+        keys = UserTestKeysResponder(KeyReader(pad.slave, pad.slave), wait_for_start=False)
         trial = trial_list(design, 1)[0]
         pres = UserTrialPresentation(trial, 24, 0.0, timing, "cue", 51.0, 91.8)
         _, answer = keys.trial(pres, lambda finger: _played())
