@@ -138,6 +138,7 @@ class KeyReader:
         self.now = now
         self._owns_fds = owns_fds
         self._closed = False
+        self._typed: list[str] = []  # keys read but not yet asked for (typed ahead)
         if not os.isatty(self.in_fd):
             raise ResponderError(
                 f"the keys responder reads the participant's answers from a terminal, but its "
@@ -228,15 +229,23 @@ class KeyReader:
     def discard_typed(self) -> None:
         """Drop the keys typed so far (while the stimuli played): only later answers count."""
         termios.tcflush(self.in_fd, termios.TCIFLUSH)
+        self._typed.clear()
 
     def read_key(self, allowed: frozenset[str], deadline: float | None = None) -> str | None:
         """Wait for one of ``allowed`` until ``deadline`` (on :attr:`now`, s; None: forever).
 
         Returns the key, or None when the deadline passes first; every other key is ignored.
-        Ctrl-C (arriving as a byte) raises KeyboardInterrupt.
+        Keys typed after it in the same read wait for the next call (two answers typed fast
+        are two answers). Ctrl-C (arriving as a byte) raises KeyboardInterrupt.
         """
         pending = b""
         while True:
+            while self._typed:
+                key = self._typed.pop(0)
+                if key == INTERRUPT:
+                    raise KeyboardInterrupt
+                if key in allowed:
+                    return key
             left = None if deadline is None else deadline - self.now()
             if left is not None and left <= 0:
                 return None
@@ -252,11 +261,7 @@ class KeyReader:
             if not data:
                 raise self._gone("end of input")
             keys, pending = parse_keys(pending + data)
-            for key in keys:
-                if key == INTERRUPT:
-                    raise KeyboardInterrupt
-                if key in allowed:
-                    return key
+            self._typed.extend(keys)
 
     def _gone(self, why: str | None) -> ResponderError:
         return ResponderError(

@@ -92,7 +92,7 @@ class UserTestKeysResponder:
                 if key is None:
                     keys.write("No answer in time; on to the next trial.\n")
                     break
-        return result, UserTestAnswer(*answers, *times)
+        return result, UserTestAnswer(answers[0], answers[1], times[0], times[1])
 
     def close(self) -> None:
         """Release the terminal. Idempotent."""
