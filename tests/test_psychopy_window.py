@@ -205,7 +205,9 @@ def test_trial_screen_shows_lanes_marks_and_the_cue_where_cue_py_says(window, tm
     assert image[:, 650:].max() == 0
 
     # During the lead-in the cue waits, dimmer, at the start of lane 1.
-    path = window.window.save_screenshot(presentation(trial_plan, 0.0), 0.5, tmp_path / "lead_in.png")
+    path = window.window.save_screenshot(
+        presentation(trial_plan, 0.0), 0.5, tmp_path / "lead_in.png"
+    )
     image = np.asarray(Image.open(path).convert("RGB"))
     rows, cols = np.nonzero(colour_mask(image, CUE_WAITING))
     col, row = to_image(-45.9, 30.0)

@@ -310,11 +310,6 @@ class KeysResponder:
         self.keys = keys
         self.wait_for_start = wait_for_start
 
-    @classmethod
-    def on_terminal(cls, path: str | None) -> Self:
-        """A responder on the participant's terminal at ``path`` (None: this one)."""
-        return cls(KeyReader.on_terminal(path))
-
     def start_set(self, info: SetInfo) -> None:
         """Tell the participant a set begins; with ``wait_for_start``, wait for the space bar."""
         self.keys.write(

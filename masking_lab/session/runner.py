@@ -341,9 +341,9 @@ def _default_responder(name: str, context: SessionContext) -> Responder:
         participant = make_participant(truth, context.participant, population_seed)
         return SimResponder(participant, context.seed, source)
     if name == "keys":
-        from masking_lab.responders.keys import KeysResponder
+        from masking_lab.responders.keys import KeyReader, KeysResponder
 
-        return KeysResponder.on_terminal(context.participant_tty)
+        return KeysResponder(KeyReader.on_terminal(context.participant_tty))
     if name == "psychopy":
         from masking_lab.responders import psychopy_window
 

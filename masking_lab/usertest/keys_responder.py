@@ -11,7 +11,6 @@ response timeout in the protocol, an answer not given in time is logged as no an
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Self
 
 from masking_lab.responders.keys import KeyReader
 from masking_lab.usertest.responder_base import (
@@ -41,11 +40,6 @@ class UserTestKeysResponder:
         self.wait_for_start = wait_for_start
         self._geometries = tuple(f"geometry {i}" for i in range(1, 5))
         self._textures = tuple(f"texture {i}" for i in range(1, 4))
-
-    @classmethod
-    def on_terminal(cls, path: str | None) -> Self:
-        """A responder on the participant's terminal at ``path`` (None: this one)."""
-        return cls(KeyReader.on_terminal(path))
 
     def start_session(self, info: UserTestInfo) -> None:
         """Explain the task and the keys; with ``wait_for_start``, wait for the space bar."""

@@ -470,9 +470,10 @@ def default_responder(name: str, context: UserTestContext) -> UserTestResponder:
             source=source or "the ground truth",
         )
     if name == "keys":
+        from masking_lab.responders.keys import KeyReader
         from masking_lab.usertest.keys_responder import UserTestKeysResponder
 
-        return UserTestKeysResponder.on_terminal(context.participant_tty)
+        return UserTestKeysResponder(KeyReader.on_terminal(context.participant_tty))
     if name == "psychopy":
         from masking_lab.usertest import window_responder as usertest_psychopy
 

@@ -2,12 +2,13 @@
 
 The window the 3IFC sessions use too (:class:`~masking_lab.responders.participant_window
 .ParticipantWindow`, held, not inherited: lanes, the cue sliding at the protocol's speed, pink
-noise, Escape stops the session). Presentation *k* sweeps lane *k*. While the device streams the object in a
-background thread, the main thread draws frames and samples the pointer (a touch panel reports
-the finger as a mouse); with ``tracking: finger`` the stream follows the last sample taken while
-the cue moves (a sample older than :data:`FINGER_STALE_S` counts as a lifted finger). After the
-last presentation the window asks for the geometry (keys 1–4), then the texture (keys 1–3);
-keys pressed earlier are discarded, and with a response timeout a late answer is none.
+noise, Escape stops the session). Presentation *k* sweeps lane *k*. While the device streams
+the object in a background thread, the main thread draws frames and samples the pointer (a
+touch panel reports the finger as a mouse); with ``tracking: finger`` the stream follows the
+last sample taken while the cue moves (a sample older than :data:`FINGER_STALE_S` counts as a
+lifted finger). After the last presentation the window asks for the geometry (keys 1–4), then
+the texture (keys 1–3); keys pressed earlier are discarded, and with a response timeout a late
+answer is none.
 
 Imported only for ``--responder psychopy``; PsychoPy itself is imported when the window opens.
 """
