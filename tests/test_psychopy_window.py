@@ -32,11 +32,8 @@ from masking_lab.core.stimulus import Stimulus
 from masking_lab.core.trial import PlayResult, TrialPlan
 from masking_lab.responders.base import SetInfo, TrialPresentation
 from masking_lab.responders.cue import CueLayout, DisplayGeometry, TrialTiming
+from masking_lab.responders.participant_window import CUE_MOVING, CUE_WAITING, LANE, LANE_ACTIVE
 from masking_lab.responders.psychopy_window import (
-    CUE_MOVING,
-    CUE_WAITING,
-    LANE,
-    LANE_ACTIVE,
     NoiseSettings,
     PsychoPyWindowResponder,
     display_geometry,

@@ -26,13 +26,8 @@ from masking_lab.core.errors import ProtocolError
 from masking_lab.core.trial import PlayResult
 from masking_lab.responders.base import Response, SetInfo, TrialPresentation
 from masking_lab.responders.cue import DisplayGeometry
-from masking_lab.responders.participant_window import (  # noqa: F401  (re-exported)
-    ABORT_KEYS,
+from masking_lab.responders.participant_window import (
     ANSWER_KEYS,
-    CUE_MOVING,
-    CUE_WAITING,
-    LANE,
-    LANE_ACTIVE,
     NoiseSettings,
     ParticipantWindow,
     WindowLook,
