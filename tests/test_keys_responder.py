@@ -30,7 +30,7 @@ from masking_lab.core.errors import ResponderError
 from masking_lab.core.stimulus import Stimulus
 from masking_lab.core.trial import PlayResult, TrialPlan
 from masking_lab.responders.base import SetInfo, TrialPresentation
-from masking_lab.responders.keys import INTERRUPT, KeysResponder, parse_keys
+from masking_lab.responders.keys import INTERRUPT, KeyReader, KeysResponder, parse_keys
 
 TIMEOUT_S = 10.0
 PROMPT = b"Press 1, 2 or 3"
@@ -178,7 +178,7 @@ def test_not_a_terminal_is_refused():
     read_fd, write_fd = os.pipe()
     try:
         with pytest.raises(ResponderError, match=r"not one.*--responder sim"):
-            KeysResponder(read_fd, write_fd)
+            KeyReader(read_fd, write_fd)
     finally:
         os.close(read_fd)
         os.close(write_fd)
@@ -186,21 +186,21 @@ def test_not_a_terminal_is_refused():
 
 def test_open_tty_with_a_bad_path_says_what_to_do(tmp_path):
     with pytest.raises(ResponderError, match=r"cannot open the participant's terminal.*`tty`"):
-        KeysResponder.open_tty(str(tmp_path / "no-such-tty"))
+        KeyReader.open_tty(str(tmp_path / "no-such-tty"))
 
 
 def test_open_tty_refuses_a_regular_file(tmp_path):
     path = tmp_path / "file"
     path.write_text("")
     with pytest.raises(ResponderError, match="not one"):
-        KeysResponder.open_tty(str(path))
+        KeyReader.open_tty(str(path))
 
 
 def test_trial_ignores_other_keys_and_restores_the_terminal(pty_pair):
     master, slave = pty_pair
     before = termios.tcgetattr(slave)
     assert before[3] & termios.ICANON and before[3] & termios.ECHO
-    responder = KeysResponder(slave, slave, wait_for_start=False)
+    responder = KeysResponder(KeyReader(slave, slave), wait_for_start=False)
     participant = Participant(master)
     modes_during_play = []
 
@@ -232,7 +232,7 @@ def test_trial_ignores_other_keys_and_restores_the_terminal(pty_pair):
 
 def test_keys_pressed_while_the_stimuli_play_are_discarded(pty_pair):
     master, slave = pty_pair
-    responder = KeysResponder(slave, slave, wait_for_start=False)
+    responder = KeysResponder(KeyReader(slave, slave), wait_for_start=False)
     participant = Participant(master)
 
     def play():
@@ -259,7 +259,7 @@ def test_keys_pressed_while_the_stimuli_play_are_discarded(pty_pair):
 
 def test_start_set_waits_for_the_space_bar(pty_pair):
     master, slave = pty_pair
-    responder = KeysResponder(slave, slave, wait_for_start=True)
+    responder = KeysResponder(KeyReader(slave, slave), wait_for_start=True)
     participant = Participant(master)
     info = SetInfo("MV120_10", 2, 15, Stimulus("EV", 270.0), Stimulus("MV", 120.0), 10.0)
     thread, box = run_in_thread(lambda: responder.start_set(info))
@@ -276,7 +276,7 @@ def test_start_set_waits_for_the_space_bar(pty_pair):
 
 def test_open_tty_reads_the_named_terminal(pty_pair):
     master, slave = pty_pair
-    responder = KeysResponder.open_tty(os.ttyname(slave), wait_for_start=False)
+    responder = KeysResponder(KeyReader.open_tty(os.ttyname(slave)), wait_for_start=False)
     participant = Participant(master)
 
     def answer():
@@ -291,7 +291,7 @@ def test_open_tty_reads_the_named_terminal(pty_pair):
     assert b"Trial 5" in participant.seen
     responder.close()
     with pytest.raises(OSError):
-        os.fstat(responder._in)  # the responder closed the fd it opened
+        os.fstat(responder.keys.in_fd)  # the responder closed the fd it opened
 
 
 CHILD = textwrap.dedent(
@@ -300,12 +300,12 @@ CHILD = textwrap.dedent(
     from masking_lab.core.trial import PlayResult, TrialPlan
     from masking_lab.core.errors import ResponderError
     from masking_lab.responders.base import TrialPresentation
-    from masking_lab.responders.keys import KeysResponder
+    from masking_lab.responders.keys import KeyReader, KeysResponder
     from masking_lab.core.stimulus import Stimulus
 
     plan = TrialPlan(target=Stimulus("EV", 270.0), target_amplitude_v=0.5, target_interval=1)
     pres = TrialPresentation("EV270", 0, plan, 0.0, -6.0, None, None)
-    responder = KeysResponder(0, 1, wait_for_start=False)
+    responder = KeysResponder(KeyReader(0, 1), wait_for_start=False)
     print("TTY", os.ttyname(0), flush=True)
     try:
         _, response = responder.trial(pres, lambda: PlayResult([0.0] * 3, [0.0] * 3, 0.5, 0.0))

@@ -32,11 +32,8 @@ from masking_lab.core.stimulus import Stimulus
 from masking_lab.core.trial import PlayResult, TrialPlan
 from masking_lab.responders.base import SetInfo, TrialPresentation
 from masking_lab.responders.cue import CueLayout, DisplayGeometry, TrialTiming
+from masking_lab.responders.participant_window import CUE_MOVING, CUE_WAITING, LANE, LANE_ACTIVE
 from masking_lab.responders.psychopy_window import (
-    CUE_MOVING,
-    CUE_WAITING,
-    LANE,
-    LANE_ACTIVE,
     NoiseSettings,
     PsychoPyWindowResponder,
     display_geometry,
@@ -155,21 +152,21 @@ def window(x_display, clock):
 
 
 def window_id(responder: PsychoPyWindowResponder) -> str:
-    return str(responder.win.winHandle._window)  # the X window id of the pyglet window
+    return str(responder.window.win.winHandle._window)  # the X window id of the pyglet window
 
 
 # -- the trial screen, pixel by pixel -------------------------------------------------------------
 
 
 def test_trial_screen_shows_lanes_marks_and_the_cue_where_cue_py_says(window, tmp_path):
-    window._wait_for_start = False
+    window.window.wait_for_start = False
     window.start_set(SET)
     trial_plan = plan()
     layout = CueLayout(TrialTiming.from_plan(trial_plan), lane_spacing_mm=30.0)
     t_s = layout.timing.onset_s(2) + 0.5  # half a second into interval 2
     state = layout.state_at(t_s)
     assert state.x_mm == pytest.approx(-45.9 + 25.5)
-    path = window.save_screenshot(presentation(trial_plan, 0.0), t_s, tmp_path / "trial.png")
+    path = window.window.save_screenshot(presentation(trial_plan, 0.0), t_s, tmp_path / "trial.png")
     from PIL import Image
 
     image = np.asarray(Image.open(path).convert("RGB"))
@@ -205,7 +202,9 @@ def test_trial_screen_shows_lanes_marks_and_the_cue_where_cue_py_says(window, tm
     assert image[:, 650:].max() == 0
 
     # During the lead-in the cue waits, dimmer, at the start of lane 1.
-    path = window.save_screenshot(presentation(trial_plan, 0.0), 0.5, tmp_path / "lead_in.png")
+    path = window.window.save_screenshot(
+        presentation(trial_plan, 0.0), 0.5, tmp_path / "lead_in.png"
+    )
     image = np.asarray(Image.open(path).convert("RGB"))
     rows, cols = np.nonzero(colour_mask(image, CUE_WAITING))
     col, row = to_image(-45.9, 30.0)
@@ -409,8 +408,8 @@ def test_runner_factory_opens_full_screen_from_the_rig_config(x_display, clock, 
     )
     responder = make_responder(context)
     try:
-        assert responder.display == DisplayGeometry(300.0, 1280, 800, str(rig))
-        assert tuple(responder.win.size) == (1280, 800)
+        assert responder.window.display == DisplayGeometry(300.0, 1280, 800, str(rig))
+        assert tuple(responder.window.win.size) == (1280, 800)
     finally:
         responder.close()
 
@@ -424,7 +423,7 @@ def test_real_audio_back_end_never_crashes_the_window(x_display, clock, caplog):
     try:
         with caplog.at_level(logging.WARNING):
             responder.start_set(SET)
-        assert responder._noise is not None or "pink masking noise is OFF" in caplog.text
+        assert responder.window._noise is not None or "pink masking noise is OFF" in caplog.text
     finally:
         responder.close()
 

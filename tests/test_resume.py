@@ -18,6 +18,7 @@ from runner_support import (
 
 from masking_lab.commands.cli import main
 from masking_lab.core.errors import LogError
+from masking_lab.session.frame import SessionOptions
 from masking_lab.session.runner import RunOptions, resume_session, run_session
 
 CAL = {"EV270": -14.0, "MV120": -26.0}
@@ -163,7 +164,7 @@ def test_a_changed_protocol_file_stops_resume_unless_allowed(tmp_path, reference
         resume_session(path, stream=io.StringIO())
     assert path.read_bytes() == before
     stream = io.StringIO()
-    result = resume_session(path, allow_changed_protocol=True, stream=stream)
+    result = resume_session(path, SessionOptions(allow_changed_protocol=True), stream=stream)
     assert result.exit_code == 0 and "continuing with the protocol stored in the log" in (
         stream.getvalue()
     )

@@ -29,6 +29,7 @@ from runner_support import (
 from masking_lab.device.config import load_device_config
 from masking_lab.device.emulator import FirmwareEmulator
 from masking_lab.device.serial_device import SerialDevice
+from masking_lab.session.frame import SessionOptions
 from masking_lab.session.runner import RunOptions, _default_responder, resume_session, run_session
 
 CAL = {"EV270": -14.0, "MV120": -26.0}
@@ -120,7 +121,7 @@ def check_fault_logged(result, kind, emulator, printed):
 
 
 def resume_and_compare(lab, log_path, device="emulator"):
-    result = resume_session(log_path, device=device, stream=io.StringIO())
+    result = resume_session(log_path, SessionOptions(device=device), stream=io.StringIO())
     assert result.exit_code == 0
     recs = assert_valid_log(log_path)
     assert timeless(recs) == timeless(lab["ref"])
@@ -231,7 +232,9 @@ def test_truncated_last_line_then_resume_through_the_emulator(tmp_path, lab):
     lines = result.log_path.read_text().splitlines(keepends=True)
     # Replace the fault record by half a trial record: the crash hit mid-write.
     result.log_path.write_text("".join(lines[:-1]) + lines[-2][: len(lines[-2]) // 2])
-    out = resume_session(result.log_path, device=f"serial:{emulator.port}", stream=io.StringIO())
+    out = resume_session(
+        result.log_path, SessionOptions(device=f"serial:{emulator.port}"), stream=io.StringIO()
+    )
     emulator.close()
     assert out.exit_code == 0
     recs = assert_valid_log(result.log_path)
@@ -296,7 +299,9 @@ def test_sigkill_mid_session_then_resume_loses_and_repeats_nothing(tmp_path, lab
         # Nobody stops the outputs of a killed host: the firmware watchdog must.
         assert wait_zero(emulator)
         before = log.read_bytes()
-        result = resume_session(log, device=f"serial:{emulator.port}", stream=io.StringIO())
+        result = resume_session(
+            log, SessionOptions(device=f"serial:{emulator.port}"), stream=io.StringIO()
+        )
         assert result.exit_code == 0
     finally:
         emulator.close()
@@ -322,7 +327,9 @@ def test_sigterm_stops_zeroes_and_logs_interrupted(tmp_path, lab):
         last = records(log)[-1]
         assert last["record"] == "fault" and last["kind"] == "interrupted"
         assert "SIGTERM" in last["message"]
-        result = resume_session(log, device=f"serial:{emulator.port}", stream=io.StringIO())
+        result = resume_session(
+            log, SessionOptions(device=f"serial:{emulator.port}"), stream=io.StringIO()
+        )
         assert result.exit_code == 0
     finally:
         emulator.close()

@@ -46,6 +46,8 @@ from masking_lab.core.errors import (
 )
 from masking_lab.formats.schemas import schema_errors
 from masking_lab.rendering.solver import MutualMasking
+from masking_lab.responders.keys import KeyReader
+from masking_lab.session.frame import SessionOptions
 from masking_lab.simulation.observer import load_ground_truth, make_participant
 from masking_lab.usertest.design import load_usertest, trial_list
 from masking_lab.usertest.keys_responder import UserTestKeysResponder
@@ -618,7 +620,9 @@ def test_interrupt_then_resume_equals_an_uninterrupted_run(lab, tmp_path):
     # A crash while the next record was being written leaves half a line: resume cuts it.
     with open(stopped.log_path, "a", encoding="utf-8") as fh:
         fh.write('{"record":"usertest_trial","participant":"S0')
-    resumed = resume_usertest(stopped.log_path, stream=io.StringIO(), device_config=lab["rig"])
+    resumed = resume_usertest(
+        stopped.log_path, SessionOptions(device_config=lab["rig"]), stream=io.StringIO()
+    )
     assert resumed.exit_code == 0 and resumed.n_logged == 24
     recs = records(stopped.log_path)
     assert timeless(recs) == timeless(records(ref.log_path))
@@ -661,7 +665,7 @@ def test_resume_refuses_changed_files_edited_logs_and_threshold_logs(lab, tmp_pa
     with pytest.raises(LogError, match="changed since this session started"):
         resume_usertest(log)
     out = io.StringIO()
-    result = resume_usertest(log, allow_changed_protocol=True, stream=out)
+    result = resume_usertest(log, SessionOptions(allow_changed_protocol=True), stream=out)
     assert result.exit_code == 0 and "copies stored in the log" in out.getvalue()
     protocol.write_text(original, encoding="utf-8")
 
@@ -755,7 +759,7 @@ def test_keys_take_the_geometry_then_the_texture(lab):
     design = lab["design"]
     pad = Keypad()
     try:
-        keys = UserTestKeysResponder(pad.slave, pad.slave, wait_for_start=True)
+        keys = UserTestKeysResponder(KeyReader(pad.slave, pad.slave), wait_for_start=True)
         info = UserTestInfo(design.geometries, design.textures, 24, 3, "cue")
         starter = threading.Thread(target=keys.start_session, args=(info,))
         starter.start()
@@ -798,7 +802,7 @@ def test_keys_give_no_answer_after_the_timeout(lab):
     timing = dataclasses.replace(design.timing, response_timeout_s=0.2)
     pad = Keypad()
     try:
-        keys = UserTestKeysResponder(pad.slave, pad.slave, wait_for_start=False)
+        keys = UserTestKeysResponder(KeyReader(pad.slave, pad.slave), wait_for_start=False)
         trial = trial_list(design, 1)[0]
         pres = UserTrialPresentation(trial, 24, 0.0, timing, "cue", 51.0, 91.8)
         _, answer = keys.trial(pres, lambda finger: _played())

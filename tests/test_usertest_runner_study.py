@@ -36,6 +36,7 @@ from masking_lab.device.config import load_device_config
 from masking_lab.device.emulator import FirmwareEmulator
 from masking_lab.device.serial_device import SerialDevice
 from masking_lab.formats.schemas import load_schema
+from masking_lab.session.frame import SessionOptions
 from masking_lab.session.runner import RunOptions, run_session
 from masking_lab.simulation.observer import load_ground_truth, make_participant
 from masking_lab.usertest.runner import (
@@ -297,7 +298,9 @@ def test_device_fault_mid_trial_then_resume(lab, reference, tmp_path, fault, kin
     n = len(trials(recs))
     assert 0 < n < 24 and logged_fault["trial_index"] == n  # the trial in flight is not logged
     assert f"masking-lab resume {result.log_path}" in out.getvalue()
-    resumed = resume_usertest(result.log_path, stream=io.StringIO(), device_config=rig_path)
+    resumed = resume_usertest(
+        result.log_path, SessionOptions(device_config=rig_path), stream=io.StringIO()
+    )
     assert resumed.exit_code == 0
     recs = assert_valid(result.log_path)
     assert timeless(recs) == timeless(reference)

@@ -112,7 +112,7 @@ def timeout_without_answer() -> dict:
     clock = RealClock()
     window = UserTestWindowResponder(DISPLAY, clock, fullscr=False, noise=None)
     try:
-        window._wait_for_start = False
+        window.window.wait_for_start = False
         window.start_session(UserTestInfo(GEOMETRIES, TEXTURES, 120, 5, "cue"))
         timing = UserTestTiming(
             lead_in_s=0.05, stimulus_s=0.2, gap_s=0.05, n_presentations=3, response_timeout_s=0.3

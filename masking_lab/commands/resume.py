@@ -46,18 +46,19 @@ def run(args: argparse.Namespace) -> int:
     from masking_lab.commands.run import device_unavailable
     from masking_lab.commands.session_kinds import for_log
     from masking_lab.core.errors import DeviceError, ResponderError
+    from masking_lab.session.frame import SessionOptions, resume
 
-    kind = for_log(args.log)
+    row = for_log(args.log)
+    changes = SessionOptions(
+        device=args.device,
+        responder=args.responder,
+        allow_changed_protocol=args.allow_changed_protocol,
+        device_config=Path(args.device_config) if args.device_config else None,
+        participant_tty=args.participant_tty,
+        progress=args.progress,
+    )
     try:
-        result = kind.resume(
-            Path(args.log),
-            device=args.device,
-            responder=args.responder,
-            allow_changed_protocol=args.allow_changed_protocol,
-            device_config=Path(args.device_config) if args.device_config else None,
-            participant_tty=args.participant_tty,
-            progress=args.progress,
-        )
+        result = resume(row.kind(), Path(args.log), changes)
     except (DeviceError, ResponderError) as exc:
         return device_unavailable(args.command, exc)
-    return kind.print_result(result)
+    return row.print_result(result)

@@ -95,13 +95,14 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from masking_lab.commands.session_kinds import for_protocol
     from masking_lab.core.errors import DeviceError, ResponderError
+    from masking_lab.session.frame import start
 
-    kind = for_protocol(args.protocol)
+    row = for_protocol(args.protocol)
     try:
-        result = kind.start(args)
+        result = start(row.kind(), row.options(args))
     except (DeviceError, ResponderError) as exc:
         return device_unavailable(args.command, exc)
-    return kind.print_result(result)
+    return row.print_result(result)
 
 
 def device_unavailable(command: str, exc: Exception) -> int:

@@ -1,19 +1,24 @@
 """The session kinds ``run`` and ``resume`` dispatch on, in one table.
 
-Each kind says how to recognise its protocol and its log, how to turn the command line into its
-options, how to start and resume a session (through :mod:`masking_lab.session.frame`), and how to
-print the result. A new kind of session is one more row.
+Each row names a kind's :class:`~masking_lab.session.frame.SessionKind` (imported on use), how to
+recognise its protocol and its log, how to turn the command line into its options and how to
+print its result; :mod:`masking_lab.session.frame` starts and resumes it. A new kind of session
+is one more row.
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from masking_lab.core.errors import MaskingLabError
+
+if TYPE_CHECKING:  # imported on use: `--help` loads no numpy
+    from masking_lab.session.frame import SessionKind, SessionOptions
 
 
 @dataclass(frozen=True)
@@ -24,22 +29,28 @@ class SessionCommand:
     ----------
     name : str
         The kind's name (``"threshold"``, ``"usertest"``).
+    home : str
+        ``module:NAME`` of the kind's :class:`~masking_lab.session.frame.SessionKind`.
     is_protocol, is_log : callable
         Recognise the kind's protocol file and session log by their content.
-    start : callable
-        ``args -> result``: run a new session from the ``run`` arguments.
-    resume : callable
-        ``(log path, resume keyword arguments) -> result``.
+    options : callable
+        ``args -> options``: the kind's options from the ``run`` arguments.
     print_result : callable
         Print the result; return the exit code.
     """
 
     name: str
+    home: str
     is_protocol: Callable[[str], bool]
     is_log: Callable[[str], bool]
-    start: Callable[[argparse.Namespace], Any]
-    resume: Callable[..., Any]
+    options: Callable[[argparse.Namespace], SessionOptions]
     print_result: Callable[[Any], int]
+
+    def kind(self) -> SessionKind[Any, Any]:
+        """The session kind, imported now."""
+        module, name = self.home.split(":")
+        kind: SessionKind[Any, Any] = getattr(importlib.import_module(module), name)
+        return kind
 
 
 def _common(args: argparse.Namespace) -> dict[str, Any]:
@@ -58,22 +69,15 @@ def _common(args: argparse.Namespace) -> dict[str, Any]:
     }
 
 
-def _start_threshold(args: argparse.Namespace) -> Any:
-    from masking_lab.session.runner import RunOptions, run_session
+def _threshold_options(args: argparse.Namespace) -> SessionOptions:
+    from masking_lab.session.participant_info import parse_info_args
+    from masking_lab.session.runner import RunOptions
 
     sets = None
     if args.sets:
         sets = tuple(s for item in args.sets for s in item.split(",") if s)
-    from masking_lab.session.participant_info import parse_info_args
-
     info = parse_info_args(getattr(args, "info", None) or [])
-    return run_session(RunOptions(sets=sets, info=info, **_common(args)))
-
-
-def _resume_threshold(log: Path, **kwargs: Any) -> Any:
-    from masking_lab.session.runner import resume_session
-
-    return resume_session(log, **kwargs)
+    return RunOptions(sets=sets, info=info, **_common(args))
 
 
 def _print_threshold(result: Any) -> int:
@@ -97,27 +101,19 @@ def _is_usertest_log(path: str) -> bool:
     return is_usertest_log(path)
 
 
-def _start_usertest(args: argparse.Namespace) -> Any:
-    from masking_lab.usertest.runner import UserTestOptions, run_usertest
+def _usertest_options(args: argparse.Namespace) -> SessionOptions:
+    from masking_lab.usertest.runner import UserTestOptions
 
     if args.sets:
         raise MaskingLabError("--sets: a user-test protocol has no sets; leave it out")
     if getattr(args, "info", None):
         raise MaskingLabError("--info: a user-test protocol has no info section; leave it out")
-    return run_usertest(
-        UserTestOptions(
-            params=Path(args.params) if args.params else None,
-            allow_clipping=args.allow_clipping,
-            gamut_map=args.gamut_map,
-            **_common(args),
-        )
+    return UserTestOptions(
+        params=Path(args.params) if args.params else None,
+        allow_clipping=args.allow_clipping,
+        gamut_map=args.gamut_map,
+        **_common(args),
     )
-
-
-def _resume_usertest(log: Path, **kwargs: Any) -> Any:
-    from masking_lab.usertest.runner import resume_usertest
-
-    return resume_usertest(log, **kwargs)
 
 
 def _print_usertest(result: Any) -> int:
@@ -131,18 +127,18 @@ def _print_usertest(result: Any) -> int:
 KINDS: tuple[SessionCommand, ...] = (
     SessionCommand(
         "usertest",
+        "masking_lab.usertest.runner:USERTEST",
         _is_usertest_protocol,
         _is_usertest_log,
-        _start_usertest,
-        _resume_usertest,
+        _usertest_options,
         _print_usertest,
     ),
     SessionCommand(
         "threshold",
+        "masking_lab.session.runner:THRESHOLD",
         lambda _: True,
         lambda _: True,
-        _start_threshold,
-        _resume_threshold,
+        _threshold_options,
         _print_threshold,
     ),
 )

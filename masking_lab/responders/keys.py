@@ -94,8 +94,8 @@ def parse_keys(data: bytes) -> tuple[list[str], bytes]:
     return keys, b""
 
 
-class KeysResponder:
-    """Answers 3IFC trials with one key press, 1–3, on a terminal.
+class KeyReader:
+    """The participant's terminal as a keypad: the keys and prompts every keypad responder uses.
 
     Parameters
     ----------
@@ -103,10 +103,11 @@ class KeysResponder:
         File descriptor the keys come from (default: stdin). Must be a terminal.
     out_fd : int, optional
         File descriptor the prompts go to (default: stdout).
-    wait_for_start : bool
-        If True, :meth:`start_set` waits for the space bar so the participant starts each set.
     owns_fds : bool
         Close the descriptors in :meth:`close` (set by :meth:`open_tty`).
+    now : callable
+        ``() -> s``: the clock response times and deadlines are read on (default:
+        ``time.monotonic``; tests give a virtual one, so no answer waits on the wall clock).
 
     Raises
     ------
@@ -115,41 +116,39 @@ class KeysResponder:
 
     Examples
     --------
-    A trial answered on a real pseudo-terminal is in ``tests/test_keys_responder.py`` (a
-    doctest would race the flush of keys typed while the stimuli play). Opening a pty:
-
     >>> participant, rig = os.openpty()
-    >>> keys = KeysResponder(rig, rig, wait_for_start=False)
-    >>> keys.name
-    'keys'
+    >>> keys = KeyReader(rig, rig)
+    >>> with keys.keypad():
+    ...     _ = os.write(participant, b"x\\x1b[15~2")  # x, then F5, then 2
+    ...     keys.read_key(frozenset("123"))
+    '2'
     >>> keys.close(); os.close(rig); os.close(participant)
     """
-
-    name = "keys"
 
     def __init__(
         self,
         in_fd: int | None = None,
         out_fd: int | None = None,
         *,
-        wait_for_start: bool = True,
         owns_fds: bool = False,
+        now: Callable[[], float] = time.monotonic,
     ) -> None:
-        self._in = sys.stdin.fileno() if in_fd is None else in_fd
-        self._out = sys.stdout.fileno() if out_fd is None else out_fd
-        self._wait_for_start = wait_for_start
+        self.in_fd = sys.stdin.fileno() if in_fd is None else in_fd
+        self.out_fd = sys.stdout.fileno() if out_fd is None else out_fd
+        self.now = now
         self._owns_fds = owns_fds
         self._closed = False
-        if not os.isatty(self._in):
+        self._typed: list[str] = []  # keys read but not yet asked for (typed ahead)
+        if not os.isatty(self.in_fd):
             raise ResponderError(
                 f"the keys responder reads the participant's answers from a terminal, but its "
-                f"input (fd {self._in}) is not one; run masking-lab in a terminal, give the "
+                f"input (fd {self.in_fd}) is not one; run masking-lab in a terminal, give the "
                 "participant's terminal with its /dev/pts path, or use --responder sim"
             )
-        self._tty_name = os.ttyname(self._in)
+        self.tty_name = os.ttyname(self.in_fd)
 
     @classmethod
-    def open_tty(cls, path: str, *, wait_for_start: bool = True) -> Self:
+    def open_tty(cls, path: str) -> Self:
         """Use the terminal at ``path`` (e.g. ``/dev/pts/3``) for both keys and prompts.
 
         Raises
@@ -159,7 +158,7 @@ class KeysResponder:
 
         Examples
         --------
-        >>> KeysResponder.open_tty("/dev/null")
+        >>> KeyReader.open_tty("/dev/null")
         Traceback (most recent call last):
         ...
         masking_lab.core.errors.ResponderError: the keys responder reads ... is not one; ...
@@ -172,7 +171,7 @@ class KeysResponder:
                 "path (run `tty` in that terminal) and its permissions"
             ) from exc
         try:
-            return cls(fd, fd, wait_for_start=wait_for_start, owns_fds=True)
+            return cls(fd, fd, owns_fds=True)
         except ResponderError:
             os.close(fd)
             raise
@@ -183,26 +182,144 @@ class KeysResponder:
 
         Examples
         --------
-        >>> KeysResponder.on_terminal("/dev/null")
+        >>> KeyReader.on_terminal("/dev/null")
         Traceback (most recent call last):
         ...
         masking_lab.core.errors.ResponderError: the keys responder reads ... is not one; ...
         """
         return cls.open_tty(path) if path else cls()
 
-    # -- Responder protocol ---------------------------------------------------------------
+    def wait_for_space(self) -> None:
+        """Block until the space bar is pressed (the participant starts)."""
+        with self.keypad():
+            self.read_key(frozenset(" "))
+
+    def close(self) -> None:
+        """Release the terminal (its settings are already restored after every read)."""
+        if self._closed:
+            return
+        self._closed = True
+        if self._owns_fds:
+            for fd in {self.in_fd, self.out_fd}:
+                with contextlib.suppress(OSError):
+                    os.close(fd)
+
+    @contextlib.contextmanager
+    def keypad(self) -> Iterator[None]:
+        """Non-canonical, no echo, signals kept (Ctrl-C still interrupts); restored on exit."""
+        try:
+            saved = termios.tcgetattr(self.in_fd)
+        except termios.error as exc:
+            raise ResponderError(
+                f"{self.tty_name}: cannot read the terminal settings ({exc}); the participant's "
+                "terminal was closed — resume the session from a working terminal"
+            ) from exc
+        mode = termios.tcgetattr(self.in_fd)
+        mode[3] &= ~(termios.ICANON | termios.ECHO)  # lflag
+        mode[6][termios.VMIN] = 1
+        mode[6][termios.VTIME] = 0
+        termios.tcsetattr(self.in_fd, termios.TCSANOW, mode)
+        try:
+            yield
+        finally:
+            # TCSANOW: never block here on output the other side does not read.
+            with contextlib.suppress(termios.error):
+                termios.tcsetattr(self.in_fd, termios.TCSANOW, saved)
+
+    def discard_typed(self) -> None:
+        """Drop the keys typed so far (while the stimuli played): only later answers count."""
+        termios.tcflush(self.in_fd, termios.TCIFLUSH)
+        self._typed.clear()
+
+    def read_key(self, allowed: frozenset[str], deadline: float | None = None) -> str | None:
+        """Wait for one of ``allowed`` until ``deadline`` (on :attr:`now`, s; None: forever).
+
+        Returns the key, or None when the deadline passes first; every other key is ignored.
+        Keys typed after it in the same read wait for the next call (two answers typed fast
+        are two answers). Ctrl-C (arriving as a byte) raises KeyboardInterrupt.
+        """
+        pending = b""
+        while True:
+            while self._typed:
+                key = self._typed.pop(0)
+                if key == INTERRUPT:
+                    raise KeyboardInterrupt
+                if key in allowed:
+                    return key
+            left = None if deadline is None else deadline - self.now()
+            if left is not None and left <= 0:
+                return None
+            wait = left if not pending else min(ESCAPE_WAIT_S, left or ESCAPE_WAIT_S)
+            ready, _, _ = select.select([self.in_fd], [], [], wait)
+            if not ready:
+                pending = b""  # a lone Esc: nothing followed it
+                continue
+            try:
+                data = os.read(self.in_fd, 64)
+            except OSError as exc:
+                raise self._gone(exc.strerror) from exc
+            if not data:
+                raise self._gone("end of input")
+            keys, pending = parse_keys(pending + data)
+            self._typed.extend(keys)
+
+    def _gone(self, why: str | None) -> ResponderError:
+        return ResponderError(
+            f"{self.tty_name}: the participant's terminal went away while waiting for a key "
+            f"({why}); the trial in flight is not logged — resume the session"
+        )
+
+    def write(self, text: str) -> None:
+        """Show ``text`` on the participant's terminal."""
+        data = text.encode()  # the terminal's own output processing turns \n into \r\n
+        try:
+            while data:
+                written = os.write(self.out_fd, data)
+                data = data[written:]
+        except OSError as exc:
+            raise ResponderError(
+                f"{self.tty_name}: cannot write to the participant's terminal "
+                f"({exc.strerror}); resume the session from a working terminal"
+            ) from exc
+
+
+class KeysResponder:
+    """Answers 3IFC trials with one key press, 1–3, on a terminal.
+
+    Parameters
+    ----------
+    keys : KeyReader
+        The participant's terminal.
+    wait_for_start : bool
+        If True, :meth:`start_set` waits for the space bar so the participant starts each set.
+
+    Examples
+    --------
+    A trial answered on a real pseudo-terminal is in ``tests/test_keys_responder.py``:
+
+    >>> participant, rig = os.openpty()
+    >>> keys = KeysResponder(KeyReader(rig, rig), wait_for_start=False)
+    >>> keys.name
+    'keys'
+    >>> keys.close(); os.close(rig); os.close(participant)
+    """
+
+    name = "keys"
+
+    def __init__(self, keys: KeyReader, *, wait_for_start: bool = True) -> None:
+        self.keys = keys
+        self.wait_for_start = wait_for_start
 
     def start_set(self, info: SetInfo) -> None:
         """Tell the participant a set begins; with ``wait_for_start``, wait for the space bar."""
-        self._write(
+        self.keys.write(
             f"\nSet {info.set_number} of {info.n_sets}. In every trial three intervals play; "
             "one feels different.\nSlide your fingertip left to right during each interval, "
             "then press 1, 2 or 3 for the different one.\n"
         )
-        if self._wait_for_start:
-            self._write("Press the space bar to start.\n")
-            with self._keypad_mode():
-                self._read_key(frozenset(" "))
+        if self.wait_for_start:
+            self.keys.write("Press the space bar to start.\n")
+            self.keys.wait_for_space()
 
     def trial(
         self, presentation: TrialPresentation, play: Callable[[], PlayResult]
@@ -219,100 +336,19 @@ class KeysResponder:
         KeyboardInterrupt
             On Ctrl-C.
         """
-        with self._keypad_mode():
-            self._write(f"\nTrial {presentation.trial_index + 1}: feel the three intervals...\n")
+        keys = self.keys
+        with keys.keypad():
+            keys.write(f"\nTrial {presentation.trial_index + 1}: feel the three intervals...\n")
             result = play()
-            # Only an answer given after the stimuli counts.
-            termios.tcflush(self._in, termios.TCIFLUSH)
-            self._write("Which interval was different? Press 1, 2 or 3: ")
-            answered_from = time.monotonic()
-            key = self._read_key(frozenset("123"))
-            response_time_s = time.monotonic() - answered_from
-            self._write(f"{key}\n")
+            keys.discard_typed()  # only an answer given after the stimuli counts
+            keys.write("Which interval was different? Press 1, 2 or 3: ")
+            answered_from = keys.now()
+            key = keys.read_key(frozenset("123"))
+            response_time_s = keys.now() - answered_from
+            keys.write(f"{key}\n")
+        assert key is not None  # no deadline: only a key ends the wait
         return result, Response(interval=int(key), response_time_s=response_time_s)
 
     def close(self) -> None:
-        """Release the terminal (its settings are already restored after every read)."""
-        if self._closed:
-            return
-        self._closed = True
-        if self._owns_fds:
-            for fd in {self._in, self._out}:
-                with contextlib.suppress(OSError):
-                    os.close(fd)
-
-    # -- terminal handling ----------------------------------------------------------------
-
-    @contextlib.contextmanager
-    def _keypad_mode(self) -> Iterator[None]:
-        """Non-canonical, no echo, signals kept (Ctrl-C still interrupts); restored on exit."""
-        try:
-            saved = termios.tcgetattr(self._in)
-        except termios.error as exc:
-            raise ResponderError(
-                f"{self._tty_name}: cannot read the terminal settings ({exc}); the participant's "
-                "terminal was closed — resume the session from a working terminal"
-            ) from exc
-        mode = termios.tcgetattr(self._in)
-        mode[3] &= ~(termios.ICANON | termios.ECHO)  # lflag
-        mode[6][termios.VMIN] = 1
-        mode[6][termios.VTIME] = 0
-        termios.tcsetattr(self._in, termios.TCSANOW, mode)
-        try:
-            yield
-        finally:
-            # TCSANOW: never block here on output the other side does not read.
-            with contextlib.suppress(termios.error):
-                termios.tcsetattr(self._in, termios.TCSANOW, saved)
-
-    def _read_key(self, allowed: frozenset[str]) -> str:
-        """Block until one of ``allowed`` is pressed; ignore every other key."""
-        key = self._read_key_until(allowed, None)
-        assert key is not None  # no deadline: only a key ends the wait
-        return key
-
-    def _read_key_until(self, allowed: frozenset[str], deadline: float | None) -> str | None:
-        """Wait for one of ``allowed`` until ``deadline`` (``time.monotonic`` s; None: forever).
-
-        Returns the key, or None when the deadline passes first; every other key is ignored.
-        """
-        pending = b""
-        while True:
-            left = None if deadline is None else deadline - time.monotonic()
-            if left is not None and left <= 0:
-                return None
-            wait = left if not pending else min(ESCAPE_WAIT_S, left or ESCAPE_WAIT_S)
-            ready, _, _ = select.select([self._in], [], [], wait)
-            if not ready:
-                pending = b""  # a lone Esc: nothing followed it
-                continue
-            try:
-                data = os.read(self._in, 64)
-            except OSError as exc:
-                raise self._gone(exc.strerror) from exc
-            if not data:
-                raise self._gone("end of input")
-            keys, pending = parse_keys(pending + data)
-            for key in keys:
-                if key == INTERRUPT:
-                    raise KeyboardInterrupt
-                if key in allowed:
-                    return key
-
-    def _gone(self, why: str | None) -> ResponderError:
-        return ResponderError(
-            f"{self._tty_name}: the participant's terminal went away while waiting for a key "
-            f"({why}); the trial in flight is not logged — resume the session"
-        )
-
-    def _write(self, text: str) -> None:
-        data = text.encode()  # the terminal's own output processing turns \n into \r\n
-        try:
-            while data:
-                written = os.write(self._out, data)
-                data = data[written:]
-        except OSError as exc:
-            raise ResponderError(
-                f"{self._tty_name}: cannot write to the participant's terminal "
-                f"({exc.strerror}); resume the session from a working terminal"
-            ) from exc
+        """Release the terminal. Idempotent."""
+        self.keys.close()

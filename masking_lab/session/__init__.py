@@ -13,10 +13,10 @@ from masking_lab.core.exports import lazy_exports
 
 _HOME = {
     "ProgressLine": "progress",
-    "ResumeOptions": "frame",
     "RunOptions": "runner",
     "SessionContext": "runner",
     "SessionKind": "frame",
+    "SessionOptions": "frame",
     "SessionPlan": "frame",
     "SessionResult": "threshold_loop",
     "ThresholdSession": "threshold_loop",

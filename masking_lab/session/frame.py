@@ -6,9 +6,12 @@ A threshold session (:mod:`masking_lab.session.runner`) and a user test
 checks, the seed, the clock kind (virtual in simulation, real at the rig), the simulated
 observer, opening the responder and the device (closing what is open if a later step fails),
 creating or reopening the fsynced log, the resume records, and finally the kind's session loop.
-A session kind plugs in through :class:`SessionKind` (what to check and prepare before anything
-opens) and the :class:`SessionPlan` it returns (context for the responder factory, checks of the
-opened device, the log header, the loop).
+
+The public surface is four types and two functions: :class:`SessionOptions` (what both ``run``
+and ``resume`` are given; a kind's options extend it), :class:`SessionKind` (what to check and
+prepare before anything opens), the :class:`SessionPlan` it returns (responder context, checks of
+the opened device, the log header, the loop) with :class:`Opening` and :class:`Opened` handed to
+it. docs/architecture.md has a worked example of a kind.
 
 Bad input raises a :class:`~masking_lab.core.errors.MaskingLabError` before anything is played;
 once the loop runs, every stop is a log record and an exit code in the result.
@@ -21,7 +24,7 @@ import secrets
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Generic, Protocol, TextIO, TypedDict, TypeVar
+from typing import Any, Protocol, TextIO, TypeVar
 
 from masking_lab.core.clock import Clock, RealClock, VirtualClock
 from masking_lab.core.errors import DeviceTimeModeError, LogError, MaskingLabError
@@ -59,122 +62,75 @@ from masking_lab.session.shell import Closable, SessionShell, resume_command
 __all__ = [
     "Opened",
     "Opening",
-    "PlanDefaults",
-    "ResumeChanges",
-    "ResumeKeywords",
-    "ResumeOptions",
-    "SessionHooks",
     "SessionKind",
+    "SessionOptions",
     "SessionPlan",
-    "StartOptions",
     "resume",
-    "resume_with",
     "start",
 ]
 
 ResultT = TypeVar("ResultT")
+OptionsT = TypeVar("OptionsT", bound="SessionOptions")
+OptionsT_contra = TypeVar("OptionsT_contra", bound="SessionOptions", contravariant=True)
 ContextT = TypeVar("ContextT", bound=ResponderContext)
 ResponderFactory = Callable[[str, Any], Any]
 
 
-class StartOptions(Protocol):
-    """What every ``run`` states, whatever the session kind (the kind's options add more).
-
-    Read-only properties, so that a frozen dataclass of options satisfies the protocol.
-    """
-
-    @property
-    def participant(self) -> str: ...
-    @property
-    def device(self) -> str: ...
-    @property
-    def responder(self) -> str: ...
-    @property
-    def data_dir(self) -> Path: ...
-    @property
-    def seed(self) -> int | None: ...
-    @property
-    def real_time(self) -> bool: ...
-    @property
-    def ground_truth(self) -> Path | None: ...
-    @property
-    def device_config(self) -> Path | None: ...
-    @property
-    def progress(self) -> bool | None: ...
-    @property
-    def participant_tty(self) -> str | None: ...
-
-
 @dataclass(frozen=True)
-class ResumeOptions:
-    """What ``resume`` may change; everything else comes from the log's header.
+class SessionOptions:
+    """What a session is started or resumed with; each kind's options extend it.
+
+    A new session reads every field. A resumed one takes the rest from its log's header and
+    reads only ``device``, ``responder``, ``device_config``, ``participant_tty``, ``progress``
+    and ``allow_changed_protocol`` (None: the header's).
 
     Attributes
     ----------
+    protocol : Path or None
+        The protocol file of a new session (a resume uses the log's copy).
+    participant : str
+        Participant id (letters, digits, ``_ - .``); names the data sub-folder.
     device : str or None
-        Device spec; default: the header's back-end (``serial:<port>`` for a serial device).
+        ``sim``, ``emulator``, ``serial:PORT`` or ``nidaq[:DEV]``; None: ``sim`` for a new
+        session, the log's back-end on resume (``serial`` needs the port again).
     responder : str or None
-        Responder; default: the header's.
-    allow_changed_protocol : bool
-        Continue although protocol or scene files changed on disk (the logged copies are used).
+        ``sim``, ``keys`` or ``psychopy``; None: ``sim`` for a new session, the log's on resume.
+    data_dir : Path
+        Data folder; logs go to ``data_dir/<participant>/``.
+    seed : int or None
+        Session seed (drawn and logged when None).
+    real_time : bool
+        Use the real clock even with a simulated responder.
+    ground_truth : Path or None
+        Ground truth of the simulated responder (None: the packaged default).
     device_config : Path or None
-        Rig config; default: the one the session started with.
-    participant_tty : str or None
-        The participant's terminal for the keys responder.
+        Rig config (None: the packaged reference rig; on resume, required again if the session
+        started with one).
     progress : bool or None
-        Force the progress line on or off (default: on a terminal only).
-    """
-
-    device: str | None = None
-    responder: str | None = None
-    allow_changed_protocol: bool = False
-    device_config: Path | None = None
-    participant_tty: str | None = None
-    progress: bool | None = None
-
-
-class ResumeChanges(TypedDict, total=False):
-    """The keyword form of :class:`ResumeOptions` taken by the kinds' ``resume_*`` functions."""
-
-    device: str | None
-    responder: str | None
-    allow_changed_protocol: bool
-    device_config: Path | None
-    participant_tty: str | None
-    progress: bool | None
-
-
-class SessionHooks(TypedDict, total=False):
-    """Where a session's device, responder and messages come from (tests, embedding programs).
-
-    ``open_device``: ``(spec, clock) -> Device`` (default: the registry with the rig config);
-    ``make_responder``: ``(name, context) -> responder`` (default: the kind's sim, keys or
-    psychopy); ``stream``: where progress and messages go (default: stderr).
-    """
-
-    open_device: DeviceOpener | None
-    make_responder: ResponderFactory | None
-    stream: TextIO | None
-
-
-class ResumeKeywords(SessionHooks, ResumeChanges, total=False):
-    """The keywords of the kinds' ``resume_*`` functions: hooks and what resume may change."""
-
-
-def resume_with(
-    kind: SessionKind[ResultT], log_path: str | Path, keywords: Mapping[str, Any]
-) -> ResultT:
-    """:func:`resume` with :class:`ResumeKeywords` (hooks and changes in one mapping).
+        Force the progress line on or off (None: on a terminal only).
+    participant_tty : str or None
+        With the keys responder: the participant's terminal (None: this one).
+    allow_changed_protocol : bool
+        Resume although the protocol or scene files changed (the logged copies are used).
 
     Examples
     --------
-    >>> resume_with(None, "nowhere.jsonl", {"colour": "red"})  # doctest: +ELLIPSIS
-    Traceback (most recent call last):
-    TypeError: ...unexpected keyword argument 'colour'
+    >>> SessionOptions(device="emulator").responder is None
+    True
     """
-    hooks = {k: v for k, v in keywords.items() if k in SessionHooks.__annotations__}
-    changes = {k: v for k, v in keywords.items() if k not in hooks}
-    return resume(kind, log_path, ResumeOptions(**changes), **hooks)
+
+    protocol: Path | None = None
+    participant: str = ""
+    device: str | None = None
+    responder: str | None = None
+    data_dir: Path = Path("data")
+    seed: int | None = None
+    real_time: bool = False
+    ground_truth: Path | None = None
+    device_config: Path | None = None
+    progress: bool | None = None
+    participant_tty: str | None = None
+    allow_changed_protocol: bool = False
 
 
 @dataclass(frozen=True)
@@ -249,7 +205,12 @@ class Opened:
 
 
 class SessionPlan(Protocol[ResultT]):
-    """One session kind's plan for one process, made before any device or window opens."""
+    """One session kind's plan for one process, made before any device or window opens.
+
+    A plan subclasses this protocol to inherit the defaults (no extra checks, a plain resume
+    message) and defines ``experiment``, :meth:`context`, :meth:`header`, :meth:`position` and
+    :meth:`session`.
+    """
 
     @property
     def experiment(self) -> str:
@@ -260,19 +221,6 @@ class SessionPlan(Protocol[ResultT]):
         """What the responder factory gets (the kind's context object)."""
         ...
 
-    def check_responder(self, name: str) -> None:
-        """Refuse a responder this session cannot be answered with."""
-        ...
-
-    def check_device(self, device: Device, out: ProgressLine) -> None:
-        """Checks that need the opened device (limits, watchdog); raise to close it again."""
-        ...
-
-    def ask_participant(self, responder: Any, out: ProgressLine) -> None:
-        """Questions asked through the opened responder before the log exists (the window's
-        participant form); KeyboardInterrupt stops the start with nothing logged."""
-        ...
-
     def header(self, opening: Opening, device: Device) -> dict[str, Any]:
         """The log header of a new session."""
         ...
@@ -281,45 +229,34 @@ class SessionPlan(Protocol[ResultT]):
         """Where a resumed session stopped: (set id, trial index)."""
         ...
 
-    def resume_message(self, path: Path) -> str:
-        """What to say when a resumed session continues."""
-        ...
-
     def session(self, opening: Opening, opened: Opened) -> SessionShell[ResultT]:
         """The session loop for the trials still to run."""
         ...
 
-
-class PlanDefaults:
-    """What a plan does when its kind has nothing to add: no extra checks, a plain message.
-
-    A kind's plan inherits these and overrides only what it needs (see :class:`SessionPlan`).
-    """
-
     def check_responder(self, name: str) -> None:
-        """Every responder of the kind will do."""
+        """Refuse a responder this session cannot be answered with (default: none refused)."""
+        return None  # a default, not an abstract method
 
     def check_device(self, device: Device, out: ProgressLine) -> None:
-        """The frame's checks of the opened device are enough."""
+        """Checks that need the opened device (limits, watchdog); raise to close it again."""
+        return None  # a default, not an abstract method
 
     def ask_participant(self, responder: Any, out: ProgressLine) -> None:
-        """Nothing is asked through the responder."""
+        """Questions asked through the opened responder before the log exists (the window's
+        participant form); KeyboardInterrupt stops the start with nothing logged."""
+        return None  # a default, not an abstract method
 
     def resume_message(self, path: Path) -> str:
-        """``resuming <path>``."""
+        """What to say when a resumed session continues (default: ``resuming <path>``)."""
         return f"resuming {path}"
 
 
-class SessionKind(Protocol[ResultT]):
+class SessionKind(Protocol[OptionsT_contra, ResultT]):
     """A kind of session (threshold, user test): its responders and how it plans a session."""
 
     @property
     def responders(self) -> tuple[str, ...]:
         """The responder names the kind accepts."""
-        ...
-
-    def responder_error(self, name: str) -> str:
-        """The message for an unknown responder name."""
         ...
 
     def default_responder(self, name: str, context: Any) -> Any:
@@ -331,7 +268,7 @@ class SessionKind(Protocol[ResultT]):
         ...
 
     def plan_start(
-        self, options: Any, participant: str, seed: int, out: ProgressLine
+        self, options: OptionsT_contra, participant: str, seed: int, out: ProgressLine
     ) -> SessionPlan[ResultT]:
         """Load and check everything a new session needs; nothing is opened yet."""
         ...
@@ -341,36 +278,16 @@ class SessionKind(Protocol[ResultT]):
         header: Mapping[str, Any],
         log: SessionLog,
         path: Path,
-        options: ResumeOptions,
+        options: SessionOptions,
         out: ProgressLine,
     ) -> SessionPlan[ResultT]:
         """Rebuild the plan from the log's header and check the logged trials."""
         ...
 
 
-@dataclass
-class _Frame(Generic[ResultT]):
-    kind: SessionKind[ResultT]
-    open_device: DeviceOpener | None
-    make_responder: ResponderFactory | None
-    out: ProgressLine
-
-    def open(
-        self, plan: SessionPlan[ResultT], opening: Opening, spec: str
-    ) -> tuple[Device, Closable]:
-        return open_device_and_responder(
-            self.make_responder or self.kind.default_responder,
-            opening.responder,
-            plan.context(opening),
-            self.open_device or default_opener(opening.device_config),
-            spec,
-            opening.clock,
-        )
-
-
 def start(
-    kind: SessionKind[ResultT],
-    options: StartOptions,
+    kind: SessionKind[OptionsT, ResultT],
+    options: OptionsT,
     *,
     open_device: DeviceOpener | None = None,
     make_responder: ResponderFactory | None = None,
@@ -381,9 +298,9 @@ def start(
     Parameters
     ----------
     kind : SessionKind
-        The session kind (threshold or user test).
-    options : StartOptions
-        The kind's options (they carry the common fields).
+        The session kind (threshold, user test).
+    options : SessionOptions
+        The kind's options.
     open_device : callable, optional
         ``(spec, clock) -> Device``; default: :func:`masking_lab.device.registry.open_device`
         with ``options.device_config``.
@@ -400,94 +317,105 @@ def start(
     ------
     MaskingLabError
         Bad input found before anything is played.
+
+    Examples
+    --------
+    >>> from masking_lab.session.runner import THRESHOLD, RunOptions
+    >>> start(THRESHOLD, RunOptions(Path("p.yaml"), "S 01"))
+    Traceback (most recent call last):
+    masking_lab.core.errors.MaskingLabError: --participant 'S 01': use letters, ...
     """
-    frame = _Frame(kind, open_device, make_responder, ProgressLine(stream, force=options.progress))
+    out = ProgressLine(stream, force=options.progress)
     participant = check_participant(options.participant)
-    if options.responder not in kind.responders:
-        raise MaskingLabError(kind.responder_error(options.responder))
-    check_device_spec(options.device)
+    responder = options.responder or "sim"
+    if responder not in kind.responders:
+        raise MaskingLabError(
+            f"--responder {responder!r}: choose one of {', '.join(kind.responders)}"
+        )
+    device_spec = check_device_spec(options.device or "sim")
     seed = options.seed if options.seed is not None else secrets.randbits(32)
     if seed < 0:
         raise MaskingLabError(f"--seed must be ≥ 0, got {seed}")
-    plan = kind.plan_start(options, participant, seed, frame.out)
-    plan.check_responder(options.responder)
-    # One runner per participant and protocol: a second one is refused before anything opens.
-    runner = RunnerLock.acquire(Path(options.data_dir) / participant, participant, plan.experiment)
-    try:
-        return _start_locked(frame, plan, participant, seed, options)
-    finally:
-        runner.release()
-
-
-def _start_locked(
-    frame: _Frame[ResultT],
-    plan: SessionPlan[ResultT],
-    participant: str,
-    seed: int,
-    options: StartOptions,
-) -> ResultT:
-    virtual = use_virtual_clock(options.device, options.responder, options.real_time)
+    plan = kind.plan_start(options, participant, seed, out)
+    plan.check_responder(responder)
+    virtual = use_virtual_clock(device_spec, responder, options.real_time)
     opening = Opening(
         participant=participant,
         seed=seed,
         clock=VirtualClock() if virtual else RealClock(),
         virtual=virtual,
-        observer=observer_record(options.ground_truth) if options.responder == "sim" else None,
+        observer=observer_record(options.ground_truth) if responder == "sim" else None,
         device_config=options.device_config,
         participant_tty=options.participant_tty,
-        responder=options.responder,
+        responder=responder,
     )
-    device, responder, opening = _open_in_device_time(frame, plan, opening, options)
-    with close_on_failure(device, responder):
-        plan.check_device(device, frame.out)
-        plan.ask_participant(responder, frame.out)  # before the log: Esc leaves nothing behind
-        header = plan.header(opening, device)
-        writer = create_log(
-            Path(options.data_dir),
-            plan.experiment,
-            participant,
-            header,
-            sync=sync_policy(opening.virtual),
-        )
-    frame.out.message(f"session log: {writer.path}")
-    for note in device.identity.details.get("notices", ()):  # e.g. no hardware watchdog
-        frame.out.message(f"device: {note}")
-    return _run(plan, opening, Opened(device, responder, writer, frame.out), options.device)
-
-
-def _open_in_device_time(
-    frame: _Frame[ResultT], plan: SessionPlan[ResultT], opening: Opening, options: StartOptions
-) -> tuple[Device, Closable, Opening]:
-    """Open the device; a simulated participant on a serial device follows the device's time.
-
-    Whether a serial device runs in virtual time (the emulator or the host-built firmware with
-    ``--virtual-time``) is known only from its HELLO. With a sim responder and no
-    ``--real-time``, the session first asks for virtual time and, if the device runs in real
-    time, opens it again with a real clock.
-    """
-    serial_sim = (
-        options.device.startswith("serial:")
-        and options.responder == "sim"
-        and not options.real_time
-    )
-    if not serial_sim:
-        device, responder = frame.open(plan, opening, options.device)
-        return device, responder, opening
-    opening = dataclasses.replace(opening, clock=VirtualClock(), virtual=True)
+    opener = _Opener(kind, open_device, make_responder, plan, device_spec)
+    # One runner per participant and protocol: a second one is refused before anything opens.
+    runner = RunnerLock.acquire(Path(options.data_dir) / participant, participant, plan.experiment)
     try:
-        device, responder = frame.open(plan, opening, options.device)
-    except DeviceTimeModeError as exc:
-        if exc.device_virtual:
-            raise
+        device, responder_obj, opening = opener.open_in_device_time(opening, options.real_time)
+        with close_on_failure(device, responder_obj):
+            plan.check_device(device, out)
+            plan.ask_participant(responder_obj, out)  # before the log: Esc leaves nothing behind
+            writer = create_log(
+                Path(options.data_dir),
+                plan.experiment,
+                participant,
+                plan.header(opening, device),
+                sync=sync_policy(opening.virtual),
+            )
+        out.message(f"session log: {writer.path}")
+        return _run(plan, opening, Opened(device, responder_obj, writer, out), device_spec)
+    finally:
+        runner.release()
+
+
+@dataclass(frozen=True)
+class _Opener:
+    """Opens the responder and the device of one session (the hooks or the kind's defaults)."""
+
+    kind: SessionKind[Any, Any]
+    open_device: DeviceOpener | None
+    make_responder: ResponderFactory | None
+    plan: SessionPlan[Any]
+    spec: str
+
+    def open(self, opening: Opening) -> tuple[Device, Closable]:
+        return open_device_and_responder(
+            self.make_responder or self.kind.default_responder,
+            opening.responder,
+            self.plan.context(opening),
+            self.open_device or default_opener(opening.device_config),
+            self.spec,
+            opening.clock,
+        )
+
+    def open_in_device_time(
+        self, opening: Opening, real_time: bool
+    ) -> tuple[Device, Closable, Opening]:
+        """Open; a simulated participant on a serial device follows the device's time.
+
+        Whether a serial device runs in virtual time (the emulator or the host-built firmware
+        with ``--virtual-time``) is known only from its HELLO. With a sim responder and no
+        ``--real-time``, the session first asks for virtual time and, if the device runs in
+        real time, opens it again with a real clock.
+        """
+        if not (self.spec.startswith("serial:") and opening.responder == "sim" and not real_time):
+            return (*self.open(opening), opening)
+        opening = dataclasses.replace(opening, clock=VirtualClock(), virtual=True)
+        try:
+            return (*self.open(opening), opening)
+        except DeviceTimeModeError as exc:
+            if exc.device_virtual:
+                raise
         opening = dataclasses.replace(opening, clock=RealClock(), virtual=False)
-        device, responder = frame.open(plan, opening, options.device)
-    return device, responder, opening
+        return (*self.open(opening), opening)
 
 
 def resume(
-    kind: SessionKind[ResultT],
+    kind: SessionKind[Any, ResultT],
     log_path: str | Path,
-    options: ResumeOptions,
+    options: SessionOptions | None = None,
     *,
     open_device: DeviceOpener | None = None,
     make_responder: ResponderFactory | None = None,
@@ -495,88 +423,87 @@ def resume(
 ) -> ResultT:
     """Continue an interrupted session of ``kind`` where it stopped, in the same log.
 
-    Everything but what :class:`ResumeOptions` names comes from the log's header.
+    Everything but what :class:`SessionOptions` lets a resume change comes from the log's
+    header; the hooks are those of :func:`start`.
 
     Raises
     ------
     LogError
         A finished session, a log of another kind, a header that breaks the schema, changed
         files (without ``allow_changed_protocol``), or logged trials that do not replay.
+
+    Examples
+    --------
+    >>> from masking_lab.session.runner import THRESHOLD
+    >>> resume(THRESHOLD, "no-such-log.jsonl")  # doctest: +ELLIPSIS
+    Traceback (most recent call last):
+    masking_lab.core.errors.LogError: no-such-log.jsonl: cannot read session log ...
     """
-    frame = _Frame(kind, open_device, make_responder, ProgressLine(stream, force=options.progress))
+    options = options or SessionOptions()
+    out = ProgressLine(stream, force=options.progress)
     path = Path(log_path)
     # Locked before it is read: a second resume of this log is refused here, before anything
     # opens. The lock passes to the writer and lives as long as the session.
     lock = LogLock.acquire(path)
     try:
-        return _resume_locked(kind, frame, path, lock, options)
+        log = read_log(path)
+        if log.value_problems:  # replaying NaN or infinite levels or indices cannot be right
+            raise LogError(
+                f"{path}: {log.value_problems[0]}; a log holding non-finite numbers was edited "
+                "or damaged and cannot be resumed: start a new session"
+            )
+        check_header(log.header, path)
+        kind.check_log(log.header, path)
+        protocol = log.header.get("protocol")
+        experiment = protocol.get("experiment") if isinstance(protocol, dict) else None
+        runner = RunnerLock.acquire(path.parent, str(log.header["participant"]), str(experiment))
+        try:
+            hooks = (open_device, make_responder)
+            return _resume_locked(kind, hooks, log, path, lock, options, out)
+        finally:
+            runner.release()
     finally:
         lock.release()
 
 
 def _resume_locked(
-    kind: SessionKind[ResultT],
-    frame: _Frame[ResultT],
-    path: Path,
-    lock: LogLock,
-    options: ResumeOptions,
-) -> ResultT:
-    log = read_log(path)
-    if log.value_problems:  # replaying NaN or infinite levels or indices cannot be right
-        raise LogError(
-            f"{path}: {log.value_problems[0]}; a log holding non-finite numbers was edited or "
-            "damaged and cannot be resumed: start a new session"
-        )
-    header = log.header
-    check_header(header, path)
-    kind.check_log(header, path)
-    protocol = header.get("protocol")
-    experiment = protocol.get("experiment") if isinstance(protocol, dict) else None
-    runner = RunnerLock.acquire(path.parent, str(header["participant"]), str(experiment))
-    try:
-        return _resume_runner_locked(kind, frame, path, lock, options, log)
-    finally:
-        runner.release()
-
-
-def _resume_runner_locked(
-    kind: SessionKind[ResultT],
-    frame: _Frame[ResultT],
-    path: Path,
-    lock: LogLock,
-    options: ResumeOptions,
+    kind: SessionKind[Any, ResultT],
+    hooks: tuple[DeviceOpener | None, ResponderFactory | None],
     log: SessionLog,
+    path: Path,
+    lock: LogLock,
+    options: SessionOptions,
+    out: ProgressLine,
 ) -> ResultT:
     header = log.header
     refuse_finished(log, path)
-    plan = kind.plan_resume(header, log, path, options, frame.out)
+    plan = kind.plan_resume(header, log, path, options, out)
     refuse_damaged(log, path)  # after the kind's own replay checks, which say more
     responder_name = resume_responder_name(header, options.responder, kind.responders)
     plan.check_responder(responder_name)
-    config_path = resume_device_config(options.device_config, header)
     opening = Opening(
         participant=str(header["participant"]),
         seed=int(header["seed"]),
         clock=resume_clock(header, log),
         virtual=header["clock"] == "virtual",
         observer=resume_observer(header, responder_name),
-        device_config=config_path,
+        device_config=resume_device_config(options.device_config, header),
         participant_tty=options.participant_tty,
         responder=responder_name,
     )
     spec = check_device_spec(options.device or device_spec_from_header(header))
-    device, responder = frame.open(plan, opening, spec)
+    device, responder = _Opener(kind, *hooks, plan, spec).open(opening)
     with close_on_failure(device, responder):
-        plan.check_device(device, frame.out)
+        plan.check_device(device, out)
         writer, _ = SessionLogWriter.reopen(path, lock=lock, sync=sync_policy(opening.virtual))
-    record_resume(writer, log, device.identity, frame.out, plan.position())
-    frame.out.message(plan.resume_message(path))
-    for note in device.identity.details.get("notices", ()):
-        frame.out.message(f"device: {note}")
-    return _run(plan, opening, Opened(device, responder, writer, frame.out), spec)
+    record_resume(writer, log, device.identity, out, plan.position())
+    out.message(plan.resume_message(path))
+    return _run(plan, opening, Opened(device, responder, writer, out), spec)
 
 
 def _run(plan: SessionPlan[ResultT], opening: Opening, opened: Opened, spec: str) -> ResultT:
+    for note in opened.device.identity.details.get("notices", ()):  # e.g. no hardware watchdog
+        opened.out.message(f"device: {note}")
     session = plan.session(opening, opened)
     session.resume_command = resume_command(opened.writer.path, spec, opening.device_config)
     with one_blas_thread():  # a busy core must not stall a trial's placement (blas_threads)

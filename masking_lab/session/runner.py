@@ -20,7 +20,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Unpack
+from typing import Any, TextIO
 
 from masking_lab.core.errors import (
     LogError,
@@ -37,7 +37,7 @@ from masking_lab.session import frame
 
 # EXIT_* and the signal classes were public here first; the noqa lines re-export them.
 from masking_lab.session.header import session_header
-from masking_lab.session.opening import ResponderContext
+from masking_lab.session.opening import DeviceOpener, ResponderContext
 from masking_lab.session.progress import ProgressLine
 from masking_lab.session.shell import (
     EXIT_COMPLETED,  # noqa: F401
@@ -64,8 +64,10 @@ RESPONDERS = ("sim", "keys", "psychopy")
 
 
 @dataclass(frozen=True)
-class RunOptions:
-    """What ``masking-lab run`` was asked to do.
+class RunOptions(frame.SessionOptions):
+    """What ``masking-lab run`` was asked to do with a threshold protocol.
+
+    The fields of :class:`~masking_lab.session.frame.SessionOptions`, and:
 
     Attributes
     ----------
@@ -74,25 +76,11 @@ class RunOptions:
     participant : str
         Participant id (letters, digits, ``_ - .``); names the data sub-folder.
     device : str
-        ``sim``, ``emulator`` or ``serial:PORT``.
+        ``sim``, ``emulator``, ``serial:PORT`` or ``nidaq[:DEV]``.
     responder : {"sim", "keys", "psychopy"}
         Who answers.
-    data_dir : Path
-        Data folder; logs and the calibration go to ``data_dir/<participant>/``.
-    seed : int or None
-        Session seed (drawn and logged when None).
     sets : tuple[str, ...] or None
         Subset of set ids to run (in the seed's order), or None for all.
-    real_time : bool
-        Use the real clock even with a simulated responder.
-    ground_truth : Path or None
-        Ground-truth file of the simulated responder (None: the packaged default).
-    device_config : Path or None
-        Device config file (None: the packaged default).
-    progress : bool or None
-        Force the progress line on (True) or off (False); None: only on a terminal.
-    participant_tty : str or None
-        With the keys responder: the participant's terminal (None: this one).
     info : mapping of str to str
         Participant metadata as typed (``--info key=value``), checked against the protocol's
         ``info`` section (:mod:`masking_lab.session.participant_info`); on a terminal the
@@ -103,14 +91,7 @@ class RunOptions:
     participant: str
     device: str = "sim"
     responder: str = "sim"
-    data_dir: Path = Path("data")
-    seed: int | None = None
     sets: tuple[str, ...] | None = None
-    real_time: bool = False
-    ground_truth: Path | None = None
-    device_config: Path | None = None
-    progress: bool | None = None
-    participant_tty: str | None = None
     info: Mapping[str, str] = field(default_factory=dict)
 
 
@@ -131,16 +112,21 @@ class SessionContext(ResponderContext):
 # Entry points
 
 
-def run_session(options: RunOptions, **hooks: Unpack[frame.SessionHooks]) -> SessionResult:
+def run_session(
+    options: RunOptions,
+    *,
+    open_device: DeviceOpener | None = None,
+    make_responder: frame.ResponderFactory | None = None,
+    stream: TextIO | None = None,
+) -> SessionResult:
     """Run a protocol for one participant and write a new session log.
 
     Parameters
     ----------
     options : RunOptions
         What to run.
-    **hooks
-        ``open_device``, ``make_responder``, ``stream``: see
-        :class:`masking_lab.session.frame.SessionHooks`.
+    open_device, make_responder, stream
+        The hooks of :func:`masking_lab.session.frame.start`.
 
     Raises
     ------
@@ -148,10 +134,19 @@ def run_session(options: RunOptions, **hooks: Unpack[frame.SessionHooks]) -> Ses
         Bad input found before anything is played: protocol, participant id, unknown set ids,
         missing calibration, unknown responder, unreadable ground truth.
     """
-    return frame.start(THRESHOLD, options, **hooks)
+    return frame.start(
+        THRESHOLD, options, open_device=open_device, make_responder=make_responder, stream=stream
+    )
 
 
-def resume_session(log_path: str | Path, **keywords: Unpack[frame.ResumeKeywords]) -> SessionResult:
+def resume_session(
+    log_path: str | Path,
+    options: frame.SessionOptions | None = None,
+    *,
+    open_device: DeviceOpener | None = None,
+    make_responder: frame.ResponderFactory | None = None,
+    stream: TextIO | None = None,
+) -> SessionResult:
     """Continue an interrupted session exactly where it stopped, in the same log.
 
     The protocol, calibration, seed, set order, clock kind and responder come from the log's
@@ -162,10 +157,10 @@ def resume_session(log_path: str | Path, **keywords: Unpack[frame.ResumeKeywords
     ----------
     log_path : path
         The session log (``DATA/<participant>/<experiment>-<participant>-<UTC>.jsonl``).
-    **keywords
-        ``open_device``, ``make_responder``, ``stream`` as for :func:`run_session`;
-        ``device``, ``responder``, ``allow_changed_protocol``, ``device_config``,
-        ``participant_tty``, ``progress``: as in :class:`masking_lab.session.frame.ResumeOptions`.
+    options : SessionOptions, optional
+        What the resume changes (device, responder, rig config, ...).
+    open_device, make_responder, stream
+        The hooks of :func:`masking_lab.session.frame.start`.
 
     Raises
     ------
@@ -173,16 +168,20 @@ def resume_session(log_path: str | Path, **keywords: Unpack[frame.ResumeKeywords
         Finished session, protocol file changed (without ``allow_changed_protocol``), a header
         that breaks the schema, or logged trials that do not replay to their logged levels.
     """
-    return frame.resume_with(THRESHOLD, log_path, keywords)
+    return frame.resume(
+        THRESHOLD,
+        log_path,
+        options,
+        open_device=open_device,
+        make_responder=make_responder,
+        stream=stream,
+    )
 
 
 class ThresholdKind:
     """Threshold sessions (baseline and masked protocols) in the session frame."""
 
     responders = RESPONDERS
-
-    def responder_error(self, name: str) -> str:
-        return f"--responder {name!r}: choose one of {', '.join(RESPONDERS)}"
 
     def default_responder(self, name: str, context: SessionContext) -> Responder:
         return _default_responder(name, context)
@@ -222,7 +221,7 @@ class ThresholdKind:
         header: Mapping[str, Any],
         log: SessionLog,
         path: Path,
-        options: frame.ResumeOptions,
+        options: frame.SessionOptions,
         out: ProgressLine,
     ) -> _ThresholdPlan:
         protocol = protocol_from_header(header, path, options.allow_changed_protocol, out)
@@ -263,7 +262,7 @@ def _participant_info(
 
 
 @dataclass
-class _ThresholdPlan(frame.PlanDefaults):
+class _ThresholdPlan(frame.SessionPlan[SessionResult]):
     """A threshold session's plan for this process (see :class:`frame.SessionPlan`)."""
 
     protocol: ThresholdProtocol
@@ -342,9 +341,9 @@ def _default_responder(name: str, context: SessionContext) -> Responder:
         participant = make_participant(truth, context.participant, population_seed)
         return SimResponder(participant, context.seed, source)
     if name == "keys":
-        from masking_lab.responders.keys import KeysResponder
+        from masking_lab.responders.keys import KeyReader, KeysResponder
 
-        return KeysResponder.on_terminal(context.participant_tty)
+        return KeysResponder(KeyReader.on_terminal(context.participant_tty))
     if name == "psychopy":
         from masking_lab.responders import psychopy_window
 

@@ -34,7 +34,7 @@ import shlex
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Unpack
+from typing import Any, TextIO
 
 from masking_lab.core.errors import (
     CalibrationError,
@@ -49,7 +49,7 @@ from masking_lab.formats.session_log import SessionLog
 from masking_lab.rendering.render import Rendering
 from masking_lab.rendering.solver import MutualMasking
 from masking_lab.session import frame
-from masking_lab.session.opening import ResponderContext
+from masking_lab.session.opening import DeviceOpener, ResponderContext
 from masking_lab.session.progress import ProgressLine
 from masking_lab.usertest.design import (
     UserTestDesign,
@@ -92,8 +92,10 @@ from masking_lab.usertest.stream import (
 
 
 @dataclass(frozen=True)
-class UserTestOptions:
+class UserTestOptions(frame.SessionOptions):
     """What ``masking-lab run <usertest protocol>`` was asked to do.
+
+    The fields of :class:`~masking_lab.session.frame.SessionOptions`, and:
 
     Attributes
     ----------
@@ -105,19 +107,13 @@ class UserTestOptions:
         ``sim``, ``emulator``, ``serial:PORT`` or ``nidaq[:DEV]``.
     responder : {"sim", "keys", "psychopy"}
         Who answers.
-    data_dir : Path
-        Data folder.
     params : Path or None
         ``masking_params.json`` (needed for the compensated condition).
-    seed : int or None
-        Session seed (drawn and logged when None); it fixes the trial order.
     allow_clipping : bool
         Play inputs above the rig's rating clipped to it (logged per trial) instead of refusing.
     gamut_map : str
         Map each scene into the rig's gamut first (``clip``, ``scale``, ``compress``; see
         :mod:`masking_lab.rendering.mapping`), or ``none``.
-    real_time, ground_truth, device_config, progress, participant_tty
-        As in :class:`masking_lab.session.runner.RunOptions`.
     update_hz : float
         Amplitude look-ups per second while a presentation plays, Hz.
     deadband_db : float
@@ -128,16 +124,9 @@ class UserTestOptions:
     participant: str
     device: str = "sim"
     responder: str = "sim"
-    data_dir: Path = Path("data")
     params: Path | None = None
-    seed: int | None = None
     allow_clipping: bool = False
     gamut_map: str = "none"
-    real_time: bool = False
-    ground_truth: Path | None = None
-    device_config: Path | None = None
-    progress: bool | None = None
-    participant_tty: str | None = None
     update_hz: float = UPDATE_HZ
     deadband_db: float = DEADBAND_DB
 
@@ -184,16 +173,21 @@ def is_usertest_log(path: str | Path) -> bool:
     return isinstance(first, dict) and first.get("kind") == KIND
 
 
-def run_usertest(options: UserTestOptions, **hooks: Unpack[frame.SessionHooks]) -> UserTestResult:
+def run_usertest(
+    options: UserTestOptions,
+    *,
+    open_device: DeviceOpener | None = None,
+    make_responder: frame.ResponderFactory | None = None,
+    stream: TextIO | None = None,
+) -> UserTestResult:
     """Run a user test for one participant and write a new session log.
 
     Parameters
     ----------
     options : UserTestOptions
         What to run.
-    **hooks
-        ``open_device``, ``make_responder``, ``stream``: see
-        :class:`masking_lab.session.frame.SessionHooks`.
+    open_device, make_responder, stream
+        The hooks of :func:`masking_lab.session.frame.start`.
 
     Raises
     ------
@@ -204,11 +198,18 @@ def run_usertest(options: UserTestOptions, **hooks: Unpack[frame.SessionHooks]) 
         measures them is written there), objects above the rig's rating without
         ``allow_clipping`` (:class:`LevelError`), a responder that cannot do the tracking.
     """
-    return frame.start(USERTEST, options, **hooks)
+    return frame.start(
+        USERTEST, options, open_device=open_device, make_responder=make_responder, stream=stream
+    )
 
 
 def resume_usertest(
-    log_path: str | Path, **keywords: Unpack[frame.ResumeKeywords]
+    log_path: str | Path,
+    options: frame.SessionOptions | None = None,
+    *,
+    open_device: DeviceOpener | None = None,
+    make_responder: frame.ResponderFactory | None = None,
+    stream: TextIO | None = None,
 ) -> UserTestResult:
     """Continue an interrupted user test with its next trial, in the same log.
 
@@ -219,10 +220,10 @@ def resume_usertest(
     ----------
     log_path : path
         The user test's session log.
-    **keywords
-        ``open_device``, ``make_responder``, ``stream`` as for :func:`run_usertest`;
-        ``device``, ``responder``, ``allow_changed_protocol``, ``device_config``,
-        ``participant_tty``, ``progress``: as in :class:`masking_lab.session.frame.ResumeOptions`.
+    options : SessionOptions, optional
+        What the resume changes (device, responder, rig config, ...).
+    open_device, make_responder, stream
+        The hooks of :func:`masking_lab.session.frame.start`.
 
     Raises
     ------
@@ -232,16 +233,20 @@ def resume_usertest(
     LevelError
         The device now has lower limits, so objects exceed them, and clipping was not allowed.
     """
-    return frame.resume_with(USERTEST, log_path, keywords)
+    return frame.resume(
+        USERTEST,
+        log_path,
+        options,
+        open_device=open_device,
+        make_responder=make_responder,
+        stream=stream,
+    )
 
 
 class UserTestKind:
     """The user test (paper §3.3) in the session frame."""
 
     responders = RESPONDERS
-
-    def responder_error(self, name: str) -> str:
-        return f"--responder {name!r}: the user test is answered by {', '.join(RESPONDERS)}"
 
     def default_responder(self, name: str, context: UserTestContext) -> UserTestResponder:
         return default_responder(name, context)
@@ -301,7 +306,7 @@ class UserTestKind:
         header: Mapping[str, Any],
         log: SessionLog,
         path: Path,
-        options: frame.ResumeOptions,
+        options: frame.SessionOptions,
         out: ProgressLine,
     ) -> _UserTestPlan:
         ut = header["usertest"]
@@ -333,7 +338,7 @@ class UserTestKind:
 
 
 @dataclass
-class _UserTestPlan(frame.PlanDefaults):
+class _UserTestPlan(frame.SessionPlan[UserTestResult]):
     """A user test's plan for this process (see :class:`frame.SessionPlan`)."""
 
     participant: str
@@ -465,9 +470,10 @@ def default_responder(name: str, context: UserTestContext) -> UserTestResponder:
             source=source or "the ground truth",
         )
     if name == "keys":
+        from masking_lab.responders.keys import KeyReader
         from masking_lab.usertest.keys_responder import UserTestKeysResponder
 
-        return UserTestKeysResponder.on_terminal(context.participant_tty)
+        return UserTestKeysResponder(KeyReader.on_terminal(context.participant_tty))
     if name == "psychopy":
         from masking_lab.usertest import window_responder as usertest_psychopy
 

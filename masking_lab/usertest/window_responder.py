@@ -1,13 +1,14 @@
 """The participant's PsychoPy window for the user test: the cue, the finger, two answers.
 
-The same window as the 3IFC sessions (:class:`~masking_lab.responders.psychopy_window
-.PsychoPyWindowResponder`: lanes, the cue sliding at the protocol's speed, pink noise, Escape
-stops the session). Presentation *k* sweeps lane *k*. While the device streams the object in a
-background thread, the main thread draws frames and samples the pointer (a touch panel reports
-the finger as a mouse); with ``tracking: finger`` the stream follows the last sample taken while
-the cue moves (a sample older than :data:`FINGER_STALE_S` counts as a lifted finger). After the
-last presentation the window asks for the geometry (keys 1–4), then the texture (keys 1–3);
-keys pressed earlier are discarded, and with a response timeout a late answer is none.
+The window the 3IFC sessions use too (:class:`~masking_lab.responders.participant_window
+.ParticipantWindow`, held, not inherited: lanes, the cue sliding at the protocol's speed, pink
+noise, Escape stops the session). Presentation *k* sweeps lane *k*. While the device streams
+the object in a background thread, the main thread draws frames and samples the pointer (a
+touch panel reports the finger as a mouse); with ``tracking: finger`` the stream follows the
+last sample taken while the cue moves (a sample older than :data:`FINGER_STALE_S` counts as a
+lifted finger). After the last presentation the window asks for the geometry (keys 1–4), then
+the texture (keys 1–3); keys pressed earlier are discarded, and with a response timeout a late
+answer is none.
 
 Imported only for ``--responder psychopy``; PsychoPy itself is imported when the window opens.
 """
@@ -18,15 +19,13 @@ import threading
 from collections.abc import Callable
 from typing import Any
 
+from masking_lab.core.clock import Clock
 from masking_lab.core.stimulus import Stimulus
 from masking_lab.core.trial import TrialPlan
 from masking_lab.responders.base import TrialPresentation
-from masking_lab.responders.psychopy_window import (
-    ABORT_KEYS,
-    NoiseSettings,
-    PsychoPyWindowResponder,
-    display_geometry,
-)
+from masking_lab.responders.cue import DisplayGeometry
+from masking_lab.responders.participant_window import NoiseSettings, ParticipantWindow
+from masking_lab.responders.psychopy_window import display_geometry
 from masking_lab.usertest.responder_base import (
     FingerReader,
     StreamResult,
@@ -42,7 +41,13 @@ _TIMING_ONLY = Stimulus("EV", 270.0)  # the lanes are drawn from a plan's timing
 
 
 def answer_keys(n: int) -> dict[str, int]:
-    """PsychoPy key names → 1-based answer, number row and keypad (``"1"``, ``"num_1"``, ...)."""
+    """PsychoPy key names → 1-based answer, number row and keypad (``"1"``, ``"num_1"``, ...).
+
+    Examples
+    --------
+    >>> answer_keys(2)
+    {'1': 1, 'num_1': 1, '2': 2, 'num_2': 2}
+    """
     keys = {}
     for i in range(1, n + 1):
         keys[str(i)] = i
@@ -50,48 +55,45 @@ def answer_keys(n: int) -> dict[str, int]:
     return keys
 
 
-class UserTestWindowResponder(PsychoPyWindowResponder):
+class UserTestWindowResponder:
     """Answers user-test trials in the participant window (UserTestResponder protocol).
 
-    Parameters are those of :class:`~masking_lab.responders.psychopy_window
-    .PsychoPyWindowResponder`.
+    Parameters are those of :class:`~masking_lab.responders.participant_window
+    .ParticipantWindow`, which it opens and holds as :attr:`window`.
     """
 
     name = "psychopy"
 
-    def __init__(self, *args: Any, **kwargs: Any) -> None:
-        super().__init__(*args, **kwargs)
-        self._geometries: tuple[str, ...] = ()
-        self._textures: tuple[str, ...] = ()
+    def __init__(self, display: DisplayGeometry, clock: Clock, **window: Any) -> None:
+        self.window = ParticipantWindow(display, clock, **window)
+        self._geometries = tuple(f"geometry {i}" for i in range(1, 5))
+        self._textures = tuple(f"texture {i}" for i in range(1, 4))
         self._finger_lock = threading.Lock()
         self._finger: tuple[float, float] | None = None  # (session s, path mm)
 
     def start_session(self, info: UserTestInfo) -> None:
         """Show the task and the keys; with ``wait_for_start``, wait for the space bar."""
         self._geometries, self._textures = info.geometries, info.textures
-        self._start_noise()
         resumed = f" (continuing at trial {info.next_trial + 1})" if info.next_trial else ""
-        self._text.text = (
+        self.window.show_instructions(
             f"{info.n_trials} objects{resumed}. Each is presented three times.\n\n"
             "Slide your fingertip from left to right with the yellow dot.\n"
             "Then press the geometry, then the texture:\n\n"
             f"{_listing(self._geometries)}\n{_listing(self._textures)}"
         )
-        self._show_instructions()
 
-    # A user-test trial takes other arguments than the 3IFC trial it overrides: the subclass
-    # breaks substitution on purpose until the responders share a helper (issue 20, item 4).
-    def trial(  # type: ignore[override]  # (see the comment above)
+    def trial(
         self,
-        presentation: UserTrialPresentation,  # type: ignore[override]  # (as above)
-        play: Callable[[FingerReader | None], StreamResult],  # type: ignore[override]  # (above)
+        presentation: UserTrialPresentation,
+        play: Callable[[FingerReader | None], StreamResult],
     ) -> tuple[StreamResult, UserTestAnswer]:
         """Draw the cue while the object streams in the background, then ask the two answers.
 
         Answer times run from the planned end of the last presentation (session clock) to the
         frame on which each key was seen, s.
         """
-        self._start_noise()
+        window = self.window
+        window.start_noise()
         screen = self.screen_presentation(presentation)
         finger = self.finger_reader(presentation) if presentation.tracking == "finger" else None
         with self._finger_lock:
@@ -101,31 +103,33 @@ class UserTestWindowResponder(PsychoPyWindowResponder):
             with self._finger_lock:
                 self._finger = (now_s, x_mm + presentation.sweep_mm / 2)
 
-        result, finger_path = self._play_with_cue(
+        result, finger_path = window.play_with_cue(
             lambda: play(finger),
-            lambda t_s: self.draw_trial_screen(screen, t_s),
+            lambda t_s: window.draw_trial_screen(screen, t_s),
             presentation.start_s,
             presentation.timing.trial_s,
             on_finger=track,
         )
         timeout = presentation.timing.response_timeout_s
-        end_s = presentation.end_s
-        deadline = None if timeout is None else self._clock.now() + timeout
-        self._event.clearEvents("keyboard")  # keys pressed during the object do not count
-        geometries = self._geometries or tuple(f"geometry {i}" for i in range(1, 5))
-        textures = self._textures or tuple(f"texture {i}" for i in range(1, 4))
-        g, g_at = self._ask(screen, presentation, "Geometry?", geometries, deadline)
-        t: int | None = None
-        t_at: float | None = None
-        if g is not None:
-            t, t_at = self._ask(screen, presentation, "Texture?", textures, deadline)
-        return result, UserTestAnswer(
-            g,
-            t,
-            None if g_at is None else max(0.0, g_at - end_s),
-            None if t_at is None else max(0.0, t_at - end_s),
-            finger_path,
-        )
+        deadline = None if timeout is None else window.clock.now() + timeout
+        answers: list[int | None] = [None, None]  # geometry, texture
+        times: list[float | None] = [None, None]
+        questions = (("Geometry?", self._geometries), ("Texture?", self._textures))
+        for i, (question, names) in enumerate(questions):
+            key, at_s = window.ask_key(
+                lambda now: window.draw_trial_screen(screen, now - presentation.start_s),
+                f"{question}   {_listing(names)}",
+                answer_keys(len(names)),
+                deadline,
+            )
+            if key is None or at_s is None:
+                break
+            answers[i], times[i] = key, max(0.0, at_s - presentation.end_s)
+        return result, UserTestAnswer(answers[0], answers[1], times[0], times[1], finger_path)
+
+    def close(self) -> None:
+        """Stop the noise and close the window. Idempotent."""
+        self.window.close()
 
     # -- pieces -------------------------------------------------------------------------------
 
@@ -157,29 +161,6 @@ class UserTestWindowResponder(PsychoPyWindowResponder):
         return TrialPresentation(
             "usertest", presentation.trial.index, plan, presentation.start_s, 0.0, None, None
         )
-
-    def _ask(
-        self,
-        screen: TrialPresentation,
-        presentation: UserTrialPresentation,
-        question: str,
-        names: tuple[str, ...],
-        deadline: float | None,
-    ) -> tuple[int | None, float | None]:
-        """Show ``question`` with the keys; return (key, session time) or (None, None) late."""
-        keys = answer_keys(len(names))
-        self._prompt.text = f"{question}   {_listing(names)}"
-        while True:
-            now = self._clock.now()
-            if deadline is not None and now >= deadline:
-                return None, None
-            self.draw_trial_screen(screen, now - presentation.start_s)
-            self._prompt.draw()
-            self._flip()
-            for key in self._event.getKeys(keyList=[*keys, *ABORT_KEYS]):
-                if key in ABORT_KEYS:
-                    raise KeyboardInterrupt
-                return keys[key], now
 
 
 def _listing(names: tuple[str, ...]) -> str:
