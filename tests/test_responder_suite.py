@@ -258,8 +258,6 @@ def check_plays_once_and_returns_what_was_played(case: Case) -> None:
 
 
 def check_key_mapping(case: Case) -> None:
-    if not case.human:
-        pytest.skip("a simulated observer presses no keys (check_sim_answers)")
     if case.kind == "threshold":
         for key in ("3", "1"):
             _, response, _ = case.answer(["9", "x", key])  # others are ignored
@@ -272,23 +270,17 @@ def check_key_mapping(case: Case) -> None:
 
 
 def check_timeout(case: Case) -> None:
-    if case.kind == "threshold" or not case.human:
-        pytest.skip("only a user test's answers have a response timeout")
     _, answer, _ = case.answer([], timeout_s=0.3, step_s=10.0)  # the clock jumps past it
     assert (answer.geometry, answer.texture) == (None, None)
     assert answer.response_time_s == 0.0
 
 
 def check_abort(case: Case) -> None:
-    if not case.human:
-        pytest.skip("nobody can press Escape or Ctrl-C for a simulated observer")
     with pytest.raises(KeyboardInterrupt):
         case.answer(["abort"])
 
 
 def check_sim_answers(case: Case) -> None:
-    if case.human:
-        pytest.skip("a participant's answers are the keys (check_key_mapping)")
     if case.kind == "threshold":
         loud = [case.answer([])[1].interval for _ in range(3)]
         assert len(set(loud)) == 1  # one seed, set and trial: one answer
@@ -318,10 +310,46 @@ CHECKS = [
 ]
 
 
-@pytest.mark.parametrize("check", CHECKS, ids=lambda c: c.__name__)
-@pytest.mark.parametrize("name", list(CASES))
+# Which checks apply to which responder, by its kind ("threshold" or "usertest") and whether a
+# person answers (keys) or a simulated observer does. The suite runs every applicable pair and
+# no other: a check that cannot apply is not generated (rather than skipped), and
+# test_every_check_and_responder_is_covered keeps the table honest.
+TRAITS = {
+    "threshold-sim": ("threshold", False),
+    "usertest-sim": ("usertest", False),
+    "threshold-keys": ("threshold", True),
+    "usertest-keys": ("usertest", True),
+    "threshold-window": ("threshold", True),
+    "usertest-window": ("usertest", True),
+}
+APPLIES: dict[Callable[[Case], None], Callable[[str, bool], bool]] = {
+    check_plays_once_and_returns_what_was_played: lambda kind, human: True,
+    check_key_mapping: lambda kind, human: human,  # a simulated observer presses no keys
+    check_timeout: lambda kind, human: kind == "usertest" and human,  # 3IFC waits for an answer
+    check_abort: lambda kind, human: human,  # nobody presses Escape for a simulated observer
+    check_sim_answers: lambda kind, human: not human,  # a participant's answers are the keys
+    check_close_is_idempotent: lambda kind, human: True,
+}
+PAIRS = [
+    pytest.param(name, check, id=f"{name}-{check.__name__}")
+    for name in CASES
+    for check in CHECKS
+    if APPLIES[check](*TRAITS[name])
+]
+
+
+def test_every_check_and_responder_is_covered():
+    assert set(TRAITS) == set(CASES) and set(APPLIES) == set(CHECKS)
+    for check in CHECKS:
+        assert any(name for name, c in (p.values for p in PAIRS) if c is check), check.__name__
+    for name in CASES:
+        assert sum(1 for n, _ in (p.values for p in PAIRS) if n == name) >= 3, name
+
+
+@pytest.mark.parametrize(("name", "check"), PAIRS)
 def test_responder(name: str, check: Callable[[Case], None], request: pytest.FixtureRequest):
     case = CASES[name](request)
+    assert (case.kind, case.human) == TRAITS[name]  # the table says what the case is
     case.responder = case.make()
     if case.kind == "usertest":
         case.responder.start_session(UserTestInfo(GEOMETRIES, TEXTURES, 4, 0, "cue"))
