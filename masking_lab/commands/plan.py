@@ -293,7 +293,8 @@ def _run(args: argparse.Namespace) -> int:
     from masking_lab.formats.protocol import load_protocol
     from masking_lab.planning import plan as P
     from masking_lab.planning.figures import png_bytes, speed_accuracy
-    from masking_lab.planning.procedure_plan import compare_procedures
+    from masking_lab.planning.parallel import in_background
+    from masking_lab.planning.procedure_plan import compare_procedures, quest_simulations
     from masking_lab.planning.procedure_report import (
         format_comparison,
         format_fewest,
@@ -377,9 +378,22 @@ def _run(args: argparse.Namespace) -> int:
 
     progress = step_bar("plan", progress_wanted(args.progress))
 
+    # The QUEST+ tracks and the staircase plan are independent and cost about the same: the
+    # tracks run on the other core meanwhile (the same numbers as in this process).
+    quest = None
+    if args.quest_replicates:
+        quest = in_background(
+            quest_simulations,
+            protocol,
+            settings,
+            thresholds,
+            quest_replicates=args.quest_replicates,
+            psi=args.psi,
+            quest_max_trials=args.quest_max_trials,
+        )
     result = P.run_plan(protocol, settings, thresholds, progress=progress)
     comparison = None
-    if args.quest_replicates:
+    if quest is not None:
         comparison = compare_procedures(
             protocol,
             result,
@@ -389,6 +403,7 @@ def _run(args: argparse.Namespace) -> int:
             psi=args.psi,
             progress=progress,
             quest_max_trials=args.quest_max_trials,
+            simulations=quest.result(),
         )
     cap = P.protocol_staircase(protocol).max_trials
     own_text = protocol_procedure_text(protocol)

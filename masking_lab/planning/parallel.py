@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["chunk_plan", "run_chunks"]
+__all__ = ["Pending", "chunk_plan", "in_background", "run_chunks"]
 
 
 def chunk_plan(seed: int, replicates: int, chunk: int) -> list[tuple[int, np.random.SeedSequence]]:
@@ -68,11 +68,9 @@ def _local_pool(
 ) -> list[Any]:
     """``[fn(*a) for a in args]`` on worker processes of this machine, in order."""
     import multiprocessing
-    import os
     from concurrent.futures import ProcessPoolExecutor
 
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None
-    workers = max(1, min(max_workers, cores or os.cpu_count() or 1, len(args)))
+    workers = max(1, min(max_workers, _cores(), len(args)))
     if workers == 1:
         return [fn(*a) for a in args]
     methods = multiprocessing.get_all_start_methods()
@@ -87,6 +85,55 @@ def _one_blas_thread() -> None:
     from threadpoolctl import threadpool_limits
 
     threadpool_limits(1, user_api="blas")
+
+
+class Pending:
+    """A call running in a forked worker process (or, without ``fork``, deferred to
+    :meth:`result`); :meth:`result` waits for it and ends the worker."""
+
+    def __init__(self, fn: Callable[..., Any], args: tuple[Any, ...], kwargs: dict[str, Any]):
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor
+
+        self._call = (fn, args, kwargs)
+        self._pool = None
+        self._future = None
+        if "fork" in multiprocessing.get_all_start_methods() and _cores() > 1:
+            context = multiprocessing.get_context("fork")
+            self._pool = ProcessPoolExecutor(1, mp_context=context, initializer=_one_blas_thread)
+            self._future = self._pool.submit(fn, *args, **kwargs)
+
+    def result(self) -> Any:
+        """The call's return value (its exception re-raised here)."""
+        if self._future is None or self._pool is None:
+            fn, args, kwargs = self._call
+            return fn(*args, **kwargs)
+        try:
+            return self._future.result()
+        finally:
+            self._pool.shutdown()
+
+
+def in_background(fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Pending:
+    """Start ``fn(*args, **kwargs)`` on the machine's other core while this process goes on.
+
+    ``fn`` must be a module-level function and its result picklable. On one core, or where
+    processes cannot be forked, the call runs when its result is asked for instead.
+
+    Examples
+    --------
+    >>> in_background(pow, 2, 10).result()
+    1024
+    """
+    return Pending(fn, args, kwargs)
+
+
+def _cores() -> int:
+    import os
+
+    if hasattr(os, "sched_getaffinity"):
+        return len(os.sched_getaffinity(0))
+    return os.cpu_count() or 1
 
 
 def _gather(client: Any, fn: Callable[..., Any], args: Sequence[tuple[Any, ...]]) -> list[Any]:
