@@ -47,3 +47,26 @@ def test_the_comparison_from_tracks_simulated_in_another_process_is_the_same():
     assert [r["trials_mean"] for r in here.rows] and all(
         np.isfinite(r["trials_mean"]) for r in here.rows
     )
+
+
+def test_a_plan_with_a_schedule_from_another_process_is_the_same():
+    from masking_lab.formats.protocol import load_protocol
+    from masking_lab.formats.resources import shipped
+    from masking_lab.planning.plan import plan_schedule, run_plan
+    from masking_lab.planning.settings import PlanSettings, Schedule, StopRule
+
+    p = load_protocol(shipped("protocols", "baseline.yaml"))
+    s = PlanSettings(
+        (StopRule(7, 4), StopRule(11, 8)),
+        (Schedule((4.0, 2.0)), Schedule((2.0,))),
+        replicates=30,
+        ml_replicates=10,
+        max_reversals=12,
+        seed=3,
+    )
+    thr = np.random.default_rng(2).normal(-30.0, 2.0, (4, 30))
+    here = run_plan(p, s, thr)
+    pending = in_background(plan_schedule, p, s, thr, 2)
+    there = run_plan(p, s, thr, done={2: pending.result})
+    assert there == here
+    assert {r["schedule"] for r in here.table} == {"4,2", "2"}

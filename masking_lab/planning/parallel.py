@@ -104,10 +104,12 @@ class Pending:
             self._future = self._pool.submit(fn, *args, **kwargs)
 
     def result(self) -> Any:
-        """The call's return value (its exception re-raised here)."""
+        """The call's return value (its exception re-raised here); asked again, the same."""
         if self._future is None or self._pool is None:
-            fn, args, kwargs = self._call
-            return fn(*args, **kwargs)
+            if not hasattr(self, "_value"):
+                fn, args, kwargs = self._call
+                self._value = fn(*args, **kwargs)
+            return self._value
         try:
             return self._future.result()
         finally:
