@@ -385,7 +385,7 @@ def _run(args: argparse.Namespace) -> int:
     quest = None
     if args.quest_replicates or last is not None:
         quest = in_background(
-            second_core,
+            _second_core,
             protocol,
             settings,
             thresholds,
@@ -495,7 +495,7 @@ def _run(args: argparse.Namespace) -> int:
     return 0
 
 
-def second_core(
+def _second_core(
     protocol: Protocol,
     settings: Any,
     thresholds: Any,
