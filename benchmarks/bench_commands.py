@@ -3,16 +3,17 @@
     python benchmarks/bench_commands.py [--repeats 3] [--baseline-src DIR] [--baseline-json F]
                                         [--save-json F] [--only demo,plan]
 
-Runs ``masking-lab demo`` and ``masking-lab plan`` with defaults on each shipped experiment-I
-protocol with a staircase or QUEST+ (experiment1.yaml, experiment1_questplus.yaml) in fresh
-child processes, ``--repeats`` times each, and prints the median wall-clock time and the
+Runs ``masking-lab demo`` and ``masking-lab plan`` with defaults on each shipped protocol that
+``plan`` takes (baseline, experiment1, experiment1_questplus, experiment1_functional,
+experiment2; usertest.yaml is a user test, not a measurement) in fresh child processes,
+``--repeats`` times each, and prints the median wall-clock time and the
 median CPU time (user + system of the command and its children, as ``/usr/bin/time`` reports
 them), against a baseline in the same run:
 
 * ``--baseline-src DIR``: a source tree of the previous version (e.g.
   ``git archive HEAD~3 masking_lab protocols data_schema | tar -x -C /tmp/prev``) run with the
   same interpreter (``PYTHONPATH=DIR``), interleaved with this version's runs so both see the
-  same machine load; ``plan``'s CSV tables of both are then compared byte for byte;
+  same machine load; ``plan``'s tables (CSV and text) of both are then compared byte for byte;
 * ``--baseline-json F``: figures stored by an earlier run's ``--save-json``.
 
 The machine's load average is printed first: on a shared machine other processes inflate
@@ -33,7 +34,13 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-PLAN_PROTOCOLS = ("experiment1", "experiment1_questplus")
+PLAN_PROTOCOLS = (
+    "baseline",
+    "experiment1",
+    "experiment1_questplus",
+    "experiment1_functional",
+    "experiment2",
+)
 
 
 def commands() -> dict[str, list[str]]:
@@ -64,8 +71,8 @@ def run_once(args: list[str], src: Path | None, out: Path) -> tuple[float, float
 
 
 def same_csvs(a: Path, b: Path) -> str:
-    """'identical' or the CSV files whose bytes differ between two plan folders."""
-    names = sorted(p.name for p in a.glob("*.csv"))
+    """'identical' or the tables (CSV, text) whose bytes differ between two plan folders."""
+    names = sorted(p.name for p in [*a.glob("*.csv"), *a.glob("*.txt")])
     differ = [n for n in names if (a / n).read_bytes() != (b / n).read_bytes()]
     return "identical" if not differ else "DIFFER: " + ", ".join(differ)
 
@@ -77,9 +84,19 @@ def main() -> None:
     ap.add_argument("--baseline-json", type=Path, default=None)
     ap.add_argument("--save-json", type=Path, default=None)
     ap.add_argument("--only", default="demo,plan", help="demo, plan or both (comma-separated)")
+    ap.add_argument(
+        "--protocols",
+        default=",".join(PLAN_PROTOCOLS),
+        help="the plan protocols to time (comma-separated names in protocols/)",
+    )
     args = ap.parse_args()
     wanted = set(args.only.split(","))
-    todo = {k: v for k, v in commands().items() if k.split()[0] in wanted}
+    protocols = set(args.protocols.split(","))
+    todo = {
+        k: v
+        for k, v in commands().items()
+        if k.split()[0] in wanted and (k == "demo" or k.split()[1] in protocols)
+    }
     stored = json.loads(args.baseline_json.read_text()) if args.baseline_json else {}
     load = ", ".join(f"{v:.1f}" for v in os.getloadavg())
     print(f"{os.cpu_count()} cores, load average {load}; median of {args.repeats} runs")
@@ -107,7 +124,7 @@ def main() -> None:
             )
             if base and name.startswith("plan"):
                 verdict = same_csvs(Path(tmp) / f"base0_{slug}", Path(tmp) / f"this0_{slug}")
-                print(f"  its CSV tables against the baseline's: {verdict}")
+                print(f"  its tables against the baseline's: {verdict}")
     if args.save_json is not None:
         args.save_json.write_text(json.dumps(figures, indent=2) + "\n")
 

@@ -230,7 +230,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         default="local",
         metavar="ADDRESS",
         help="where the masking-function simulations of a functional protocol run: 'local' "
-        "(a local Dask cluster, default), 'synchronous' (this process) or a Dask "
+        "(worker processes on this machine, default), 'synchronous' (this process) or a Dask "
         "scheduler's address (tcp://host:8786); the same --seed gives the same table on any",
     )
     add_progress_options(p)
@@ -244,7 +244,8 @@ def _places_masker(protocol: ThresholdProtocol) -> bool:
     return any(kind_of(s.settings).places_masker for s in protocol.sets)
 
 
-#: Simulated participants per route for a functional protocol (each track is ~1 s of CPU).
+#: Simulated participants per route for a functional protocol (its functional track is ~0.35 s
+#: of CPU, its five staircases and five QUEST+ tracks ~0.05 s).
 _FUNCTIONAL_REPLICATES = 60
 
 
@@ -293,6 +294,7 @@ def _run(args: argparse.Namespace) -> int:
     from masking_lab.formats.protocol import load_protocol
     from masking_lab.planning import plan as P
     from masking_lab.planning.figures import png_bytes, speed_accuracy
+    from masking_lab.planning.parallel import in_background
     from masking_lab.planning.procedure_plan import compare_procedures
     from masking_lab.planning.procedure_report import (
         format_comparison,
@@ -377,9 +379,28 @@ def _run(args: argparse.Namespace) -> int:
 
     progress = step_bar("plan", progress_wanted(args.progress))
 
-    result = P.run_plan(protocol, settings, thresholds, progress=progress)
+    # The QUEST+ tracks and each schedule of the staircase plan are independent: the tracks
+    # and the last schedule run on the other core meanwhile (the same numbers as here).
+    last = len(settings.schedules) if len(settings.schedules) > 1 else None
+    quest = None
+    if args.quest_replicates or last is not None:
+        quest = in_background(
+            _second_core,
+            protocol,
+            settings,
+            thresholds,
+            quest_replicates=args.quest_replicates,
+            psi=args.psi,
+            quest_max_trials=args.quest_max_trials,
+            schedule=last,
+        )
+    done = {}
+    if quest is not None and last is not None:
+        background = quest
+        done[last] = lambda: background.result()[1]
+    result = P.run_plan(protocol, settings, thresholds, progress=progress, done=done)
     comparison = None
-    if args.quest_replicates:
+    if quest is not None and args.quest_replicates:
         comparison = compare_procedures(
             protocol,
             result,
@@ -389,6 +410,7 @@ def _run(args: argparse.Namespace) -> int:
             psi=args.psi,
             progress=progress,
             quest_max_trials=args.quest_max_trials,
+            simulations=quest.result()[0],
         )
     cap = P.protocol_staircase(protocol).max_trials
     own_text = protocol_procedure_text(protocol)
@@ -471,6 +493,35 @@ def _run(args: argparse.Namespace) -> int:
             write_bytes_atomic(stage / name, png)
     print(f"\nwrote {', '.join(str(out / n) for n in [*files, *figures])}", file=sys.stderr)
     return 0
+
+
+def _second_core(
+    protocol: Protocol,
+    settings: Any,
+    thresholds: Any,
+    *,
+    quest_replicates: int,
+    psi: bool,
+    quest_max_trials: int | None,
+    schedule: int | None,
+) -> tuple[Any, Any]:
+    """What ``plan`` runs in its second process: the procedures comparison's QUEST+ tracks
+    (None without ``quest_replicates``) and staircase schedule number ``schedule`` (or None)."""
+    from masking_lab.planning.plan import plan_schedule
+    from masking_lab.planning.procedure_plan import quest_simulations
+
+    sims = None
+    if quest_replicates:
+        sims = quest_simulations(
+            protocol,
+            settings,
+            thresholds,
+            quest_replicates=quest_replicates,
+            psi=psi,
+            quest_max_trials=quest_max_trials,
+        )
+    part = None if schedule is None else plan_schedule(protocol, settings, thresholds, schedule)
+    return sims, part
 
 
 def plan_folder(out: str | None, *, force: bool) -> Path:

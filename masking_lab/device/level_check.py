@@ -9,6 +9,7 @@ silence) is a problem, named with the set, the level and what to change. Pure: n
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Collection, Mapping
 from dataclasses import dataclass, replace
@@ -93,6 +94,7 @@ def set_ranges(
     return out
 
 
+@functools.lru_cache(maxsize=1024)  # pure; a protocol's sets share ranges (18 of 34 in the demo)
 def worst_in_range(converter: Converter, low_db_v: float, high_db_v: float) -> tuple[float, float]:
     """The level (dB re 1 V) in ``[low, high]`` played furthest off, and how far off (dB).
 

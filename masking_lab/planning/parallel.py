@@ -6,8 +6,10 @@ inputs, so the same seed gives the same tables however many workers run them, in
 on a cluster. A chunk holds a bounded number of replicates, which bounds a worker's memory.
 
 ``scheduler``: ``"synchronous"`` runs the chunks one after another in this process (no Dask);
-None starts a local Dask cluster (one single-threaded worker process per core, at most
-``max_workers``); an address (``tcp://host:8786``) joins that cluster's scheduler.
+None runs them on worker processes of this machine (one per core, at most ``max_workers``,
+forked from this one so they start with its imports and one BLAS thread each: a local Dask
+cluster cost seconds to start and, its idle workers polling, more system time than the
+simulation itself); an address (``tcp://host:8786``) joins that Dask cluster's scheduler.
 """
 
 from __future__ import annotations
@@ -17,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["chunk_plan", "run_chunks"]
+__all__ = ["Pending", "chunk_plan", "in_background", "run_chunks"]
 
 
 def chunk_plan(seed: int, replicates: int, chunk: int) -> list[tuple[int, np.random.SeedSequence]]:
@@ -41,7 +43,7 @@ def run_chunks(
     scheduler: str | None = "synchronous",
     max_workers: int = 4,
 ) -> list[Any]:
-    """``[fn(*a) for a in args]``, on Dask unless ``scheduler`` is ``"synchronous"``.
+    """``[fn(*a) for a in args]``: in this process, on local worker processes, or on Dask.
 
     Results come back in the order of ``args``. ``fn`` must be a module-level function (it is
     pickled to the workers).
@@ -53,26 +55,87 @@ def run_chunks(
     """
     if scheduler == "synchronous":
         return [fn(*a) for a in args]
-    from distributed import Client, LocalCluster
-
     if scheduler is None:
-        import os
+        return _local_pool(fn, args, max_workers)
+    from distributed import Client
 
-        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None
-        workers = max(1, min(max_workers, cores or os.cpu_count() or 1, len(args)))
-        with (
-            LocalCluster(
-                n_workers=workers,
-                threads_per_worker=1,
-                processes=True,
-                dashboard_address=None,
-                host="127.0.0.1",
-            ) as cluster,
-            Client(cluster) as client,
-        ):
-            return _gather(client, fn, args)
     with Client(scheduler) as client:
         return _gather(client, fn, args)
+
+
+def _local_pool(
+    fn: Callable[..., Any], args: Sequence[tuple[Any, ...]], max_workers: int
+) -> list[Any]:
+    """``[fn(*a) for a in args]`` on worker processes of this machine, in order."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    workers = max(1, min(max_workers, _cores(), len(args)))
+    if workers == 1:
+        return [fn(*a) for a in args]
+    methods = multiprocessing.get_all_start_methods()
+    context = multiprocessing.get_context("fork" if "fork" in methods else None)
+    with ProcessPoolExecutor(workers, mp_context=context, initializer=_one_blas_thread) as pool:
+        futures = [pool.submit(fn, *a) for a in args]
+        return [f.result() for f in futures]
+
+
+def _one_blas_thread() -> None:
+    """A worker's BLAS runs on one thread: the workers already fill the cores."""
+    from threadpoolctl import threadpool_limits
+
+    threadpool_limits(1, user_api="blas")
+
+
+class Pending:
+    """A call running in a forked worker process (or, without ``fork``, deferred to
+    :meth:`result`); :meth:`result` waits for it and ends the worker."""
+
+    def __init__(self, fn: Callable[..., Any], args: tuple[Any, ...], kwargs: dict[str, Any]):
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor
+
+        self._call = (fn, args, kwargs)
+        self._pool = None
+        self._future = None
+        if "fork" in multiprocessing.get_all_start_methods() and _cores() > 1:
+            context = multiprocessing.get_context("fork")
+            self._pool = ProcessPoolExecutor(1, mp_context=context, initializer=_one_blas_thread)
+            self._future = self._pool.submit(fn, *args, **kwargs)
+
+    def result(self) -> Any:
+        """The call's return value (its exception re-raised here); asked again, the same."""
+        if self._future is None or self._pool is None:
+            if not hasattr(self, "_value"):
+                fn, args, kwargs = self._call
+                self._value = fn(*args, **kwargs)
+            return self._value
+        try:
+            return self._future.result()
+        finally:
+            self._pool.shutdown()
+
+
+def in_background(fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Pending:
+    """Start ``fn(*args, **kwargs)`` on the machine's other core while this process goes on.
+
+    ``fn`` must be a module-level function and its result picklable. On one core, or where
+    processes cannot be forked, the call runs when its result is asked for instead.
+
+    Examples
+    --------
+    >>> in_background(pow, 2, 10).result()
+    1024
+    """
+    return Pending(fn, args, kwargs)
+
+
+def _cores() -> int:
+    import os
+
+    if hasattr(os, "sched_getaffinity"):
+        return len(os.sched_getaffinity(0))
+    return os.cpu_count() or 1
 
 
 def _gather(client: Any, fn: Callable[..., Any], args: Sequence[tuple[Any, ...]]) -> list[Any]:

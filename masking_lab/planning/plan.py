@@ -25,7 +25,7 @@ and each schedule reuses the same seed, so settings are compared on common rando
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -79,6 +79,7 @@ __all__ = [
     "PlanSettings",
     "Progress",
     "Schedule",
+    "SchedulePart",
     "StopRule",
     "default_schedules",
     "default_stop_rules",
@@ -87,6 +88,7 @@ __all__ = [
     "parse_ratios",
     "parse_schedules",
     "parse_stop_rules",
+    "plan_schedule",
     "pool",
     "protocol_schedule",
     "protocol_staircase",
@@ -274,6 +276,7 @@ def run_plan(
     thresholds_db: NDArray[np.float64],
     *,
     progress: Progress | None = None,
+    done: Mapping[int, Callable[[], SchedulePart]] | None = None,
 ) -> PlanResult:
     """Simulate every schedule and summarise every (schedule, stop rule, estimator).
 
@@ -287,6 +290,70 @@ def run_plan(
         True thresholds (:func:`true_thresholds_db`), in the protocol's level unit.
     progress : callable, optional
         Receives one line per step (the command prints them to stderr).
+    done : mapping of int to callable, optional
+        Schedules (by number, from 1) computed elsewhere (``plan`` runs one in a second
+        process): each callable returns that schedule's :func:`plan_schedule`, waiting for it,
+        and is called when the schedules before it are done; the others are computed here.
+    """
+    say = progress or (lambda _msg: None)
+    elsewhere = done or {}
+    parts: dict[int, SchedulePart] = {}
+    n_sched = len(settings.schedules)
+    for k in range(1, n_sched + 1):
+        if k in elsewhere:
+            parts[k] = elsewhere[k]()
+            say(f"schedule {k}/{n_sched}: simulated in a second process")
+        else:
+            parts[k] = plan_schedule(protocol, settings, thresholds_db, k, progress=say)
+    base = protocol_staircase(protocol)
+    trial_s = trial_duration_s(protocol.timing, settings.response_s)
+    ordered = [parts[k] for k in range(1, n_sched + 1)]
+    return PlanResult(
+        settings,
+        protocol_stop_rule(protocol),
+        protocol_schedule(protocol),
+        trial_s,
+        base.max_trials,
+        [r for p in ordered for r in p.table],
+        [r for p in ordered for r in p.per_set],
+        [r for p in ordered for r in p.ladder],
+        [p.answer for p in ordered],
+    )
+
+
+@dataclass(frozen=True)
+class SchedulePart:
+    """One schedule's share of a :class:`PlanResult` (its rows, in order, and its answer)."""
+
+    table: list[dict]
+    per_set: list[dict]
+    ladder: list[dict]
+    answer: Answer
+
+
+def plan_schedule(
+    protocol: Protocol,
+    settings: PlanSettings,
+    thresholds_db: NDArray[np.float64],
+    k: int,
+    *,
+    progress: Progress | None = None,
+) -> SchedulePart:
+    """Schedule number ``k`` (from 1) of :func:`run_plan`: its simulation, fits and rows.
+
+    Every schedule draws from the same seed (common random numbers), so a schedule's part
+    depends on nothing but these arguments and may be computed in another process.
+
+    Examples
+    --------
+    >>> from masking_lab.formats.resources import shipped
+    >>> from masking_lab.formats.protocol import load_protocol
+    >>> p = load_protocol(shipped("protocols", "baseline.yaml"))
+    >>> s = PlanSettings((StopRule(11, 8),), (Schedule((4.0, 2.0)),), replicates=20,
+    ...                  ml_replicates=0, max_reversals=12)
+    >>> part = plan_schedule(p, s, np.full((4, 20), -30.0), 1)
+    >>> len(part.table), part.table[0]["estimator"]
+    (1, 'reversal_mean')
     """
     say = progress or (lambda _msg: None)
     base = protocol_staircase(protocol)
@@ -314,108 +381,108 @@ def run_plan(
     per_set: list[dict] = []
     ladder: list[dict] = []
     answers: list[Answer] = []
-    for k, sched in enumerate(settings.schedules, 1):
-        head = f"schedule {k}/{len(settings.schedules)} ({sched.label})"
-        sc = replace(
-            base,
-            step_sizes_db=sched.step_sizes_db,
-            down_up_ratio=sched.down_up_ratio,
-            n_reversals=settings.max_reversals,
-            n_reversals_averaged=1,
-            max_trials=None,
-        )
-        say(f"{head}: simulating {thr.size} sessions to {settings.max_reversals} reversals")
-        long_run = simulate(
-            sc,
-            thr,
+    sched = settings.schedules[k - 1]
+    head = f"schedule {k}/{len(settings.schedules)} ({sched.label})"
+    sc = replace(
+        base,
+        step_sizes_db=sched.step_sizes_db,
+        down_up_ratio=sched.down_up_ratio,
+        n_reversals=settings.max_reversals,
+        n_reversals_averaged=1,
+        max_trials=None,
+    )
+    say(f"{head}: simulating {thr.size} sessions to {settings.max_reversals} reversals")
+    long_run = simulate(
+        sc,
+        thr,
+        obs,
+        np.random.default_rng(settings.seed),
+        start_level_db=starts,
+        trial_limit=TRIAL_LIMIT,
+        store_levels=False,
+    )
+    ml_index = None
+    ml_run = None
+    if ml_reps:
+        say(f"{head}: simulating {ml_rows.size} sessions for the ML fits")
+        ml_run = simulate(
+            replace(sc, n_reversals=longest_table),
+            thr[ml_rows],
             obs,
-            np.random.default_rng(settings.seed),
-            start_level_db=starts,
+            np.random.default_rng(settings.seed + 1),
+            start_level_db=starts[ml_rows],
             trial_limit=TRIAL_LIMIT,
-            store_levels=False,
         )
-        ml_index = None
-        ml_run = None
-        if ml_reps:
-            say(f"{head}: simulating {ml_rows.size} sessions for the ML fits")
-            ml_run = simulate(
-                replace(sc, n_reversals=longest_table),
-                thr[ml_rows],
-                obs,
-                np.random.default_rng(settings.seed + 1),
-                start_level_db=starts[ml_rows],
-                trial_limit=TRIAL_LIMIT,
-            )
-            ml_index = index_levels(ml_run.levels_db, ml_run.correct)
+        ml_index = index_levels(ml_run.levels_db, ml_run.correct)
 
-        for rule in settings.stop_rules:
-            out = outcome_under(long_run, rule.n_reversals, rule.n_averaged, cap, exact=False)
-            estimates: dict[str, tuple[StopOutcome, NDArray[np.float64], NDArray]] = {
-                "reversal_mean": (out, out.al_db, np.arange(thr.size)),
-            }
-            if ml_run is not None and ml_index is not None:
-                say(f"{head}: ML fits for stop rule {rule.label}")
-                ml_out = outcome_under(ml_run, rule.n_reversals, rule.n_averaged, cap, exact=False)
-                done = np.flatnonzero(ml_out.completed)
-                ml_al = np.full(ml_rows.size, np.nan)
-                if done.size:
-                    fit = ml_threshold_from_counts(
-                        ml_index.counts(ml_out.n_trials, rows=done),
-                        scale_db=obs.scale_db,
-                        lapse=settings.ml_lapse,
-                        guess=obs.guess,
-                        fit_scale=settings.ml_fit_scale,
-                    )
-                    ml_al[done] = fit.threshold_db
-                estimates["ml"] = (ml_out, ml_al, ml_rows)
-            for est, (o, al, rows) in estimates.items():
-                sets_rows = []
-                for j, spec in enumerate(protocol.sets):
-                    mine = set_of_row[rows] == j
-                    # Session cost comes from the full sample whatever the estimator.
-                    cost = set_of_row == j
-                    row = summarize(out.n_trials[cost], out.status_code[cost], None, thr, trial_s)
-                    err = summarize(
-                        o.n_trials[mine], o.status_code[mine], al[mine], thr[rows][mine], trial_s
-                    )
-                    row.update({key: err[key] for key in ("n_al", "bias_db", "sd_db", "rmse_db")})
-                    sets_rows.append(row)
-                    per_set.append(_label(row, sched, rule, est, spec.id))
-                pooled = pool(sets_rows, out.n_trials, trial_s)
-                pooled["meets_precision"] = bool(
-                    settings.z * pooled["worst_sd_db"] <= settings.precision_db
+    for rule in settings.stop_rules:
+        out = outcome_under(long_run, rule.n_reversals, rule.n_averaged, cap, exact=False)
+        estimates: dict[str, tuple[StopOutcome, NDArray[np.float64], NDArray]] = {
+            "reversal_mean": (out, out.al_db, np.arange(thr.size)),
+        }
+        if ml_run is not None and ml_index is not None:
+            say(f"{head}: ML fits for stop rule {rule.label}")
+            ml_out = outcome_under(ml_run, rule.n_reversals, rule.n_averaged, cap, exact=False)
+            done = np.flatnonzero(ml_out.completed)
+            ml_al = np.full(ml_rows.size, np.nan)
+            if done.size:
+                fit = ml_threshold_from_counts(
+                    ml_index.counts(ml_out.n_trials, rows=done),
+                    scale_db=obs.scale_db,
+                    lapse=settings.ml_lapse,
+                    guess=obs.guess,
+                    fit_scale=settings.ml_fit_scale,
                 )
-                # "this protocol" only when the protocol runs this staircase (a QUEST+
-                # protocol gets the paper's staircase beside it, not as its own).
-                pooled["own"] = own_is_staircase and sched == own_sched and rule == own_rule
-                pooled |= efficiency_fields(pooled["sd_db"], pooled["trials_mean"], obs)
-                table.append(_label(pooled, sched, rule, est, None))
-
-        say(f"{head}: reversal ladder 3…{settings.max_reversals}")
-        sched_ladder = []
-        for rung in rungs:
-            out = outcome_under(long_run, rung.n_reversals, rung.n_averaged, exact=False)
-            sets_rows = [
-                summarize(
-                    out.n_trials[set_of_row == j],
-                    out.status_code[set_of_row == j],
-                    out.al_db[set_of_row == j],
-                    thr[set_of_row == j],
-                    trial_s,
+                ml_al[done] = fit.threshold_db
+            estimates["ml"] = (ml_out, ml_al, ml_rows)
+        for est, (o, al, rows) in estimates.items():
+            sets_rows = []
+            for j, spec in enumerate(protocol.sets):
+                mine = set_of_row[rows] == j
+                # Session cost comes from the full sample whatever the estimator.
+                cost = set_of_row == j
+                row = summarize(out.n_trials[cost], out.status_code[cost], None, thr, trial_s)
+                err = summarize(
+                    o.n_trials[mine], o.status_code[mine], al[mine], thr[rows][mine], trial_s
                 )
-                for j in range(n_sets)
-            ]
-            row = _label(pool(sets_rows, out.n_trials, trial_s), sched, rung, "reversal_mean")
-            row["half_width_db"] = settings.z * row["worst_sd_db"]
-            row |= efficiency_fields(row["sd_db"], row["trials_mean"], obs)
-            row["capped_by_protocol"] = (
-                0.0 if cap is None else float(np.mean(out.completed & (out.n_trials > cap)))
+                row.update({key: err[key] for key in ("n_al", "bias_db", "sd_db", "rmse_db")})
+                sets_rows.append(row)
+                per_set.append(_label(row, sched, rule, est, spec.id))
+            pooled = pool(sets_rows, out.n_trials, trial_s)
+            pooled["meets_precision"] = bool(
+                settings.z * pooled["worst_sd_db"] <= settings.precision_db
             )
-            sched_ladder.append(row)
-        ladder.extend(sched_ladder)
-        answers.append(_answer(sched, rungs, sched_ladder, settings.precision_db))
+            # "this protocol" only when the protocol runs this staircase (a QUEST+
+            # protocol gets the paper's staircase beside it, not as its own).
+            pooled["own"] = own_is_staircase and sched == own_sched and rule == own_rule
+            pooled |= efficiency_fields(pooled["sd_db"], pooled["trials_mean"], obs)
+            table.append(_label(pooled, sched, rule, est, None))
 
-    return PlanResult(settings, own_rule, own_sched, trial_s, cap, table, per_set, ladder, answers)
+    say(f"{head}: reversal ladder 3…{settings.max_reversals}")
+    sched_ladder = []
+    for rung in rungs:
+        out = outcome_under(long_run, rung.n_reversals, rung.n_averaged, exact=False)
+        sets_rows = [
+            summarize(
+                out.n_trials[set_of_row == j],
+                out.status_code[set_of_row == j],
+                out.al_db[set_of_row == j],
+                thr[set_of_row == j],
+                trial_s,
+            )
+            for j in range(n_sets)
+        ]
+        row = _label(pool(sets_rows, out.n_trials, trial_s), sched, rung, "reversal_mean")
+        row["half_width_db"] = settings.z * row["worst_sd_db"]
+        row |= efficiency_fields(row["sd_db"], row["trials_mean"], obs)
+        row["capped_by_protocol"] = (
+            0.0 if cap is None else float(np.mean(out.completed & (out.n_trials > cap)))
+        )
+        sched_ladder.append(row)
+    ladder.extend(sched_ladder)
+    answers.append(_answer(sched, rungs, sched_ladder, settings.precision_db))
+
+    return SchedulePart(table, per_set, ladder, answers[0])
 
 
 def _label(

@@ -49,6 +49,7 @@ __all__ = [
     "ProcedureComparison",
     "compare_procedures",
     "protocol_quest_plus",
+    "quest_simulations",
 ]
 
 #: Posterior-SD stop rules read off each QUEST+ run, dB.
@@ -144,6 +145,7 @@ def compare_procedures(
     psi: bool = False,
     progress: Progress | None = None,
     quest_max_trials: int | None = None,
+    simulations: Sequence[SimulatedQuestPlus] | None = None,
 ) -> ProcedureComparison:
     """Simulate QUEST+ beside the staircase plan and rate every setting against the bound.
 
@@ -169,6 +171,9 @@ def compare_procedures(
     quest_max_trials : int, optional
         Trial cap of the capped QUEST+ rows (default: the protocol's QUEST+ ``max_trials``, or
         for a staircase protocol its staircase's cap).
+    simulations : sequence of SimulatedQuestPlus, optional
+        :func:`quest_simulations` of the same arguments, run elsewhere (``plan`` runs them in
+        a second process beside the staircase plan); simulated here when None.
 
     Examples
     --------
@@ -206,20 +211,24 @@ def compare_procedures(
             rows.append({**_staircase_row(r, obs), "capped": False, "own": False})
     # Only a protocol that runs QUEST+ has a QUEST+ row of its own ("this protocol").
     quest_is_protocol = protocol_quest_plus(protocol) is not None
-    for k, (name, own) in enumerate(_variants(protocol, obs, psi, quest_max_trials)):
-        targets = sorted({*sd_ladder_db, *([own.target_sd_db] if own.target_sd_db else [])})
-        longest = replace(
-            own, target_sd_db=min(targets), max_trials=max(QUEST_TRIAL_LIMIT, own.max_trials or 0)
+    variants = _variants(protocol, obs, psi, quest_max_trials)
+    if simulations is not None:  # run elsewhere: the progress line says so here
+        for (name, own), sim in zip(variants, simulations, strict=True):
+            target = min(_targets(own, sd_ladder_db))
+            say(f"{name}: simulated {sim.n_trials.size} tracks to posterior SD {target:g} dB")
+    else:
+        simulations = quest_simulations(
+            protocol,
+            settings,
+            thresholds_db,
+            quest_replicates=quest_replicates,
+            sd_ladder_db=sd_ladder_db,
+            psi=psi,
+            progress=say,
+            quest_max_trials=quest_max_trials,
         )
-        say(f"{name}: simulating {thr.size} tracks to posterior SD {min(targets):g} dB")
-        sim = simulate_quest_plus(
-            longest,
-            thr,
-            scale_db=obs.scale_db,
-            lapse=obs.lapse,
-            guess=obs.guess,
-            rng=np.random.default_rng([settings.seed, 0x9E57, k]),
-        )
+    for k, ((name, own), sim) in enumerate(zip(variants, simulations, strict=True)):
+        targets = _targets(own, sd_ladder_db)
         for target in targets:
             for capped in (True, False):
                 cap = own.max_trials if capped else None
@@ -240,6 +249,62 @@ def compare_procedures(
                 rows.append({**head, **pooled})
     fewest = _fewest(rows, settings.precision_db, settings.z)
     return ProcedureComparison(rows, per_set, bound, fewest, settings.precision_db, settings.z)
+
+
+def _targets(own: QuestPlusSettings, sd_ladder_db: Sequence[float]) -> list[float]:
+    return sorted({*sd_ladder_db, *([own.target_sd_db] if own.target_sd_db else [])})
+
+
+def quest_simulations(
+    protocol: Protocol,
+    settings: PlanSettings,
+    thresholds_db: NDArray[np.float64],
+    *,
+    quest_replicates: int = 400,
+    sd_ladder_db: Sequence[float] = SD_LADDER_DB,
+    psi: bool = False,
+    progress: Progress | None = None,
+    quest_max_trials: int | None = None,
+) -> list[SimulatedQuestPlus]:
+    """The QUEST+ tracks :func:`compare_procedures` reads its rows from, one run per variant
+    (QUEST+, and with ``psi`` the psi-marginal), each to the smallest posterior SD asked.
+
+    Arguments as for :func:`compare_procedures`; the result depends on nothing else, so it
+    may be computed in another process.
+
+    Examples
+    --------
+    >>> from masking_lab.formats.resources import shipped
+    >>> from masking_lab.formats.protocol import load_protocol
+    >>> from masking_lab.planning.settings import StopRule, Schedule
+    >>> p = load_protocol(shipped("protocols", "experiment1_questplus.yaml"))
+    >>> s = PlanSettings((StopRule(11, 8),), (Schedule((4.0, 2.0)),), replicates=5)
+    >>> sims = quest_simulations(p, s, np.full((15, 5), 5.0), quest_replicates=5)
+    >>> len(sims), sims[0].n_trials.shape
+    (1, (75,))
+    """
+    say = progress or (lambda _msg: None)
+    obs = settings.observer
+    reps = min(quest_replicates, thresholds_db.shape[1])
+    thr = thresholds_db[:, :reps].reshape(-1)
+    out = []
+    for k, (name, own) in enumerate(_variants(protocol, obs, psi, quest_max_trials)):
+        targets = _targets(own, sd_ladder_db)
+        longest = replace(
+            own, target_sd_db=min(targets), max_trials=max(QUEST_TRIAL_LIMIT, own.max_trials or 0)
+        )
+        say(f"{name}: simulating {thr.size} tracks to posterior SD {min(targets):g} dB")
+        out.append(
+            simulate_quest_plus(
+                longest,
+                thr,
+                scale_db=obs.scale_db,
+                lapse=obs.lapse,
+                guess=obs.guess,
+                rng=np.random.default_rng([settings.seed, 0x9E57, k]),
+            )
+        )
+    return out
 
 
 def _head(

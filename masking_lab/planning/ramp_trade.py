@@ -41,6 +41,7 @@ from masking_lab.core.masking import ramp
 from masking_lab.core.psychometric import Psychometric
 from masking_lab.procedures.fisher import max_information
 from masking_lab.procedures.functional import FunctionalRampSettings
+from masking_lab.procedures.functional_lockstep import run_lockstep
 from masking_lab.procedures.quest_plus import QuestPlusSettings
 from masking_lab.procedures.quest_plus_batch import simulate_quest_plus
 from masking_lab.procedures.staircase import StaircaseSettings
@@ -215,18 +216,21 @@ def _functional_fits(
     settings = replace(s.functional, max_trials=max(s.checkpoints))
     psy = Psychometric(0.0, s.scale_db, 1 / 3, s.lapse)
     draws = rng.random((max(s.checkpoints), s.replicates))
-    at: dict[int, tuple[list[float], list[float]]] = {c: ([], []) for c in s.checkpoints}
-    for i in range(s.replicates):
-        state = settings.start()
-        while not state.finished:
-            theta = float(ramp(state.next_masker_level_db_sl(), s.intercept_db, s.slope))
-            p = psy.p_correct(state.next_level() - (theta - errors[i]))
-            state = state.update(bool(draws[state.n_trials, i] < p))
-            if state.n_trials in at:
-                m = state.moments()
-                at[state.n_trials][0].append(m["intercept_db"])
-                at[state.n_trials][1].append(m["slope"])
-    return {c: (np.array(a), np.array(b)) for c, (a, b) in at.items()}
+
+    def answer(i: int, k: int, masker_db_sl: float, target_db: float) -> bool:
+        theta = float(ramp(masker_db_sl, s.intercept_db, s.slope))
+        return bool(draws[k, i] < psy.p_correct(target_db - (theta - errors[i])))
+
+    # The replicates' tracks advance together (one pass over the table serves them all),
+    # each exactly as a scalar track would run.
+    run = run_lockstep(settings, answer, s.replicates, checkpoints=s.checkpoints)
+    return {
+        c: (
+            np.array([m["intercept_db"] for m in run.at_trials[c]]),
+            np.array([m["slope"] for m in run.at_trials[c]]),
+        )
+        for c in s.checkpoints
+    }
 
 
 def simulate_chunk(

@@ -2,9 +2,9 @@
 
 R simulated observers, each with its own ramp (intercept a dB, slope b dB/dB), answer their
 own track; the answers come from one uniform per replicate per trial (streams stay aligned
-whatever the stop rule). The tracks run one after another through the scalar
-:class:`~masking_lab.procedures.functional.FunctionalRamp` (its placement is already one
-batched product over the whole table), so the batch equals the scalar track by construction.
+whatever the stop rule). The tracks advance together
+(:mod:`masking_lab.procedures.functional_lockstep`), each exactly as the scalar
+:class:`~masking_lab.procedures.functional.FunctionalRamp` would run it.
 """
 
 from __future__ import annotations
@@ -18,7 +18,8 @@ from masking_lab.core.errors import ProcedureError
 from masking_lab.core.masking import ramp
 from masking_lab.core.psychometric import Psychometric
 from masking_lab.procedures.batch import TrackBatch
-from masking_lab.procedures.functional import FunctionalRampSettings
+from masking_lab.procedures.functional import FunctionalRampSettings, ramp_moments, ramp_tables
+from masking_lab.procedures.functional_lockstep import run_lockstep
 
 __all__ = ["SimulatedRamps", "simulate_ramps"]
 
@@ -86,37 +87,26 @@ def simulate_ramps(
     r, width = a.size, settings.max_trials
     psy = Psychometric(0.0, scale_db, settings.guess, lapse, settings.p_at_threshold)
     draws = rng.random((width, r))  # one per replicate per trial, drawn up front
-    levels = np.full((r, width), np.nan)
-    maskers = np.full((r, width), np.nan)
-    correct = np.zeros((r, width), dtype=bool)
-    n = np.zeros(r, dtype=np.int64)
+
+    def answer(i: int, k: int, masker_db_sl: float, target_db: float) -> bool:
+        theta = u[i] + float(ramp(masker_db_sl, float(a[i]), float(b[i])))
+        return bool(draws[k, i] < psy.p_correct(target_db - theta))
+
+    run = run_lockstep(settings, answer, r)
+    t = ramp_tables(settings)
     out = {k: np.zeros(r) for k in ("intercept_db", "intercept_sd_db", "slope", "slope_sd")}
-    status = np.empty(r, dtype="<U9")
     for i in range(r):
-        state = settings.start()
-        while not state.finished:
-            x, y = state.next_masker_level_db_sl(), state.next_level()
-            theta = u[i] + float(ramp(x, float(a[i]), float(b[i])))
-            state = state.update(bool(draws[state.n_trials, i] < psy.p_correct(y - theta)))
-        k = state.n_trials
-        levels[i, :k], maskers[i, :k], correct[i, :k] = (
-            state.levels_db,
-            state.maskers_db_sl,
-            state.responses,
-        )
-        n[i] = k
-        m = state.moments()
+        m = ramp_moments(t, run.posterior[i])
         for key in out:
             out[key][i] = m[key]
-        status[i] = state.status
     return SimulatedRamps(
         settings=settings,
-        levels_db=levels,
-        correct=correct,
-        n_trials=n,
-        maskers_db_sl=maskers,
+        levels_db=run.levels_db,
+        correct=run.correct,
+        n_trials=run.n_trials,
+        maskers_db_sl=run.maskers_db_sl,
         true_intercept_db=a,
         true_slope=b,
-        status=status,
+        status=run.status,
         **out,
     )
