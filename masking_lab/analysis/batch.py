@@ -18,7 +18,7 @@ import os
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, TextIO
+from typing import TYPE_CHECKING, Any, TextIO
 
 from masking_lab.analysis.experiment import analyze_shifts, result_warnings
 from masking_lab.analysis.export import write_outputs
@@ -167,6 +167,7 @@ def _analyze_into(
     rigs: list[RigUse] = []
     analysed: set[str] = set()  # rel paths, for the cross-log checks
     analysed_logs: list[Path] = []  # paths, for the functional-procedure outputs
+    sessions: list[Any] = []  # each analysed log's session, for the study matrix
     # One read per log (hashed and parsed from the same bytes), in parallel for many logs.
     results = list(read_logs(paths, data, est, progress=progress))
     copies = duplicate_sessions(results)
@@ -196,6 +197,7 @@ def _analyze_into(
                 created.append(h["created_utc"])
             rows.extend(res.rows)
             analysed_logs.append(res.path)
+            sessions.append(res.session)
             if settings.figures == "all":
                 tracks.append(_track_job(out, read_log(res.path), unpacked(res.rows)))
     problems += repeated_sessions([r for r in results if r.rel in analysed])
@@ -236,7 +238,14 @@ def _analyze_into(
     warnings += report_inputs.rig_warnings
     # Only the track figures are listed as such (files also holds thresholds.csv, problems.csv).
     lab = _lab_outputs(
-        data, out, [i["path"] for i in inputs], thresholds, settings, track_files, fit_progress
+        data,
+        out,
+        [i["path"] for i in inputs],
+        thresholds,
+        settings,
+        track_files,
+        fit_progress,
+        sessions,
     )
     files += lab.files
     warnings += lab.warnings
@@ -316,6 +325,7 @@ def _lab_outputs(
     settings: AnalysisSettings,
     drawn: list[Path],
     fit_progress: Callable[[int, int], None] | None = None,
+    sessions: list[Any] | None = None,
 ) -> LabOutputs:
     """trials.csv, psychometric.csv, participants.tsv, the study status and their figures."""
     from dataclasses import replace
@@ -331,6 +341,7 @@ def _lab_outputs(
         n_boot=settings.pf_boot,
         trial_tables=settings.trial_tables,
         progress=fit_progress,
+        sessions=sessions,
     )
     tracks = tuple(
         (p.relative_to(out).as_posix(), "staircase tracks of one session") for p in drawn

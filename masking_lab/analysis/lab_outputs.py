@@ -46,8 +46,9 @@ from masking_lab.analysis.pf_table import (
 )
 from masking_lab.analysis.psychometric import PFFit
 from masking_lab.analysis.report_lab import LabSection, PFRow, pf_plot
-from masking_lab.analysis.study_reading import ParquetSink, StudyLogs, read_parts
+from masking_lab.analysis.study_reading import LogPart, ParquetSink, StudyLogs, read_parts
 from masking_lab.analysis.study_status import (
+    SessionInfo,
     outliers,
     status_matrix,
     unmasked_als,
@@ -116,6 +117,7 @@ def write_lab_outputs(
     n_boot: int = PF_BOOTSTRAP,
     progress: Callable[[int, int], None] | None = None,
     trial_tables: bool = True,
+    sessions: Sequence[tuple[SessionInfo, Mapping[str, Any] | None, list[dict]]] | None = None,
 ) -> LabOutputs:
     """Write the per-trial and per-participant outputs of ``analyze`` into ``out``.
 
@@ -138,6 +140,9 @@ def write_lab_outputs(
     trial_tables : bool
         Write ``trials.csv``/``.parquet`` and ``psychometric.csv`` (False: only the study
         status, ``participants.tsv`` and the shift plots).
+    sessions : sequence, optional
+        Each log's :attr:`~masking_lab.analysis.log_reading.LogResult.session`, in the order
+        of ``logs``, from the analysis' own read: without trial tables nothing is read again.
 
     Returns
     -------
@@ -160,6 +165,10 @@ def write_lab_outputs(
             study = read_study(data, logs, status, trials_csv=fh, parquet=parquet)
         files.append(trials_path)
         files += parquet.close()
+    elif sessions is not None:
+        study = StudyLogs()
+        for session, info, specs in sessions:
+            study.add(LogPart(session, info, specs, {}))
     else:
         study = read_study(data, logs)
 

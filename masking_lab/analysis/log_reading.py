@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import hashlib
 import os
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -24,6 +24,7 @@ from typing import Any
 import msgspec
 
 from masking_lab.analysis.played_levels import played_level_problems
+from masking_lab.analysis.study_status import SessionInfo, session_of
 from masking_lab.analysis.thresholds import EstimatorSettings, packed, session_rows
 from masking_lab.core.errors import LogError
 from masking_lab.formats.log_bytes import check_schema_version, read_log_bytes, strip_bom
@@ -67,6 +68,10 @@ class LogResult:
         Size of the log, bytes.
     completed : bool
         The log ends with a ``session_end`` record of status ``completed``.
+    session : tuple or None
+        Its session, the participant's ``info`` and the protocol's ``info`` fields
+        (:func:`~masking_lab.analysis.study_status.session_of`), so the study matrix and
+        ``participants.tsv`` need no second read of the log.
     """
 
     path: Path
@@ -80,6 +85,7 @@ class LogResult:
     value_problems: list[str] = field(default_factory=list)
     n_bytes: int = 0
     completed: bool = False
+    session: tuple[SessionInfo, Mapping[str, Any] | None, list[dict[str, Any]]] | None = None
 
 
 def fast_parse(raw: bytes, path: str | Path) -> SessionLog | None:
@@ -149,6 +155,7 @@ def read_one(path: Path, rel: str, settings: EstimatorSettings) -> LogResult:
         value_problems=list(log.value_problems),
         n_bytes=len(raw),
         completed=_completed(log),
+        session=session_of(header, rel, log.ended),
     )
 
 

@@ -21,7 +21,7 @@ from typing import Any
 
 from masking_lab.analysis.log_reading import PARALLEL_FROM
 from masking_lab.analysis.pf_table import SetTrials, set_trials
-from masking_lab.analysis.study_status import SessionInfo
+from masking_lab.analysis.study_status import SessionInfo, session_of
 from masking_lab.analysis.trials_table import TRIAL_COLUMNS, trial_rows
 from masking_lab.core.errors import LogError
 from masking_lab.formats.csv_table import csv_text_rows
@@ -104,25 +104,8 @@ def read_part(
     except LogError:
         return None
     h = log.header if isinstance(log.header, Mapping) else {}
-    raw_protocol, raw_order = h.get("protocol"), h.get("set_order")
-    protocol = raw_protocol if isinstance(raw_protocol, Mapping) else {}
-    order = raw_order if isinstance(raw_order, list) else []
-    session = SessionInfo(
-        str(h.get("participant", "?")),
-        str(protocol.get("experiment", "?")),
-        rel,
-        tuple(str(s) for s in order),
-        log.ended,
-    )
-    info = h.get("info")
-    raw_content = protocol.get("content")
-    content = raw_content if isinstance(raw_content, Mapping) else {}
-    specs = [
-        dict(spec)
-        for spec in content.get("info") or []
-        if isinstance(spec, Mapping) and isinstance(spec.get("name"), str)
-    ]
-    part = LogPart(session, info if isinstance(info, Mapping) else None, specs, set_trials(log))
+    session, info, specs = session_of(h, rel, log.ended)
+    part = LogPart(session, info, specs, set_trials(log))
     if csv or rows:
         table = list(trial_rows(log, rel, set_status))
         if csv:

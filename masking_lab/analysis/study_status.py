@@ -65,6 +65,49 @@ class SessionInfo:
     ended: bool
 
 
+def session_of(
+    header: Mapping[str, Any], log: str, ended: bool
+) -> tuple[SessionInfo, Mapping[str, Any] | None, list[dict[str, Any]]]:
+    """A log's session, the participant's ``info`` answers and the protocol's ``info`` field
+    specifications, from its header.
+
+    Parameters
+    ----------
+    header : mapping
+        The log's header record (a malformed field reads as absent).
+    log : str
+        The log, relative to the data folder.
+    ended : bool
+        The log has its ``session_end`` record.
+
+    Examples
+    --------
+    >>> h = {"participant": "P1", "protocol": {"experiment": "e1"}, "set_order": ["A", "B"]}
+    >>> session_of(h, "P1/a.jsonl", True)
+    (SessionInfo(participant='P1', experiment='e1', log='P1/a.jsonl', set_order=('A', 'B'), \
+ended=True), None, [])
+    """
+    raw_protocol, raw_order = header.get("protocol"), header.get("set_order")
+    protocol = raw_protocol if isinstance(raw_protocol, Mapping) else {}
+    order = raw_order if isinstance(raw_order, list) else []
+    session = SessionInfo(
+        str(header.get("participant", "?")),
+        str(protocol.get("experiment", "?")),
+        log,
+        tuple(str(s) for s in order),
+        ended,
+    )
+    info = header.get("info")
+    raw_content = protocol.get("content")
+    content = raw_content if isinstance(raw_content, Mapping) else {}
+    specs = [
+        dict(spec)
+        for spec in content.get("info") or []
+        if isinstance(spec, Mapping) and isinstance(spec.get("name"), str)
+    ]
+    return session, info if isinstance(info, Mapping) else None, specs
+
+
 @dataclass(frozen=True)
 class CellStatus:
     """One participant × protocol cell of the matrix.

@@ -306,6 +306,7 @@ class _Order(msgspec.Struct):
 
 class _Content(msgspec.Struct):
     order: _Order | UnsetType = UNSET
+    info: Any = UNSET  # the participant questions' specifications (participants.json)
 
 
 class _Experiment(msgspec.Struct):
@@ -324,6 +325,8 @@ class AHeader(_View, tag="header"):
     protocol: _Experiment | UnsetType = UNSET
     calibration: dict[str, Any] | UnsetType = UNSET
     rig: Any = UNSET  # compared per participant (analysis.rig_check)
+    set_order: Any = UNSET  # the study matrix's planned sets (analysis.study_status)
+    info: Any = UNSET  # the participant's answers (participants.tsv)
 
     def as_dict(self) -> dict[str, Any]:
         """The header as the dict :func:`read_log` would give, for the fields decoded."""
@@ -336,6 +339,8 @@ class AHeader(_View, tag="header"):
             "kind",
             "calibration",
             "rig",
+            "set_order",
+            "info",
             "seq",
         )
         for name in names:
@@ -357,6 +362,8 @@ class AHeader(_View, tag="header"):
                         else {"interleave": order.interleave}
                     }
                 )
+                if content.info is not UNSET:
+                    out["protocol"]["content"]["info"] = content.info
         return out
 
 
