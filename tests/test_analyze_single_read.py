@@ -83,3 +83,34 @@ def test_no_trial_tables_reads_no_log_twice_and_keeps_the_bytes(study, tmp_path,
     # with trial tables the general reader is still needed (intervals, response times)
     with pytest.raises(AssertionError, match="second time"):
         main(["analyze", str(study), "--out", str(tmp_path / "again"), "--quiet"])
+
+
+@pytest.mark.parametrize(
+    ("fields", "off"),
+    [
+        ({}, False),  # played as asked
+        ({"played_target_v": 0.0105}, True),  # 0.42 dB off the request
+        ({"played_target_v": 0.0}, True),  # silence
+        ({"played_target_v": None}, False),  # nothing to compare
+        ({"level_db_v": None, "played_target_v": 0.02}, False),
+        ({"level_db_v": 1e5}, True),
+        ({"level_db_v": -1e5, "played_target_v": 1e300}, True),
+        ({"played_target_v": 1e-300}, True),
+    ],
+)
+def test_played_level_check_answers_alike_for_typed_and_general_records(fields, off):
+    """The typed view's trials take a shortcut in played_level_problems: same notes."""
+    from masking_lab.analysis.played_levels import played_level_problems
+
+    header = {"record": "header", "participant": "P1", "protocol": {"experiment": "e"}}
+    ok = {"record": "trial", "set_id": "A", "level_db_v": -40.0, "played_target_v": 0.01}
+    trials = [dict(ok, trial_index=0), dict(ok, trial_index=1, **fields)]
+    recs = [header, {"record": "set_start", "set_id": "A", "target": "EV270"}, *trials]
+    raw = b"".join(json.dumps(r).encode() + b"\n" for r in recs)
+    typed, general = fast_parse(raw, "x.jsonl"), parse_log(raw, "x.jsonl")
+    assert typed is not None and type(typed.records[1]).__name__ == "ATrial"
+    notes = played_level_problems(typed.records, typed.lines)
+    assert notes == played_level_problems(general.records, general.lines)
+    assert bool(notes) == off
+    if notes:
+        assert notes[0].startswith("line 4: 1 trial(s) played more than 0.1 dB off")
