@@ -114,3 +114,13 @@ def test_played_level_check_answers_alike_for_typed_and_general_records(fields, 
     assert bool(notes) == off
     if notes:
         assert notes[0].startswith("line 4: 1 trial(s) played more than 0.1 dB off")
+
+
+def test_status_reads_each_log_once(study, monkeypatch, capsys):
+    def second_read(*args, **kwargs):
+        raise AssertionError("a log was read a second time")
+
+    monkeypatch.setattr(study_reading, "read_log", second_read)
+    assert main(["status", str(study)]) == 0
+    out = capsys.readouterr().out
+    assert "partial" in out and "complete" in out  # the cut log and the whole ones
