@@ -27,6 +27,7 @@ Usage::
     python benchmarks/bench_analysis.py                    # 100 and 1000 sessions
     python benchmarks/bench_analysis.py --with-10000       # and 10000 (~2 GB of logs)
     python benchmarks/bench_analysis.py --sizes 100 --analyze-args=--no-trial-tables
+    python benchmarks/bench_analysis.py --baseline-src DIR   # and analyze from DIR/masking_lab
 """
 
 from __future__ import annotations
@@ -151,10 +152,22 @@ def _tree_rss_kb(root: int) -> int:
     return total
 
 
-def run_analyze(data: Path, out: Path, extra: list[str]) -> tuple[float, float, float]:
+def run_analyze(
+    data: Path, out: Path, extra: list[str], src: str | None = None
+) -> tuple[float, float, float]:
     """Wall time (s) of ``masking-lab analyze`` as a whole command, the largest process's peak
-    (MB, RSS from ``wait4``) and the sampled process-tree peak (MB, PSS)."""
+    (MB, RSS from ``wait4``) and the sampled process-tree peak (MB, PSS).
+
+    ``src``: a folder holding another ``masking_lab`` package (e.g. ``git archive main
+    masking_lab | tar -x -C DIR``), imported instead of the installed one (an editable
+    install's import hook would win over ``PYTHONPATH``, so it is dropped first).
+    """
     code = "import sys; from masking_lab.commands.cli import main; sys.exit(main(sys.argv[1:]))"
+    if src:
+        code = (
+            "import sys; sys.meta_path[:] = [f for f in sys.meta_path if 'editable' not in "
+            f"repr(f).lower()]; sys.path.insert(0, {src!r}); " + code
+        )
     cmd = [sys.executable, "-c", code, "analyze", str(data), "--out", str(out), "--quiet", *extra]
     t = time.perf_counter()
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
@@ -183,6 +196,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--with-10000", action="store_true", help="add 10000 sessions (~2 GB)")
     ap.add_argument("--analyze-args", default="", help="extra options for analyze, quoted")
     ap.add_argument("--workdir", help="folder for the generated logs (default: a temp folder)")
+    ap.add_argument(
+        "--baseline-src",
+        metavar="DIR",
+        help="also time analyze from the masking_lab package in DIR (before/after in one run)",
+    )
     ap.add_argument("--floor", nargs=2, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.floor:
@@ -201,16 +219,22 @@ def main(argv: list[str] | None = None) -> int:
         simulate_study(pool, n_participants=10, seed=0)
         print(f"simulated the pool of 30 sessions in {time.perf_counter() - t0:.1f} s", flush=True)
         results = []
+        baselines: list[tuple[int, float, float, float]] = []
         for n in sizes:
             data = work / f"data_{n}"
             size = build_folder(pool, data, n)
             floors = {kind: run_floor(kind, data) for kind in FLOORS}
             t_an, rss_main, rss_tree = run_analyze(data, work / f"out_{n}", extra)
             results.append((n, size, floors, t_an, rss_main, rss_tree))
+            if args.baseline_src:
+                base = run_analyze(data, work / f"base_{n}", extra, args.baseline_src)
+                baselines.append((n, *base))
+                shutil.rmtree(work / f"base_{n}", ignore_errors=True)
             print(
                 f"  {n:>6} sessions ({size / 1e6:7.1f} MB): "
                 + ", ".join(f"{k} {v:.2f} s" for k, v in floors.items())
-                + f", analyze {t_an:.2f} s",
+                + f", analyze {t_an:.2f} s"
+                + (f" (baseline {baselines[-1][1]:.2f} s)" if args.baseline_src else ""),
                 flush=True,
             )
             shutil.rmtree(data)
@@ -236,6 +260,12 @@ def main(argv: list[str] | None = None) -> int:
             "at 1,000). peak MB: largest process (wait4, RSS; target <= 300 at 10,000); tree "
             "MB: PSS summed over the process tree, sampled every 50 ms."
         )
+        for n, t_base, rss_main, rss_tree in baselines:
+            t_an = next(r[3] for r in results if r[0] == n)
+            print(
+                f"baseline ({args.baseline_src}) at {n} sessions: {t_base:.2f} s, peak "
+                f"{rss_main:.0f} MB, tree {rss_tree:.0f} MB; analyze / baseline {t_an / t_base:.2f}"
+            )
     finally:
         if not args.workdir:
             shutil.rmtree(work, ignore_errors=True)

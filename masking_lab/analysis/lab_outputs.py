@@ -396,17 +396,16 @@ def study_at_a_glance(data: str | Path) -> tuple[LabSection, list[str]]:
     if not paths:
         raise AnalysisError(f"{root}: no session logs (*.jsonl) found")
     rows: list[tuple] = []
-    logs: list[str] = []
+    study = StudyLogs()  # from the one read of each log (LogResult.session)
     problems: list[str] = []
     for res in read_logs(paths, root, EstimatorSettings()):
         reason = res.error or _skip_reason(res.header)
-        if reason:
+        if reason or res.session is None:
             problems.append(f"{res.rel}: {reason}")
             continue
-        logs.append(res.rel)
+        study.add(LogPart(*res.session, {}))
         rows.extend(res.rows)
     thresholds = thresholds_table(rows, consume=True)
-    study = read_study(root, logs)
     section = LabSection(
         experiments=tuple(sorted({s.experiment for s in study.sessions})),
         matrix=tuple(status_matrix(study.sessions, thresholds)),

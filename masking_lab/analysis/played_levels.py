@@ -11,9 +11,14 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable, Mapping
-from typing import Any
+from typing import Any, get_args
+
+from msgspec import UNSET
+
+from masking_lab.formats.log_records import AnalysisRecord, ATrial
 
 MAX_DIFF_DB = 0.1
+_TYPED_OTHERS = frozenset(get_args(AnalysisRecord)) - {ATrial}
 
 
 def _get(record: Any, key: str) -> Any:
@@ -57,20 +62,34 @@ def played_level_problems(records: Iterable[Any], lines: Iterable[int] | None = 
     numbers = list(lines) if lines is not None else None
     off: list[tuple[float, int, Any]] = []
     for i, rec in enumerate(records):
-        if _kind(rec) != "trial":
-            continue
-        played, level = _get(rec, "played_target_v"), _get(rec, "level_db_v")
-        extra = _get(rec, "device_extra") or {}
-        requested = extra.get("requested_target_v") if isinstance(extra, Mapping) else None
-        # Compared in dB: a hostile level (1e5 dB) overflows 10 ** (level / 20) as a ratio.
-        if isinstance(requested, (int, float)) and math.isfinite(requested) and requested > 0:
-            requested_db = 20.0 * math.log10(requested)
-        elif requested is None and isinstance(level, (int, float)) and math.isfinite(level):
+        cls = type(rec)
+        if cls is ATrial:
+            # The typed view's trial (most records of most logs): its fields are float, None or
+            # UNSET, and it decodes no device_extra, so the request is the logged level. The
+            # same answers as the general path below, without its per-field type tests.
+            level, played = rec.level_db_v, rec.played_target_v
+            if level is None or level is UNSET or not math.isfinite(level):
+                continue
+            if played is None or played is UNSET or not math.isfinite(played):
+                continue
             requested_db = float(level)
+        elif cls in _TYPED_OTHERS:  # typed records of other kinds: no trial
+            continue
         else:
-            continue
-        if not (isinstance(played, (int, float)) and math.isfinite(played)):
-            continue
+            if _kind(rec) != "trial":
+                continue
+            played, level = _get(rec, "played_target_v"), _get(rec, "level_db_v")
+            extra = _get(rec, "device_extra") or {}
+            requested = extra.get("requested_target_v") if isinstance(extra, Mapping) else None
+            # Compared in dB: a hostile level (1e5 dB) overflows 10 ** (level / 20) as a ratio.
+            if isinstance(requested, (int, float)) and math.isfinite(requested) and requested > 0:
+                requested_db = 20.0 * math.log10(requested)
+            elif requested is None and isinstance(level, (int, float)) and math.isfinite(level):
+                requested_db = float(level)
+            else:
+                continue
+            if not (isinstance(played, (int, float)) and math.isfinite(played)):
+                continue
         diff = math.inf if played <= 0 else abs(20.0 * math.log10(played) - requested_db)
         if diff > MAX_DIFF_DB:
             line = numbers[i] if numbers is not None and i < len(numbers) else i + 1

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -196,11 +197,36 @@ class LabSection:
         return tuple(dict.fromkeys(c.participant for c in self.matrix))
 
     def cell(self, participant: str, experiment: str) -> CellStatus | None:
-        """The matrix cell of a participant and protocol."""
+        """The matrix cell of a participant and protocol (the first, if listed twice)."""
+        return self._cells.get((participant, experiment))
+
+    def pf_of(self, participant: str) -> tuple[PFRow, ...]:
+        """The participant's rows of :attr:`pf`, in their order.
+
+        Examples
+        --------
+        >>> r = PFRow("P1", "e1", "A", "dB SL", 30, 1.0, None, 0.5, 0.02, 3.0, 0.4, "")
+        >>> lab = LabSection((), (), (), (), (r,))
+        >>> lab.pf_of("P1") == (r,), lab.pf_of("P2")
+        (True, ())
+        """
+        return self._pf_by_participant.get(participant, ())
+
+    # Indexes built once: the report asks for every participant's cells and rows, and a scan
+    # per question grows with the square of the study (hours at 10,000 sessions).
+    @cached_property
+    def _cells(self) -> dict[tuple[str, str], CellStatus]:
+        cells: dict[tuple[str, str], CellStatus] = {}
         for c in self.matrix:
-            if c.participant == participant and c.experiment == experiment:
-                return c
-        return None
+            cells.setdefault((c.participant, c.experiment), c)
+        return cells
+
+    @cached_property
+    def _pf_by_participant(self) -> dict[str, tuple[PFRow, ...]]:
+        groups: dict[str, list[PFRow]] = {}
+        for r in self.pf:
+            groups.setdefault(r.participant, []).append(r)
+        return {p: tuple(rows) for p, rows in groups.items()}
 
 
 def _f(v: float | None, fmt: str = ".2f") -> str:
