@@ -496,7 +496,7 @@ def _run(args: argparse.Namespace) -> int:
 
 
 def _second_core(
-    protocol: Protocol,
+    protocol: ThresholdProtocol,
     settings: Any,
     thresholds: Any,
     *,

@@ -332,7 +332,7 @@ class SchedulePart:
 
 
 def plan_schedule(
-    protocol: Protocol,
+    protocol: ThresholdProtocol,
     settings: PlanSettings,
     thresholds_db: NDArray[np.float64],
     k: int,

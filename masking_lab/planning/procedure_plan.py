@@ -256,7 +256,7 @@ def _targets(own: QuestPlusSettings, sd_ladder_db: Sequence[float]) -> list[floa
 
 
 def quest_simulations(
-    protocol: Protocol,
+    protocol: ThresholdProtocol,
     settings: PlanSettings,
     thresholds_db: NDArray[np.float64],
     *,
