@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 
+import pytest
 from hypothesis import settings
 
 settings.register_profile("repeatable", derandomize=True, print_blob=True)
@@ -40,3 +41,27 @@ def pytest_collection_modifyitems(config, items) -> None:
     """Move the tests of SLOW_FIRST's files to the front (stable: same order on every worker)."""
     rank = {name: i for i, name in enumerate(SLOW_FIRST)}
     items.sort(key=lambda item: rank.get(item.path.name, len(rank)))
+
+
+# Files whose tests are each long and share no costly module fixture: spread test by test over
+# the workers. Every other file goes to one worker whole, so its module fixtures (a whole demo,
+# a simulated study and its analysis) are computed once, not once per worker that got a test.
+SPREAD = ("test_output_kills.py",)
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_xdist_make_scheduler(config, log):
+    """xdist's scope scheduling by file (SPREAD's files by test), in collection order.
+
+    Units go to whichever worker is free, slowest files first (``--no-loadscope-reorder`` in
+    pyproject keeps the order above). xdist's ``loadgroup`` would do this by marker, but it
+    tags node ids through an attribute pytest 9 no longer reads, so the groups were lost.
+    """
+    from xdist.scheduler import LoadScopeScheduling
+
+    class FileScheduling(LoadScopeScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            path = nodeid.split("::", 1)[0]
+            return nodeid if path.rsplit("/", 1)[-1] in SPREAD else path
+
+    return FileScheduling(config, log)

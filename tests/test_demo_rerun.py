@@ -5,9 +5,12 @@ without --force is refused (exit 2) with what to do."""
 from __future__ import annotations
 
 import json
+import shutil
 import subprocess
 import sys
 from pathlib import Path
+
+import pytest
 
 FAST = ["--participants", "2", "--device", "sim", "--jobs", "1", "--n-boot", "200"]
 
@@ -31,9 +34,22 @@ def _logs(folder: Path) -> list[Path]:
     return sorted((folder / "data").rglob("*.jsonl"))
 
 
-def test_demo_without_out_writes_a_new_folder_each_time(tmp_path):
-    first = _demo(tmp_path)
+@pytest.fixture(scope="module")
+def first_demo(tmp_path_factory) -> Path:
+    """One demo run without --out (so into ./demo_out): the earlier demo both tests start from.
+
+    Each test works on a copy of it: a demo costs most of this file's time, and the two tests
+    are about what a later run does next to, or over, a finished demo.
+    """
+    cwd = tmp_path_factory.mktemp("first")
+    first = _demo(cwd)
     assert first.returncode == 0, first.stderr[-2000:]
+    assert len(_logs(cwd / "demo_out")) == 6
+    return cwd / "demo_out"
+
+
+def test_demo_without_out_writes_a_new_folder_each_time(first_demo, tmp_path):
+    shutil.copytree(first_demo, tmp_path / "demo_out")
     second = _demo(tmp_path)
     assert second.returncode == 0, second.stderr[-2000:]
     assert len(_logs(tmp_path / "demo_out")) == 6
@@ -45,9 +61,9 @@ def test_demo_without_out_writes_a_new_folder_each_time(tmp_path):
     assert a.split('"functions"')[1] == b.split('"functions"')[1]
 
 
-def test_force_overwrites_the_demo_in_out_and_nothing_else(tmp_path):
+def test_force_overwrites_the_demo_in_out_and_nothing_else(first_demo, tmp_path):
     out = tmp_path / "mine"
-    assert _demo(tmp_path, "--out", str(out)).returncode == 0
+    shutil.copytree(first_demo, out)
     (out / "notes.txt").write_text("keep me\n")
     refused = _demo(tmp_path, "--out", str(out))
     assert refused.returncode == 2

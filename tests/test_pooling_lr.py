@@ -50,7 +50,10 @@ def test_the_analysis_report_shows_the_comparison_beside_the_papers_rule(tmp_pat
     from masking_lab.simulation.synthetic_logs import simulate_study
 
     simulate_study(tmp_path / "logs", n_participants=10, seed=4)
-    assert main(["analyze", str(tmp_path / "logs"), "--out", str(tmp_path / "out"), "--quiet"]) == 0
+    # The comparison and the pooling rule use no bootstrap and no figure: spare those costs.
+    argv = ["analyze", str(tmp_path / "logs"), "--out", str(tmp_path / "out"), "--quiet"]
+    argv += ["--n-boot", "100", "--pf-boot", "0", "--figures", "none", "--no-trial-tables"]
+    assert main(argv) == 0
     report = (tmp_path / "out" / "report.txt").read_text(encoding="utf-8")
     block = report.split("Model comparison (likelihood ratio, AIC, BIC; reported, not used):")
     assert len(block) == 3  # experiments I and II
