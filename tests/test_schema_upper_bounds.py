@@ -17,7 +17,7 @@ from masking_lab.formats.resources import shipped
 from masking_lab.rendering.scene import MAX_POINTS
 
 ROOT = Path(__file__).resolve().parents[1]
-SCHEMAS = ("protocol", "device_config", "scene", "calibration", "ground_truth")
+SCHEMAS = ("protocol", "usertest", "device_config", "scene", "calibration", "ground_truth")
 # A definition no field refers to (kept for older tools reading the schema).
 UNUSED = {"protocol.$defs.db"}
 
@@ -60,8 +60,10 @@ def test_interval_bounds_match_the_firmware_trial_limit():
     assert us is not None
     assert int(us[1]) * int(us[2]) / 1e6 == MAX_TRIAL_S
     timing = _schema("protocol")["$defs"]["timing"]["properties"]
+    usertest = _schema("usertest")["properties"]["timing"]["properties"]
     for part in ("stimulus_s", "gap_s", "lead_in_s"):
         assert timing[part]["maximum"] == MAX_TRIAL_S
+        assert usertest[part]["maximum"] == MAX_TRIAL_S
 
 
 def test_scene_point_cap_matches_the_code():
@@ -94,3 +96,24 @@ def test_validate_refuses_timing_beyond_its_limit_naming_it(tmp_path, capsys, ol
 def test_a_trial_of_exactly_the_limit_validates(tmp_path):
     # 1.2 + 3 x 19.2 + 2 x 0.6 = 60.0 s: the bound is inclusive, as the firmware's.
     assert main(["validate", str(_protocol(tmp_path, "stimulus_s: 1.8", "stimulus_s: 19.2"))]) == 0
+
+
+@pytest.mark.parametrize(
+    ("old", "new", "message"),
+    [
+        ("repeats: 5", "repeats: 1000000", "must be ≤ 100"),
+        ("stimulus_s: 1.8", "stimulus_s: 30", "over the 60 s a device plays in one trial"),
+    ],
+)
+def test_usertest_counts_and_trial_length_are_bounded(tmp_path, capsys, old, new, message):
+    folder = tmp_path / "ut"
+    folder.mkdir()
+    text = shipped("protocols", "usertest.yaml").read_text(encoding="utf-8")
+    assert old in text
+    (folder / "usertest.yaml").write_text(text.replace(old, new, 1), encoding="utf-8")
+    for scene in shipped("protocols", "scenes").iterdir():
+        if scene.suffix == ".yaml":
+            (folder / "scenes").mkdir(exist_ok=True)
+            (folder / "scenes" / scene.name).write_bytes(scene.read_bytes())
+    assert main(["validate", str(folder / "usertest.yaml")]) == 1
+    assert message in capsys.readouterr().err
