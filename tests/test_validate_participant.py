@@ -85,3 +85,20 @@ def test_data_and_participant_go_together(tmp_path, capsys, half):
     protocol, _ = _files(tmp_path, "MV120")
     assert main(["validate", str(protocol), *half]) == 2
     assert "go together" in capsys.readouterr().err
+
+
+def test_resume_of_a_log_whose_protocol_path_the_os_cannot_look_up(tmp_path, capsys):
+    # Campaign seed 62: a header's protocol path of thousands of characters ended resume in an
+    # OSError (ENAMETOOLONG) traceback; the stored protocol is what resume runs anyway.
+    protocol, data = _files(tmp_path, "MV120")
+    assert _run(protocol, data) == 0
+    log = next((data / "S01").glob("*.jsonl"))
+    lines = log.read_text(encoding="utf-8").splitlines()
+    header = json.loads(lines[0])
+    header["protocol"]["path"] = "}" * 5000 + "e.yaml"
+    # Cut to the first records, so resume has a session to continue.
+    log.write_text("\n".join([json.dumps(header), *lines[1:4]]) + "\n", encoding="utf-8")
+    code = main(["resume", str(log), "--no-progress"])
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and "File name too long" not in err
+    assert code in (0, 1, 2)
