@@ -286,7 +286,7 @@ def _protocol(tmp_path: Path, procedure: dict[str, Any], staircase: dict[str, An
     [
         ({"level_step_db": 0.001, "threshold_step_db": 0.001}, "level_step_db", "MiB"),
         ({"scales_db": [1.0] * 2000}, "level_step_db", "table cells"),
-        ({"prior": "normal", "prior_mean_db": 1e6, "prior_sd_db": 3}, "prior_mean_db", "outside"),
+        ({"prior": "normal", "prior_mean_db": 190, "prior_sd_db": 3}, "prior_mean_db", "outside"),
         ({"prior": "normal", "prior_mean_db": 5, "prior_sd_db": 1e-300}, "prior_sd_db", "narrow"),
     ],
 )

@@ -43,6 +43,18 @@ def register(sub: argparse._SubParsersAction) -> None:
         "converters must play every level a protocol may ask for within 1 dB "
         "(default: the reference rig, protocols/devices/default.yaml)",
     )
+    p.add_argument(
+        "--data",
+        metavar="DIR",
+        help="data folder of the participant a run will use (with --participant): a masked "
+        "protocol is then checked against that participant's calibration.json, as `run` does",
+    )
+    p.add_argument(
+        "--participant",
+        metavar="ID",
+        help="participant id (with --data); without both, a masked protocol's summary lists the "
+        "unmasked ALs a run will need",
+    )
     p.set_defaults(handler=run)
 
 
@@ -50,19 +62,40 @@ def run(args: argparse.Namespace) -> int:
     from masking_lab.core.errors import MaskingLabError
     from masking_lab.device.rig_limits import max_level_db_sl
 
+    if (args.data is None) != (args.participant is None):
+        print(
+            "masking-lab validate: error: --data and --participant go together (the "
+            "participant's calibration is <data>/<participant>/calibration.json)",
+            file=sys.stderr,
+        )
+        return 2
     limits = max_level_db_sl(args.device_config)
     bad = 0
     for f in args.files:
         try:
-            print(f"ok      {f}: {check_file(f, limits, device_config=args.device_config)}")
+            summary = check_file(
+                f,
+                limits,
+                device_config=args.device_config,
+                participant=(args.data, args.participant) if args.data is not None else None,
+            )
+            print(f"ok      {f}: {summary}")
         except MaskingLabError as exc:
             bad += 1
             print(f"INVALID {exc}", file=sys.stderr)
     return 1 if bad else 0
 
 
-def check_file(path: str, limits: dict[str, float], device_config: str | None = None) -> str:
+def check_file(
+    path: str,
+    limits: dict[str, float],
+    device_config: str | None = None,
+    participant: tuple[str, str] | None = None,
+) -> str:
     """Load ``path`` with its kind's loader; return a one-line summary of what it holds.
+
+    ``participant`` (data folder, participant id) checks a protocol against that participant's
+    calibration as ``run`` will; without it a masked protocol's summary names the ALs it needs.
 
     Raises
     ------
@@ -82,7 +115,15 @@ def check_file(path: str, limits: dict[str, float], device_config: str | None = 
         from masking_lab.formats.protocol import load_protocol
 
         protocol = load_protocol(path, max_level_db_sl=limits)
+        if participant is not None:
+            return protocol.summary() + _check_for_participant(protocol, participant, device_config)
         _check_levels_playable(path, protocol, device_config)
+        if protocol.kind == "masked":
+            needed = ", ".join(sorted(protocol.stimuli()))
+            return (
+                f"{protocol.summary()}; a run needs the participant's unmasked ALs of {needed} "
+                "(calibration.json from the baseline; check with --data and --participant)"
+            )
         return protocol.summary()
     if kind == "usertest":
         from masking_lab.usertest.design import load_usertest
@@ -113,6 +154,34 @@ def check_file(path: str, limits: dict[str, float], device_config: str | None = 
 
     doc = read_masking_params(path)
     return f"masking params, {len(doc['functions'])} functions"
+
+
+def _check_for_participant(
+    protocol: Any, participant: tuple[str, str], device_config: str | None
+) -> str:
+    """What ``run`` checks before its first trial, for every set: the calibration file reads,
+    holds the unmasked AL of every stimulus a masked protocol plays, and puts every level the
+    sets may ask for within the rig's reach. Returns the summary's tail."""
+    from masking_lab.core.errors import CalibrationError, LevelError, ProtocolError
+    from masking_lab.device.level_check import refuse_unplayable
+    from masking_lab.formats.calibration import load_calibration, require
+
+    data_dir, participant_id = participant
+    try:
+        cal = load_calibration(data_dir, participant_id)
+        calibration: dict[str, float] = {}
+        if protocol.kind == "masked":
+            require(cal, protocol.stimuli(), data_dir)
+            calibration = {name: float(cal.unmasked_al_db_v[name]) for name in protocol.stimuli()}
+        refuse_unplayable(protocol, [s.id for s in protocol.sets], calibration, device_config)
+    except (CalibrationError, LevelError) as exc:
+        # Name the protocol being validated first; the message names the calibration file.
+        raise ProtocolError(
+            protocol.path, "sets", f"`run` would refuse it for {participant_id}: {exc}"
+        ) from None
+    if protocol.kind == "masked":
+        return f"; runs for {participant_id} (calibrated: {', '.join(sorted(calibration))})"
+    return f"; runs for {participant_id}"
 
 
 def _check_levels_playable(path: str, protocol: Any, device_config: str | None) -> None:

@@ -36,6 +36,10 @@ from masking_lab.procedures.staircase import StaircaseSettings
 
 Kind = Literal["baseline", "masked"]
 
+#: The longest trial (lead-in, three intervals and two gaps) a board plays, s:
+#: TRIAL_MAX_DURATION_US of firmware/core/trial.h; the schema bounds each part by it too.
+MAX_TRIAL_S = 60.0
+
 
 @dataclass(frozen=True)
 class Timing:
@@ -371,6 +375,15 @@ def _build(
     kind: Kind = data["kind"]
     top_procedure = dict(data.get("procedure") or {"kind": DEFAULT_KIND})
     timing = Timing(**data.get("timing", {}))
+    if timing.trial_s > MAX_TRIAL_S:
+        # The board refuses a trial longer than this (firmware/core/trial.h): say so here.
+        problems.append(
+            (
+                _where("timing", lines),
+                f"lead_in_s + 3 x stimulus_s + 2 x gap_s = {timing.trial_s:g} s, over the "
+                f"{MAX_TRIAL_S:g} s a device plays in one trial; shorten the intervals or gaps",
+            )
+        )
     default_target = data.get("target")
     sets: list[SetSpec] = []
     seen_ids: dict[str, int] = {}

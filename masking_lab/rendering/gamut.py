@@ -137,7 +137,18 @@ class Gamut:
         >>> g.contains([10.0, 40.0], [5.0, 0.0]).tolist()
         [True, False]
         """
-        return self.distance_db(mv_db_sl, ev_db_sl) <= tol_db
+        m, e = np.broadcast_arrays(np.asarray(mv_db_sl, float), np.asarray(ev_db_sl, float))
+        p = np.stack([m.ravel(), e.ravel()], axis=-1)
+        # Cheap half-plane tests first: only points inside no piece need the distance (the
+        # projections dominate a 100,000-point scene's scale search otherwise).
+        inside = np.zeros(p.shape[0], dtype=bool)
+        ok = np.isfinite(p).all(axis=-1)
+        for piece in self.pieces:
+            inside[ok] |= _inside_convex(piece.vertices, p[ok])
+        rest = ok & ~inside
+        if rest.any():
+            inside[rest] = self.distance_db(p[rest, 0], p[rest, 1]) <= tol_db
+        return inside.reshape(m.shape)
 
     def cases_at(self, mv_db_sl: float, ev_db_sl: float, *, tol_db: float = 1e-9) -> list[int]:
         """The pieces (solver cases) whose image holds (m_p, e_p), dB SL: one answer each.

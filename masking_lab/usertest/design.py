@@ -31,6 +31,7 @@ from typing import Any, Literal
 import numpy as np
 
 from masking_lab.core.errors import ProtocolError
+from masking_lab.formats.protocol import MAX_TRIAL_S
 from masking_lab.formats.reader import decode_utf8, parse_yaml, read_limited
 from masking_lab.formats.schemas import (
     first_problem,
@@ -287,6 +288,15 @@ def parse_usertest(
     if problem:
         raise ProtocolError(source, *problem)
     timing = UserTestTiming(**data.get("timing", {}))
+    if timing.trial_s > MAX_TRIAL_S:
+        # The board refuses a longer trial (firmware/core/trial.h): refuse it here instead.
+        raise ProtocolError(
+            source,
+            "timing",
+            f"lead_in_s + n_presentations x stimulus_s + (n_presentations - 1) x gap_s = "
+            f"{timing.trial_s:g} s, over the {MAX_TRIAL_S:g} s a device plays in one trial; "
+            "shorten the presentations or gaps",
+        )
     found: dict[tuple[str, str], Scene] = {}
     for g in data["geometries"]:
         for t in data["textures"]:

@@ -263,17 +263,23 @@ def _schema_trial(
         "calibration_schema": [*run, str(work / "protocol_seed.yaml")],
         "protocol_schema": [*run, str(file)],
     }[kind]
-    return _validate_then(kind, file, using, work, timeout_s, gap_is_finding=True)
+    # validate checks a protocol for the participant run will use (issue 21.2): the same data.
+    same_data = ["--data", str(work / "data"), "--participant", "S01"]
+    checks = {
+        "protocol_schema": [str(file), *same_data],
+        "calibration_schema": [str(file), str(work / "protocol_seed.yaml"), *same_data],
+    }.get(kind, [str(file)])
+    return _validate_then(kind, file, using, work, timeout_s, gap_is_finding=True, checks=checks)
 
 
 # render's answer for a scene playing a pair the (seed) parameters lack: a fact about the two
 # files together, which validating the scene alone cannot know; render writes the protocols
 # that measure the pair, as designed.
-# Likewise a calibration whose ALs put a protocol's level below what the rig's converter and
-# attenuator steps can play: that needs calibration, protocol and rig config together, and run
-# refuses it before the first trial, as designed; and ALs (calibration) plus sensation levels
-# (protocol) beyond the rig's drive limit refuse every set, so run exits 2 saying so.
-_CROSS_FILE = ("Measure the pair", "refused before the first trial", "every set was refused")
+# A calibration whose ALs put a protocol's level below what the rig's converter and attenuator
+# steps can play ("refused before the first trial") is no longer cross-file: validate with
+# --data/--participant runs that same check. ALs (calibration) plus sensation levels (protocol)
+# beyond the rig's drive limit refuse every set, so run exits 2 saying so.
+_CROSS_FILE = ("Measure the pair", "every set was refused")
 
 
 def _cross_file(detail: str) -> bool:
@@ -288,9 +294,11 @@ def _validate_then(
     timeout_s: float,
     *,
     gap_is_finding: bool,
+    checks: list[str] | None = None,
 ) -> tuple[list[Outcome], bool]:
-    """``validate`` the file; if it passes, the command that uses it must not refuse it."""
-    status, code, detail = run_command(["validate", str(file)], timeout_s)
+    """``validate`` the file (``checks``: validate's arguments, default the file alone); if it
+    passes, the command that uses it must not refuse it."""
+    status, code, detail = run_command(["validate", *(checks or [str(file)])], timeout_s)
     outcomes = [Outcome(status, ("validate", kind), code, detail)]
     accepted = status == "clean" and code == 0
     before = snapshot(work)
@@ -299,9 +307,7 @@ def _validate_then(
         found = non_finite_files(work, before)
         if found:
             status, detail = "non_finite", ", ".join(found)
-        elif (
-            accepted and gap_is_finding and code == 2 and not any(c in detail for c in _CROSS_FILE)
-        ):
+        elif accepted and gap_is_finding and code == 2 and not _cross_file(detail):
             status, detail = "validate_gap", f"validate accepted it, {using[0]} said: {detail}"
     outcomes.append(Outcome(status, (using[0], kind), code, detail))
     return outcomes, accepted
