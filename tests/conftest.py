@@ -11,6 +11,7 @@ import os
 
 import pytest
 from hypothesis import settings
+from xdisplay import virtual_display
 
 settings.register_profile("repeatable", derandomize=True, print_blob=True)
 settings.register_profile("explore", derandomize=False, print_blob=True)
@@ -65,3 +66,9 @@ def pytest_xdist_make_scheduler(config, log):
             return nodeid if path.rsplit("/", 1)[-1] in SPREAD else path
 
     return FileScheduling(config, log)
+
+
+@pytest.fixture(scope="session")
+def x_display():
+    """A virtual X display for this test process (see tests/xdisplay.py for why per process)."""
+    yield from virtual_display()

@@ -110,7 +110,8 @@ class SimTarget(Target):
         return device.outputs()
 
     def go_quiet(self, device: Any) -> None:
-        device.clock.sleep_until(device.clock.now() + 60.0)  # far beyond any watchdog period, virtual time
+        # far beyond any watchdog period, in virtual time
+        device.clock.sleep_until(device.clock.now() + 60.0)
 
 
 class WireTarget(Target):

@@ -1,9 +1,9 @@
 """The participant window in a real PsychoPy window on a virtual X display (Xvfb).
 
-The module starts its own Xvfb (``-displayfd`` picks a free display number) or, without Xvfb,
-uses an existing DISPLAY. With neither it skips, unless MASKING_LAB_REQUIRE_DISPLAY=1 (CI), in
-which case it fails: CI must never silently skip the window test (.ci/system-deps.sh installs
-Xvfb and xdotool).
+The display is the session fixture ``x_display`` (tests/xdisplay.py): one Xvfb per test process
+(``-displayfd`` picks a free display number) or, without Xvfb, an existing DISPLAY. With neither
+it skips, unless MASKING_LAB_REQUIRE_DISPLAY=1 (CI), in which case it fails: CI must never
+silently skip the window test (.ci/system-deps.sh installs Xvfb and xdotool).
 
 Keys and pointer moves are injected with ``xdotool``: they go through the X server, pyglet and
 PsychoPy's event module exactly like a participant's key press or finger, which PsychoPy's
@@ -15,13 +15,10 @@ from __future__ import annotations
 import dataclasses
 import logging
 import os
-import select
-import shutil
 import subprocess
 import sys
 import textwrap
 import threading
-import time
 
 import numpy as np
 import pytest
@@ -39,20 +36,10 @@ from masking_lab.responders.psychopy_window import (
     display_geometry,
 )
 
-REQUIRE = os.environ.get("MASKING_LAB_REQUIRE_DISPLAY") == "1"
 # 800 × 600 px on a 400 mm wide screen: 0.5 mm per px, so positions are easy to check by hand.
 DISPLAY = DisplayGeometry(width_mm=400.0, width_px=800, height_px=600, source="test display")
 W, H = DISPLAY.width_px, DISPLAY.height_px
 SET = SetInfo("MV120_10", 2, 15, Stimulus("EV", 270.0), Stimulus("MV", 120.0), 10.0)
-
-
-def unavailable(reason: str) -> None:
-    if REQUIRE:
-        pytest.fail(
-            f"{reason}, but MASKING_LAB_REQUIRE_DISPLAY=1 says this test must run: install Xvfb "
-            "and xdotool (bash .ci/system-deps.sh as root)"
-        )
-    pytest.skip(reason)
 
 
 def plan(stimulus_s=1.8, gap_s=0.6, lead_in_s=1.2, target_interval=2) -> TrialPlan:
@@ -83,55 +70,6 @@ def colour_mask(image: np.ndarray, rgb, tol: int = 12) -> np.ndarray:
 
 
 # -- the virtual display -------------------------------------------------------------------------
-
-
-@pytest.fixture(scope="module")
-def x_display():
-    try:
-        import psychopy  # noqa: F401
-    except ImportError as exc:
-        unavailable(f"PsychoPy is not installed ({exc})")
-    if shutil.which("xdotool") is None:
-        unavailable("xdotool is not installed (needed to type keys into the window)")
-    xvfb = shutil.which("Xvfb")
-    proc = None
-    if xvfb:
-        read_fd, write_fd = os.pipe()
-        proc = subprocess.Popen(
-            [xvfb, "-displayfd", str(write_fd), "-screen", "0", "1280x800x24", "-nolisten", "tcp"],
-            pass_fds=(write_fd,),
-            stdout=subprocess.DEVNULL,
-            stderr=subprocess.DEVNULL,
-        )
-        os.close(write_fd)
-        # Xvfb writes the number, then "\n", in two writes: read to the newline before closing
-        # the pipe, or the second write fails and the server quits.
-        reply = b""
-        deadline = time.monotonic() + 20.0
-        while not reply.endswith(b"\n") and time.monotonic() < deadline:
-            ready, _, _ = select.select([read_fd], [], [], deadline - time.monotonic())
-            chunk = os.read(read_fd, 32) if ready else b""
-            if not chunk:
-                break
-            reply += chunk
-        os.close(read_fd)
-        number = reply.decode().strip() if reply.endswith(b"\n") else ""
-        if not number:
-            proc.kill()
-            proc.wait()
-            pytest.fail("Xvfb did not report a display number within 20 s")
-        display = f":{number}"
-    elif os.environ.get("DISPLAY"):
-        display = os.environ["DISPLAY"]
-    else:
-        unavailable("no Xvfb and no DISPLAY: cannot open a window")
-    patch = pytest.MonkeyPatch()
-    patch.setenv("DISPLAY", display)
-    yield display
-    patch.undo()
-    if proc is not None:
-        proc.terminate()
-        proc.wait(timeout=10)
 
 
 def xdotool(display: str, *args: str) -> None:
@@ -307,12 +245,17 @@ def test_trial_completes_with_injected_keys_and_records_the_finger(x_display, cl
     for t_s, _, _ in path:
         assert any(o - 1e-4 <= t_s <= o + timing.stimulus_s + 1e-4 for o in on), t_s
     # The pointer positions, converted to mm: (col − 400, 300 − row) px × 0.5 mm/px.
+    # A sample carries its frame's time (the cue drawn for it); the pointer is read after that
+    # frame's flip, so a move shows up to one frame before its own time. Each position must
+    # appear after the move before it was made, never as a stale position from earlier.
+    previous_at = start_s
     for at, (c, r) in moves:
         x_mm, y_mm = (c - W / 2) * 0.5, (H / 2 - r) * 0.5
         # One pixel (0.5 mm) of slack: pyglet counts rows from the bottom, 0-based.
         hits = [s for s in path if abs(s[1] - x_mm) <= 0.51 and abs(s[2] - y_mm) <= 0.51]
         assert hits, f"pointer at {(x_mm, y_mm)} mm not in the finger path {path}"
-        assert min(s[0] for s in hits) >= at - 1e-3  # logged after it moved there
+        assert min(s[0] for s in hits) > previous_at, (at, hits)
+        previous_at = at
 
 
 class FrozenClock:

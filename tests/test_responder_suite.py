@@ -2,7 +2,7 @@
 
 In the style of scikit-learn's ``parametrize_with_checks``: plain check functions, each run over
 every responder — the simulated observers, the keypad on a real pseudo-terminal and the
-participant window on the real Xvfb display (the display fixture of tests/test_psychopy_window.py).
+participant window on the real Xvfb display (the session fixture ``x_display``, tests/xdisplay.py).
 
 Keys are injected without wall-clock waits: the keypad reads its clock through a stepping clock
 that types the scripted keys into the pty's master side on its first reading after the stimuli
@@ -22,7 +22,6 @@ from typing import Any
 
 import numpy as np
 import pytest
-from test_psychopy_window import x_display  # noqa: F401  (the Xvfb display fixture)
 
 from masking_lab.core.levels import db_v_to_volts
 from masking_lab.core.stimulus import parse_stimulus

@@ -1,10 +1,9 @@
 """The user test in the participant's PsychoPy window on a virtual X display (Xvfb).
 
 Keys and a touching finger (pointer moved with the button held) are injected with ``xdotool``,
-through the X server, as in tests/test_psychopy_window.py, whose display fixture and participant
-script are reused. The windows open in a child process: pyglet keeps its first X connection for
-the life of a process, so a second virtual display (this module's) would be unreachable from a
-process whose first one (another module's) has gone.
+through the X server, as in tests/test_psychopy_window.py, whose participant script is reused, on
+the session's display (``x_display``, tests/xdisplay.py). The windows open in a child process,
+which also checks the user test's factory from a fresh interpreter.
 """
 
 from __future__ import annotations
@@ -19,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_psychopy_window import DISPLAY, Script, window_id, x_display, xdotool  # noqa: F401
+from test_psychopy_window import DISPLAY, Script, window_id, xdotool
 
 from masking_lab.core.clock import RealClock, VirtualClock
 from masking_lab.core.errors import ProtocolError
@@ -137,7 +136,7 @@ def _child_main(display: str) -> None:
 
 
 @pytest.fixture(scope="module")
-def window_results(x_display):  # noqa: F811
+def window_results(x_display):
     code = (
         f"import sys; sys.path.insert(0, {str(TESTS)!r}); "
         f"import test_usertest_runner_window as m; m._child_main({x_display!r})"

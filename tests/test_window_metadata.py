@@ -2,7 +2,7 @@
 
 The form's rules are tested as pure state (``responders.info_form``); the window itself is tested
 for real: ``masking-lab run --responder psychopy`` runs in a child process on a virtual X display
-(Xvfb, the display fixture of tests/test_psychopy_window.py) and ``xdotool`` types the answers
+(Xvfb, the session fixture ``x_display``, tests/xdisplay.py) and ``xdotool`` types the answers
 through the X server, as an experimenter at the rig's keyboard would.
 """
 
@@ -18,7 +18,7 @@ import threading
 from pathlib import Path
 
 import pytest
-from test_psychopy_window import x_display, xdotool  # noqa: F401
+from test_psychopy_window import xdotool
 
 from masking_lab.core.errors import ProtocolError
 from masking_lab.formats.resources import shipped
@@ -198,7 +198,7 @@ class Run:
         return self.proc.returncode, "".join(self.err)
 
 
-def test_the_window_asks_checks_and_logs_the_participant_fields(x_display, tmp_path):  # noqa: F811
+def test_the_window_asks_checks_and_logs_the_participant_fields(x_display, tmp_path):
     run = Run(x_display, tmp_path, "--info", "finger=index")
     try:
         # The form's handlers are in place before its first frame, which follows this line:
@@ -241,7 +241,7 @@ def test_the_window_asks_checks_and_logs_the_participant_fields(x_display, tmp_p
     }  # fmt: skip
 
 
-def test_escape_in_the_form_stops_before_anything_is_logged(x_display, tmp_path):  # noqa: F811
+def test_escape_in_the_form_stops_before_anything_is_logged(x_display, tmp_path):
     run = Run(x_display, tmp_path)
     try:
         run.wait_for("asked in the participant window")
