@@ -190,15 +190,21 @@ def run_demo(
     Raises
     ------
     MaskingLabError
-        ``settings.out`` already holds a demo's logs and ``force`` is off.
+        ``settings.out`` already holds a demo's logs and ``force`` is off, or the analysis
+        settings are refused (an ``AnalysisError``, e.g. ``n_boot`` below 100), before any
+        session runs.
 
     Examples
     --------
     >>> run_demo(DemoSettings(out=Path("demo_out"), participants=2))  # doctest: +SKIP
     0
     """
+    from masking_lab.analysis.settings import AnalysisSettings
+
     out_stream = stream or sys.stdout
     err = sys.stderr if stream is None else stream
+    # Checked before any session runs or an earlier demo is cleared (e.g. too few replicates).
+    analysis_settings = AnalysisSettings(seed=settings.seed, n_boot=settings.n_boot)
     out = Path(settings.out)
     if out.exists() and not out.is_dir():
         raise MaskingLabError(f"--out {out}: a file, not a folder; name a folder for the demo")
@@ -225,13 +231,8 @@ def run_demo(
 
     say("analysing the logs ...")
     from masking_lab.analysis.batch import run_analyze
-    from masking_lab.analysis.settings import AnalysisSettings
 
-    summary = run_analyze(
-        out / "data",
-        out / "analysis",
-        AnalysisSettings(seed=settings.seed, n_boot=settings.n_boot),
-    )
+    summary = run_analyze(out / "data", out / "analysis", analysis_settings)
     t_analyse = time.perf_counter() - t_start - t_collect
 
     say("rendering the bump-with-rough-texture scene ...")

@@ -76,3 +76,17 @@ def test_force_overwrites_the_demo_in_out_and_nothing_else(first_demo, tmp_path)
     assert len(new) == 6 and not old & {_seed(p) for p in new}
     assert (out / "notes.txt").read_text() == "keep me\n"
     assert (out / "analysis" / "report.html").is_file()
+
+
+def test_settings_the_analysis_refuses_stop_the_demo_before_anything_runs(first_demo, tmp_path):
+    # Too few bootstrap replicates used to be refused only after every session had run, and
+    # with --force after the earlier demo had been cleared.
+    out = tmp_path / "kept"
+    shutil.copytree(first_demo, out)
+    before = {p: p.read_bytes() for p in _logs(out)}
+    refused = _demo(tmp_path, "--out", str(out), "--force", "--n-boot", "20")
+    assert refused.returncode == 2, refused.stderr[-2000:]
+    assert "at least 100 bootstrap replicates" in refused.stderr
+    assert "Traceback" not in refused.stderr and "session" not in refused.stderr.lower()
+    assert {p: p.read_bytes() for p in _logs(out)} == before
+    assert (out / "analysis" / "report.html").is_file()
