@@ -82,6 +82,18 @@ def test_every_participant_gets_a_ramp_posterior_and_the_group_gets_both_estimat
     assert {f["estimate"] for f in params["functions"]} == {"random_effects"}
 
 
+def test_functional_sets_say_in_thresholds_csv_where_their_result_is(study):
+    # A functional set names no single masker level; it used to be "invalid: set_start
+    # unusable". Each is listed once, with its masker and the file that holds its ramp.
+    _, out = study
+    rows = [r for r in _rows(out / "thresholds.csv") if r["experiment"] == "experiment1_functional"]
+    assert len(rows) == 3 * N_PARTICIPANTS
+    for r in rows:
+        assert r["status"] == "no_threshold", r
+        assert "ramp_posteriors.csv" in r["note"] and r["masker"] in ("MV120", "MV180", "MV270")
+        assert r["masker_level_db_sl"] == "" and r["al_db_v"] == ""
+
+
 def test_the_intervals_hold_the_truth_about_as_often_as_they_promise(study):
     data, out = study
     truth = _true_ramps(data)

@@ -88,3 +88,23 @@ def procedure_estimate(
         note = f"procedure kind {kind.name!r} is estimated from its reversals, not here"
         return ProcedureEstimate(None, None, None, None, method, "invalid", note)
     return ProcedureEstimate(*kind.estimate_log(procedure, levels_db, correct, estimator, lapse))
+
+
+def places_masker(procedure: Any) -> bool:
+    """Whether a logged ``set_start.procedure`` chooses the masker level trial by trial.
+
+    Such a set (``functional_ramp``) has no single masker level, so its ``set_start`` names none.
+
+    Examples
+    --------
+    >>> places_masker({"kind": "functional_ramp"}), places_masker({"kind": "quest_plus"})
+    (True, False)
+    >>> places_masker(None), places_masker({"kind": "no such kind"})
+    (False, False)
+    """
+    if not isinstance(procedure, Mapping):
+        return False
+    try:
+        return kind_named(procedure.get("kind")).places_masker
+    except ProcedureError:
+        return False

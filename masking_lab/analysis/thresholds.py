@@ -33,7 +33,7 @@ from typing import Any
 import pandas as pd
 from msgspec import UNSET
 
-from masking_lab.analysis.procedure_estimates import procedure_estimate
+from masking_lab.analysis.procedure_estimates import places_masker, procedure_estimate
 from masking_lab.analysis.psychometric import fit_pf
 from masking_lab.core.errors import AnalysisError, LevelError
 from masking_lab.core.psychometric import GUESS_3IFC
@@ -315,10 +315,14 @@ def session_rows(log: SessionLog, log_name: str, settings: EstimatorSettings) ->
             masker = start.get("masker")
             masker = _stimulus(masker).name if masker else None
             level = start.get("masker_level_db_sl")
+            # A procedure that places the masker trial by trial logs no level for the set.
+            one_level = masker is not None and not (
+                level is None and places_masker(start.get("procedure"))
+            )
             row |= {
                 "target": target,
                 "masker": masker,
-                "masker_level_db_sl": None if masker is None else _finite(level, "masker level"),
+                "masker_level_db_sl": _finite(level, "masker level") if one_level else None,
             }
         except (KeyError, TypeError, ValueError, OverflowError) as exc:
             rows.append(row | {"status": "invalid", "note": f"set_start unusable ({exc})"})
