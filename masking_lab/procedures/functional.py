@@ -44,7 +44,7 @@ from masking_lab.procedures.quest_plus_model import grid_db
 
 Status = Literal["running", "completed", "trial_cap", "ceiling"]
 
-__all__ = ["FunctionalRamp", "FunctionalRampSettings", "RampTables", "ramp_tables"]
+__all__ = ["FunctionalRamp", "FunctionalRampSettings", "RampTables", "ramp_tables", "stop_status"]
 
 
 @dataclass(frozen=True)
@@ -407,6 +407,29 @@ def ramp_moments(t: RampTables, posterior: NDArray[np.float64]) -> dict[str, flo
     }
 
 
+def stop_status(settings: FunctionalRampSettings, n: int, m: dict[str, float]) -> Status:
+    """A track's stop rule after ``n`` trials with posterior moments ``m`` (SDs in dB, dB/dB).
+
+    Examples
+    --------
+    >>> stop_status(FunctionalRampSettings(max_trials=3), 3, {})
+    'completed'
+    >>> stop_status(FunctionalRampSettings(max_trials=3, target_sd_slope=0.1), 3, {"slope_sd": 0.2})
+    'trial_cap'
+    """
+    s = settings
+    precise = s.target_sd_intercept_db is not None or s.target_sd_slope is not None
+    if precise and n >= s.min_trials:
+        sd_a, sd_b = s.target_sd_intercept_db, s.target_sd_slope
+        ok_a = sd_a is None or m["intercept_sd_db"] <= sd_a
+        ok_b = sd_b is None or m["slope_sd"] <= sd_b
+        if ok_a and ok_b:
+            return "completed"
+    if n >= s.max_trials:
+        return "trial_cap" if precise else "completed"
+    return "running"
+
+
 @dataclass(frozen=True, eq=False)
 class FunctionalRamp:
     """Immutable state of one functional (ramp) track.
@@ -495,7 +518,7 @@ class FunctionalRamp:
         post /= post.sum()
         post.flags.writeable = False
         n = self.n_trials + 1
-        status = self._stop_status(n, ramp_moments(t, post))
+        status = stop_status(self.settings, n, ramp_moments(t, post))
         nxt = self.stimulus
         if status == "running":
             nxt = int(np.argmin(expected_entropy(t, post)))
@@ -508,19 +531,6 @@ class FunctionalRamp:
             (*self.responses, correct),
             status,
         )
-
-    def _stop_status(self, n: int, m: dict[str, float]) -> Status:
-        s = self.settings
-        precise = s.target_sd_intercept_db is not None or s.target_sd_slope is not None
-        if precise and n >= s.min_trials:
-            sd_a, sd_b = s.target_sd_intercept_db, s.target_sd_slope
-            ok_a = sd_a is None or m["intercept_sd_db"] <= sd_a
-            ok_b = sd_b is None or m["slope_sd"] <= sd_b
-            if ok_a and ok_b:
-                return "completed"
-        if n >= s.max_trials:
-            return "trial_cap" if precise else "completed"
-        return "running"
 
     def estimate(self) -> ThresholdEstimate:
         """No single threshold: the ramp is in :meth:`moments`; ``method`` says so.

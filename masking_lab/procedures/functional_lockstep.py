@@ -29,6 +29,7 @@ from masking_lab.procedures.functional import (
     ramp_moments,
     ramp_tables,
     stimulus_likelihood,
+    stop_status,
 )
 
 __all__ = ["LockstepTracks", "expected_entropy_batch", "run_lockstep"]
@@ -79,27 +80,6 @@ def expected_entropy_batch(t: RampTables, posteriors: NDArray[np.float64]) -> ND
                 pk = m.sum(axis=0, dtype=np.float64)
                 row += pk * np.log(np.maximum(pk, 1e-300)) - _xlogx_sum(m)
     return out
-
-
-def stop_status(settings: FunctionalRampSettings, n: int, m: dict[str, float]) -> str:
-    """The scalar track's stop rule after ``n`` trials with posterior moments ``m``.
-
-    Examples
-    --------
-    >>> stop_status(FunctionalRampSettings(max_trials=3), 3, {})
-    'completed'
-    """
-    s = settings
-    precise = s.target_sd_intercept_db is not None or s.target_sd_slope is not None
-    if precise and n >= s.min_trials:
-        sd_a, sd_b = s.target_sd_intercept_db, s.target_sd_slope
-        ok_a = sd_a is None or m["intercept_sd_db"] <= sd_a
-        ok_b = sd_b is None or m["slope_sd"] <= sd_b
-        if ok_a and ok_b:
-            return "completed"
-    if n >= s.max_trials:
-        return "trial_cap" if precise else "completed"
-    return "running"
 
 
 @dataclass(frozen=True)
