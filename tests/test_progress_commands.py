@@ -98,3 +98,18 @@ def test_demo_draws_one_bar_over_sessions_analysis_and_rendering(tmp_path, capsy
     # The session lines live in the bar, not on lines of their own.
     assert not any(line.startswith("  [ 1/6]") for line in err.splitlines())
     assert captured.out.lstrip().startswith("masking-lab demo: done")  # the summary, unchanged
+
+
+def test_an_error_after_a_bar_has_started_prints_on_a_line_of_its_own(params, tmp_path):
+    # render's bar is drawn before the scene is read; a bad scene used to put the error message
+    # on the bar's line, after its text.
+    bad = tmp_path / "missing.yaml"
+    argv = [sys.executable, "-m", "masking_lab.commands.cli", "render", str(bad)]
+    argv += ["--params", str(params), "--out", str(tmp_path / "r"), "--no-figure"]
+    code, _, tty = on_a_terminal(argv)
+    assert code == 2, tty
+    assert "render:" in tty  # the bar was drawn
+    lines = tty.replace("\r\n", "\n").split("\n")
+    error = [line for line in lines if "error:" in line]
+    assert len(error) == 1 and error[0].startswith("masking-lab render: error:"), tty
+    assert str(bad) in error[0]

@@ -12,6 +12,7 @@ import importlib
 import sys
 
 from masking_lab import __version__
+from masking_lab.commands.progress_bars import close_open_bars
 from masking_lab.core.errors import MaskingLabError
 
 # Order is the order shown by --help.
@@ -56,9 +57,11 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return int(args.handler(args) or 0)
     except MaskingLabError as exc:
+        close_open_bars()  # the message on a line of its own, not after a bar's text
         print(f"masking-lab {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
+        close_open_bars()
         print(f"masking-lab {args.command}: interrupted", file=sys.stderr)
         return 130
 

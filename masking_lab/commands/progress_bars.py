@@ -9,10 +9,31 @@ Shown on a terminal, quiet otherwise unless asked (``--progress``); ``--no-progr
 from __future__ import annotations
 
 import sys
+import weakref
 from collections.abc import Callable
 from typing import Any, TextIO
 
-__all__ = ["add_progress_options", "count_bar", "progress_wanted", "step_bar"]
+__all__ = ["add_progress_options", "close_open_bars", "count_bar", "progress_wanted", "step_bar"]
+
+# The bars drawn and not yet closed, so an error message can first end their line.
+_OPEN: weakref.WeakSet[Any] = weakref.WeakSet()
+
+
+def close_open_bars() -> None:
+    r"""Close every bar still drawn: what is printed next starts on a line of its own.
+
+    Examples
+    --------
+    >>> import io
+    >>> buf = io.StringIO()
+    >>> step_bar("plan", True, buf)("schedule 1/3")
+    >>> close_open_bars()
+    >>> buf.getvalue().endswith("\n")
+    True
+    """
+    for bar in list(_OPEN):
+        bar.close()
+        _OPEN.discard(bar)
 
 
 def add_progress_options(p: Any) -> None:
@@ -76,6 +97,7 @@ def count_bar(
                 total=total, desc=label, unit="", file=stream or sys.stderr, leave=True,
                 dynamic_ncols=True, mininterval=0.2,
             )  # fmt: skip
+            _OPEN.add(bar)
         bar.update(done - bar.n)
         if done >= total:
             bar.close()
@@ -115,6 +137,7 @@ def step_bar(
     from tqdm import tqdm
 
     bar = tqdm(total=total, desc=label, unit=" steps", file=out, dynamic_ncols=True, leave=True)
+    _OPEN.add(bar)
 
     def say(msg: str) -> None:
         bar.update(1)
