@@ -224,19 +224,23 @@ _SCHEMA: dict[str, Any] = {
     "masker_max_db_sl": _num(
         -50, 100, description="functional_ramp: highest masker level, dB SL (the rig lowers it)."
     ),
-    "masker_step_db": {**_POS, "description": "functional_ramp: masker level grid step, dB."},
+    "masker_step_db": {
+        **_POS,
+        "maximum": 150,
+        "description": "functional_ramp: masker level grid step, dB.",
+    },
     "intercept_min_db": _num(-100, 100),
     "intercept_max_db": _num(-100, 100),
-    "intercept_step_db": _POS,
+    "intercept_step_db": {**_POS, "maximum": 200},
     "slope_min": _num(-5, 5),
     "slope_max": _num(-5, 5),
-    "slope_step": _POS,
+    "slope_step": {**_POS, "maximum": 10},
     "unmasked_offsets_db": {
         "oneOf": [_num(-20, 20), {"type": "array", "minItems": 1, "items": _num(-20, 20)}],
         "description": "functional_ramp: nuisance grid of the calibrated unmasked AL's error, dB.",
     },
-    "target_sd_intercept_db": {"type": ["number", "null"], "exclusiveMinimum": 0},
-    "target_sd_slope": {"type": ["number", "null"], "exclusiveMinimum": 0},
+    "target_sd_intercept_db": {"type": ["number", "null"], "exclusiveMinimum": 0, "maximum": 100},
+    "target_sd_slope": {"type": ["number", "null"], "exclusiveMinimum": 0, "maximum": 10},
 }
 
 KIND = ProcedureKind(

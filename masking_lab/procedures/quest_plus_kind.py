@@ -270,6 +270,9 @@ def _examples() -> list[QuestPlusSettings]:
 
 
 _NUM_OR_NULL = ["number", "null"]
+# Upper bounds keep what validate accepts within what a session can compute (issue 21).
+_SCALE = {"type": "number", "exclusiveMinimum": 0, "maximum": 100}
+_LAPSE = {"type": "number", "minimum": 0, "exclusiveMaximum": 0.5}
 _SCHEMA: dict[str, Any] = {
     "min_level_db": {
         "type": "number",
@@ -286,23 +289,24 @@ _SCHEMA: dict[str, Any] = {
     "level_step_db": {
         "type": "number",
         "exclusiveMinimum": 0,
+        "maximum": 100,
         "description": "Stimulus grid spacing, dB.",
     },
     "threshold_min_db": {"type": _NUM_OR_NULL, "minimum": -200, "maximum": 200},
     "threshold_max_db": {"type": _NUM_OR_NULL, "minimum": -200, "maximum": 200},
-    "threshold_step_db": {"type": _NUM_OR_NULL, "exclusiveMinimum": 0},
+    "threshold_step_db": {"type": _NUM_OR_NULL, "exclusiveMinimum": 0, "maximum": 100},
     "scales_db": {
         "oneOf": [
-            {"type": "number", "exclusiveMinimum": 0},
-            {"type": "array", "minItems": 1, "items": {"type": "number", "exclusiveMinimum": 0}},
+            _SCALE,
+            {"type": "array", "minItems": 1, "items": _SCALE},
         ],
         "description": "Logistic scale(s), dB; a list makes the slope a nuisance parameter "
         "(psi-marginal).",
     },
     "lapses": {
         "oneOf": [
-            {"type": "number", "minimum": 0},
-            {"type": "array", "minItems": 1, "items": {"type": "number", "minimum": 0}},
+            _LAPSE,
+            {"type": "array", "minItems": 1, "items": _LAPSE},
         ]
     },
     "n_intervals": {
@@ -313,8 +317,8 @@ _SCHEMA: dict[str, Any] = {
     },
     "p_at_threshold": {"type": "number", "exclusiveMinimum": 0, "exclusiveMaximum": 1},
     "prior": {"enum": ["flat", "normal"]},
-    "prior_mean_db": {"type": _NUM_OR_NULL},
-    "prior_sd_db": {"type": _NUM_OR_NULL, "exclusiveMinimum": 0},
+    "prior_mean_db": {"type": _NUM_OR_NULL, "minimum": -200, "maximum": 200},
+    "prior_sd_db": {"type": _NUM_OR_NULL, "exclusiveMinimum": 0, "maximum": 400},
     "entropy_over": {"enum": ["threshold", "all"]},
     "max_trials": {
         "type": ["integer", "null"],
@@ -326,10 +330,11 @@ _SCHEMA: dict[str, Any] = {
     "target_sd_db": {
         "type": _NUM_OR_NULL,
         "exclusiveMinimum": 0,
+        "maximum": 100,
         "description": "Stop when the posterior SD of the threshold is at most this, dB.",
     },
-    "min_trials": {"type": "integer", "minimum": 0},
-    "bound_margin_db": {"type": "number", "minimum": 0},
+    "min_trials": {"type": "integer", "minimum": 0, "maximum": 5000},
+    "bound_margin_db": {"type": "number", "minimum": 0, "maximum": 100},
 }
 
 KIND = ProcedureKind(
