@@ -2,8 +2,8 @@
 
 Keys and a touching finger (pointer moved with the button held) are injected with ``xdotool``,
 through the X server, as in tests/test_psychopy_window.py, whose participant script is reused, on
-the session's display (``x_display``, tests/xdisplay.py). The windows open in a child process,
-which also checks the user test's factory from a fresh interpreter.
+the session's display (``x_display``, tests/xdisplay.py). Both scenarios' windows open in one
+child process, which prints their results as JSON for the tests below.
 """
 
 from __future__ import annotations
