@@ -220,7 +220,8 @@ def _track_png(job: TrackJob) -> bytes:
                 ax.axhline(p.al, color="#2e933c", linewidth=1.0, label="AL")
             ax.relim()
             ax.autoscale_view()
-            ax.set_title(f"{p.set_id} ({p.status})", fontsize=10)
+            # An explicit y skips matplotlib's title placement pass (a bounding-box walk).
+            ax.set_title(f"{p.set_id} ({p.status})", fontsize=10, y=1.0)
             ax.set_xlabel("trial", fontsize=9.5)
             ax.set_ylabel(p.unit, fontsize=9.5)
             ax.tick_params(labelsize=9)
