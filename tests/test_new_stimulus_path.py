@@ -18,6 +18,9 @@ from masking_lab.formats.protocol import load_protocol
 
 PARTICIPANTS = ("S01", "S02", "S03")
 NEW = "MV120am40"
+# The test reads masking_params.json, thresholds.csv and report.txt: no figures, no trial-level
+# tables (trials.csv, psychometric.csv and their bootstraps).
+ANALYZE = ["--n-boot", "200", "--quiet", "--figures", "none", "--no-trial-tables", "--pf-boot", "0"]
 
 
 def _run(protocol: Path, participant: str, lab: dict, seed: int, *extra: str) -> int:
@@ -52,7 +55,7 @@ def test_new_stimulus_path_end_to_end(lab, tmp_path, capsys):
         for j, name in enumerate(("baseline", "experiment1", "experiment2")):
             assert _run(REPO / "protocols" / f"{name}.yaml", p, lab, 100 * k + j) == 0
     first = tmp_path / "analysis1"
-    assert main(["analyze", str(data), "--out", str(first), "--n-boot", "200", "--quiet"]) == 0
+    assert main(["analyze", str(data), "--out", str(first), *ANALYZE]) == 0
     assert (NEW, "EV270") not in _functions(first / "masking_params.json")
 
     # The user test needs the coarse texture: first its baseline ...
@@ -81,7 +84,7 @@ def test_new_stimulus_path_end_to_end(lab, tmp_path, capsys):
 
     # The whole data folder analyses: experiments I and II and both new directions.
     second = tmp_path / "analysis2"
-    argv = ["analyze", str(data), "--out", str(second), "--n-boot", "200", "--quiet"]
+    argv = ["analyze", str(data), "--out", str(second), *ANALYZE]
     assert main(argv) == 0, capsys.readouterr().err
     functions = _functions(second / "masking_params.json")
     for pair in ((NEW, "EV270"), ("EV270", NEW)):

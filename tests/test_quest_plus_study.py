@@ -35,7 +35,10 @@ def study(tmp_path_factory):
             args = ["run", str(protocol), "--participant", pid, "--device", "emulator"]
             args += ["--responder", "sim", "--data", str(data), "--seed", str(seed)]
             assert main([*args, "--no-progress"]) == 0
-    assert main(["analyze", str(data), "--out", str(out), "--quiet"]) == 0
+    # The tests read the tables and masking_params.json: no figures, trial tables or
+    # psychometric bootstraps, and the ramp bootstrap's intervals are not looked at.
+    quick = ["--figures", "none", "--no-trial-tables", "--pf-boot", "0", "--n-boot", "200"]
+    assert main(["analyze", str(data), "--out", str(out), "--quiet", *quick]) == 0
     return data, out
 
 

@@ -23,6 +23,9 @@ from masking_lab.rendering.solver import MutualMasking, PairProblem
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENES = sorted((ROOT / "protocols" / "scenes").glob("*.yaml"))
+# Enough parameter draws for the interval columns to be computed and written; their widths are
+# tested in test_uncertainty.py, not here (the default, 200, was most of a render's time).
+DRAWS = ["--uncertainty-draws", "20"]
 
 # Ground-truth ramps (paper Table 2 fits; coarse assumed like MV120): (a, b) for MV by EV and
 # (c, d) for EV by MV.
@@ -56,7 +59,7 @@ def params(tmp_path_factory):
 @pytest.mark.parametrize("scene_file", SCENES, ids=lambda p: p.stem)
 def test_render_writes_outputs_for_every_shipped_scene(scene_file, params, tmp_path, capsys):
     out = tmp_path / "out"
-    assert main(["render", str(scene_file), "--params", params, "--out", str(out)]) == 0
+    assert main(["render", str(scene_file), "--params", params, "--out", str(out), *DRAWS]) == 0
     assert "wrote" in capsys.readouterr().out
     table = pd.read_csv(out / "points.csv")
     # The fixed columns, then the uncertainty intervals and flags (test_uncertainty.py).
@@ -85,7 +88,7 @@ def test_render_writes_outputs_for_every_shipped_scene(scene_file, params, tmp_p
 def test_bump_rough_needs_more_than_the_reference_rig_rates(params, tmp_path, capsys):
     out = tmp_path / "br"
     scene = str(ROOT / "protocols" / "scenes" / "bump_rough.yaml")
-    args = ["render", scene, "--params", params, "--out", str(out), "--no-figure"]
+    args = ["render", scene, "--params", params, "--out", str(out), "--no-figure", *DRAWS]
     assert main([*args, "--gamut-map", "none"]) == 0
     text = capsys.readouterr().out
     summary = json.loads((out / "summary.json").read_text())
@@ -111,7 +114,7 @@ def test_bump_rough_needs_more_than_the_reference_rig_rates(params, tmp_path, ca
     assert mv["compensated"]["points_not_felt"] == 0
     assert summary["gamut_mapping"]["as_played"]["share_within_ratings"] < 0.2
     out2 = tmp_path / "br2"
-    args = ["render", scene, "--params", params, "--out", str(out2), "--no-figure"]
+    args = ["render", scene, "--params", params, "--out", str(out2), "--no-figure", *DRAWS]
     assert main([*args, "--max-mv-db-sl", "100", "--max-ev-db-sl", "100"]) == 0
     capsys.readouterr()
     assert (
@@ -351,6 +354,7 @@ def test_gamut_mapping_keeps_every_input_within_the_ratings(params, tmp_path, ca
     out = tmp_path / strategy
     scene = str(ROOT / "protocols" / "scenes" / "bump_rough.yaml")
     args = ["render", scene, "--params", params, "--out", str(out), "--gamut-map", strategy]
+    args += DRAWS
     assert main(args) == 0
     text = capsys.readouterr().out
     assert f"gamut mapping {strategy}" in text

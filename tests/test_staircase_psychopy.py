@@ -50,6 +50,7 @@ def _both(steps, n_up, n_down, n_reversals, initial, lo, hi, responses) -> tuple
         applyInitialRule=initial,
         minVal=lo,
         maxVal=hi,
+        originPath=-1,  # no copy of the calling script (a walk up the whole stack)
     )
     it = iter(responses)
     for level in theirs:
@@ -101,6 +102,7 @@ def test_paper_settings_over_simulated_observers():
             nTrials=0,
             stepType="lin",
             applyInitialRule=False,
+            originPath=-1,
         )
         for level in theirs:
             assert level == pytest.approx(ours.level_db)
