@@ -12,7 +12,9 @@ import shutil
 from pathlib import Path
 
 import pytest
+from fit_memo import once_per_input
 
+from masking_lab.analysis import thresholds
 from masking_lab.analysis.batch import run_analyze
 from masking_lab.analysis.settings import AnalysisSettings
 from masking_lab.commands.cli import main
@@ -27,6 +29,13 @@ def study(tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("hostile")
     simulate_study(root / "data", n_participants=3, seed=5, baseline_start_above_db=10.0)
     return root / "data"
+
+
+@pytest.fixture(scope="module")
+def ml_fits() -> dict:
+    """The ML fits of the study's sets, shared by the non-finite cases: each case refuses the
+    same set before any estimator sees it, and hands the fit the other sets' unchanged trials."""
+    return {}
 
 
 @pytest.fixture(scope="module")
@@ -208,7 +217,13 @@ def test_two_complete_sessions_of_one_protocol_are_reported_and_the_latest_count
 
 
 @pytest.mark.parametrize("literal", ["NaN", "Infinity", "-1e999"])
-def test_a_non_finite_level_refuses_its_set_alike_for_every_estimator(study, tmp_path, literal):
+def test_a_non_finite_level_refuses_its_set_alike_for_every_estimator(
+    study, tmp_path, literal, ml_fits, monkeypatch
+):
+    monkeypatch.setattr(
+        thresholds, "ml_threshold", once_per_input(thresholds.ml_threshold, ml_fits)
+    )
+    monkeypatch.setattr(thresholds, "fit_pf", once_per_input(thresholds.fit_pf, ml_fits))
     data = _copy(study, tmp_path)
     log = data / "P01" / "P01_experiment1.jsonl"
     i = _trial_line(log)

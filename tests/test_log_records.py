@@ -15,6 +15,7 @@ from pathlib import Path
 import msgspec
 import numpy as np
 import pytest
+from fit_memo import once_per_input
 from runner_support import write_calibration, write_protocol
 
 from masking_lab.analysis import log_reading, thresholds
@@ -99,28 +100,11 @@ def test_synthetic_logs_are_the_writer_s_encoding_plus_the_counter(study):
             assert line == encode_record(rec)[:-1] + f',"seq":{n}}}'
 
 
-def _once_per_input(fit):
-    """``fit`` (a pure function of arrays and settings) run once per distinct input.
-
-    The ML estimate of a set is a deterministic function of the levels and answers a view
-    hands it: when both views hand the same arrays the second fit would repeat the first, and
-    when they differ (dtype, shape or any value) each still gets its own fit.
-    """
-    done: dict = {}
-
-    def once(*arrays, **settings):
-        key = tuple((a.dtype.str, a.shape, a.tobytes()) for a in map(np.asarray, arrays))
-        key += tuple(sorted(settings.items()))
-        if key not in done:
-            done[key] = fit(*arrays, **settings)
-        return done[key]
-
-    return once
-
-
 def test_the_typed_view_gives_the_general_reader_s_rows_and_checks(study, monkeypatch):
-    monkeypatch.setattr(thresholds, "ml_threshold", _once_per_input(thresholds.ml_threshold))
-    monkeypatch.setattr(thresholds, "fit_pf", _once_per_input(thresholds.fit_pf))
+    # Both views handing the ML estimator the same arrays share one fit; arrays that differ
+    # between them get a fit each, and the rows then differ.
+    monkeypatch.setattr(thresholds, "ml_threshold", once_per_input(thresholds.ml_threshold))
+    monkeypatch.setattr(thresholds, "fit_pf", once_per_input(thresholds.fit_pf))
     for path in sorted(study.rglob("*.jsonl")):
         raw = path.read_bytes()
         fast, slow = fast_parse(raw, path), parse_log(raw, path)
