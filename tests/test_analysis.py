@@ -41,6 +41,11 @@ OUTPUTS = [
 ]
 
 
+# psychometric.csv (its bootstrap) and trials.csv are in no test's assertions here: runs that
+# do not exist for them skip them (test_lab_outputs and test_analyze_single_read cover them).
+NO_TRIAL_TABLES = ("--pf-boot", "0", "--no-trial-tables")
+
+
 @pytest.fixture(scope="module")
 def study(tmp_path_factory):
     """Ten simulated participants: baseline, experiment I and experiment II logs."""
@@ -53,7 +58,7 @@ def study(tmp_path_factory):
 def analyzed(study, tmp_path_factory):
     out = tmp_path_factory.mktemp("out")
     argv = ["analyze", str(study), "--out", str(out), "--figures", "summary", "--quiet"]
-    assert main([*argv, "--ci-level", "0.99"]) == 0
+    assert main([*argv, "--ci-level", "0.99", *NO_TRIAL_TABLES]) == 0
     return out
 
 
@@ -157,7 +162,7 @@ def test_same_input_same_bytes(study, analyzed, tmp_path):
     shutil.copytree(study, moved)
     out = tmp_path / "again"
     argv = ["analyze", str(moved), "--out", str(out), "--figures", "summary", "--quiet"]
-    assert main([*argv, "--ci-level", "0.99"]) == 0
+    assert main([*argv, "--ci-level", "0.99", *NO_TRIAL_TABLES]) == 0
     for name in OUTPUTS:
         if name != "report.txt":
             assert (out / name).read_bytes() == (analyzed / name).read_bytes(), name
@@ -185,6 +190,7 @@ def test_created_utc_is_derived_from_the_data_or_a_setting(analyzed, study, tmp_
                 "--quiet",
                 "--n-boot",
                 "200",
+                *NO_TRIAL_TABLES,
             ]
         )
         == 0
@@ -205,7 +211,7 @@ def test_created_utc_is_derived_from_the_data_or_a_setting(analyzed, study, tmp_
         "--n-boot",
         "200",
     ]
-    assert main([*argv, "--created-utc", "2025-01-02T03:04:05Z"]) == 0
+    assert main([*argv, "--created-utc", "2025-01-02T03:04:05Z", *NO_TRIAL_TABLES]) == 0
     assert (
         json.loads((out / "masking_params.json").read_text())["created_utc"]
         == "2025-01-02T03:04:05Z"
@@ -237,9 +243,9 @@ def test_damaged_logs_are_reported_and_skipped_not_fatal(study, tmp_path, capsys
     (data / "empty.jsonl").write_text("")
     (data / "notes.jsonl").write_text('{"record": "trial"}\n')
     out = tmp_path / "out"
-    rc = main(
-        ["analyze", str(data), "--out", str(out), "--figures", "none", "--quiet", "--n-boot", "200"]
-    )
+    argv = ["analyze", str(data), "--out", str(out), "--figures", "none", "--quiet"]
+    # The trial tables stay: their second read of the damaged logs must not break either.
+    rc = main([*argv, "--n-boot", "200", "--pf-boot", "0"])
     assert rc == 0
     problems = _read_csv(out / "problems.csv")
     by_log = {(p["log"], p["action"]) for p in problems}
@@ -261,7 +267,8 @@ def test_damaged_logs_are_reported_and_skipped_not_fatal(study, tmp_path, capsys
 def test_one_participant_fits_but_says_which_tests_could_not_run(study, tmp_path, capsys):
     data = _copy_study(study, tmp_path / "data", participants={"P01"})
     out = tmp_path / "out"
-    assert main(["analyze", str(data), "--out", str(out), "--figures", "none", "--quiet"]) == 0
+    argv = ["analyze", str(data), "--out", str(out), "--figures", "none", "--quiet"]
+    assert main([*argv, *NO_TRIAL_TABLES]) == 0
     report = (out / "report.txt").read_text()
     assert "at least two participants" in report
     assert "one participant: no bootstrap" in report
@@ -302,6 +309,7 @@ def test_ceilings_are_excluded_and_a_missing_cell_is_named(study, tmp_path):
                 "--quiet",
                 "--n-boot",
                 "200",
+                *NO_TRIAL_TABLES,
             ]
         )
         == 0
@@ -332,7 +340,7 @@ def test_participant_without_baseline(study, tmp_path):
         "--n-boot",
         "200",
     ]
-    assert main([*argv, "--unmasked-al", "baseline"]) == 0
+    assert main([*argv, "--unmasked-al", "baseline", *NO_TRIAL_TABLES]) == 0
     rows = _read_csv(out / "thresholds.csv")
     p2 = [r for r in rows if r["participant"] == "P02"]
     assert p2 and all(r["status"] == "no_baseline" for r in p2)
@@ -353,6 +361,7 @@ def test_participant_without_baseline(study, tmp_path):
                 "--quiet",
                 "--n-boot",
                 "200",
+                *NO_TRIAL_TABLES,
             ]
         )
         == 0
@@ -369,7 +378,7 @@ def test_track_figures_per_session_and_ml_estimator(study, tmp_path):
     )
     out = tmp_path / "out"
     argv = ["analyze", str(data), "--out", str(out), "--quiet", "--n-boot", "200"]
-    assert main([*argv, "--estimator", "ml", "--figures", "all"]) == 0
+    assert main([*argv, "--estimator", "ml", "--figures", "all", "--pf-boot", "0"]) == 0
     tracks = sorted(p.name for p in (out / "figures" / "tracks").glob("*.png"))
     assert [t.split("_")[:2] for t in tracks] == [["P01", "baseline"], ["P01", "experiment1"]]
     assert (out / "figures" / "tracks" / tracks[0]).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
@@ -377,7 +386,7 @@ def test_track_figures_per_session_and_ml_estimator(study, tmp_path):
     assert set(ml["estimator"]) == {"ml"}
     out_rev = tmp_path / "rev"
     argv = ["analyze", str(data), "--out", str(out_rev), "--quiet", "--figures", "none"]
-    assert main([*argv, "--n-boot", "200"]) == 0
+    assert main([*argv, "--n-boot", "200", *NO_TRIAL_TABLES]) == 0
     rev = pd.read_csv(out_rev / "thresholds.csv")
     both = ml.merge(rev, on=["participant", "experiment", "set_id"], suffixes=("_ml", "_rev"))
     done = both[(both["status_ml"] == "completed") & (both["status_rev"] == "completed")]
@@ -393,7 +402,7 @@ def test_progress_display(study, tmp_path):
     run_analyze(
         data,
         tmp_path / "out",
-        AnalysisSettings(figures="none", n_boot=200),
+        AnalysisSettings(figures="none", n_boot=200, pf_boot=0, trial_tables=False),
         progress=lambda i, n: calls.append((i, n)),
     )
     assert calls == [(i, 6) for i in range(1, 7)]
@@ -406,7 +415,8 @@ def test_progress_display(study, tmp_path):
 
 def test_no_progress_when_not_a_terminal(study, tmp_path, capsys):
     data = _copy_study(study, tmp_path / "data", participants={"P01", "P02"})
-    assert main(["analyze", str(data), "--out", str(tmp_path / "o"), "--figures", "none"]) == 0
+    argv = ["analyze", str(data), "--out", str(tmp_path / "o"), "--figures", "none"]
+    assert main([*argv, "--n-boot", "200", *NO_TRIAL_TABLES]) == 0
     assert "logs read" not in capsys.readouterr().err
 
 
@@ -470,10 +480,8 @@ def test_logs_of_the_real_runner_are_analysed(tmp_path, capsys):
 
 
 def test_user_test_logs_are_skipped_with_a_pointer(study, tmp_path):
-    import shutil
-
-    data = tmp_path / "data"
-    shutil.copytree(study, data)
+    # Two participants suffice: the user-test log is skipped whatever else is in the folder.
+    data = _copy_study(study, tmp_path / "data", participants={"P01", "P02"})
     header = {
         "record": "header",
         "kind": "usertest",
@@ -482,7 +490,8 @@ def test_user_test_logs_are_skipped_with_a_pointer(study, tmp_path):
     }
     (data / "usertest-S01.jsonl").write_text(json.dumps(header) + "\n")
     out = tmp_path / "out"
-    assert main(["analyze", str(data), "--out", str(out), "--figures", "none", "--quiet"]) == 0
+    argv = ["analyze", str(data), "--out", str(out), "--figures", "none", "--quiet"]
+    assert main([*argv, "--n-boot", "200", *NO_TRIAL_TABLES]) == 0
     problems = _read_csv(out / "problems.csv")
     skipped = [p for p in problems if p["log"] == "usertest-S01.jsonl"]
     assert skipped and "usertest-report" in skipped[0]["problem"]

@@ -68,8 +68,20 @@ def test_analyze_warns_when_baseline_and_masked_sessions_ran_on_different_rigs(t
             masked = log
 
     out = tmp_path / "out"
+    argv = [
+        sys.executable,
+        "-m",
+        "masking_lab.commands.cli",
+        "analyze",
+        str(data),
+        "--out",
+        str(out),
+    ]
+    # The warning comes from reading the headers: no figures, trial tables or psychometric
+    # bootstrap, and a short ramp bootstrap, as nothing here reads them.
+    argv += ["--figures", "none", "--no-trial-tables", "--pf-boot", "0", "--n-boot", "200"]
     res = subprocess.run(
-        [sys.executable, "-m", "masking_lab.commands.cli", "analyze", str(data), "--out", str(out)],
+        argv,
         capture_output=True,
         text=True,
         timeout=300,
