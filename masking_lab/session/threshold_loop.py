@@ -32,17 +32,12 @@ from masking_lab.formats.protocol import SetSpec, ThresholdProtocol
 from masking_lab.formats.records import jsonable
 from masking_lab.formats.session_log import SessionLogWriter, SetRecords
 from masking_lab.procedures.base import Procedure, replay
+from masking_lab.procedures.log_fields import end_fields, start_fields, trial_fields
 from masking_lab.procedures.registry import kind_of
 from masking_lab.responders.base import Responder, SetInfo, TrialPresentation
 from masking_lab.session.interleave import next_set
 from masking_lab.session.pace import session_time_left_s, track_trials_left
-from masking_lab.session.procedure_records import (
-    bound_reason,
-    end_fields,
-    settings_from_record,
-    start_fields,
-    trial_fields,
-)
+from masking_lab.session.procedure_records import settings_from_record
 
 # EXIT_* and the signal classes were public here first; the noqa lines re-export them.
 from masking_lab.session.progress import ProgressLine, format_progress
@@ -392,7 +387,8 @@ class ThresholdSession(SessionShell[SessionResult]):
         # What else the procedure reports at the end (sd_db; a ramp's posterior summary).
         record.update({k: v for k, v in ends.items() if k not in record})
         if state.status != "completed":
-            record["reason"] = bound_reason(state, UNIT_LABEL[plan.level_unit], plan.target_max_v)
+            unit = UNIT_LABEL[plan.level_unit]
+            record["reason"] = kind_of(state).no_al_reason(state, unit, plan.target_max_v)
         self._append(record)
         self.finished_trials.append(state.n_trials)
         found = kind_of(state).result_text(state, UNIT_LABEL[plan.level_unit])
