@@ -19,11 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from masking_lab.core.clock import Clock
-from masking_lab.core.errors import (
-    CalibrationError,
-    LevelError,
-    MaskingLabError,
-)
+from masking_lab.core.errors import CalibrationError, LevelError, MaskingLabError
 from masking_lab.core.seeding import draw_target_interval
 from masking_lab.core.trial import TrialPlan
 from masking_lab.device.base import Device
@@ -38,19 +34,8 @@ from masking_lab.responders.base import Responder, SetInfo, TrialPresentation
 from masking_lab.session.interleave import next_set
 from masking_lab.session.pace import session_time_left_s, track_trials_left
 from masking_lab.session.procedure_records import settings_from_record
-
-# EXIT_* and the signal classes were public here first; the noqa lines re-export them.
 from masking_lab.session.progress import ProgressLine, format_progress
-from masking_lab.session.shell import (
-    EXIT_COMPLETED,  # noqa: F401
-    EXIT_DEVICE_FAULT,  # noqa: F401
-    EXIT_INTERRUPTED,  # noqa: F401
-    SessionInterrupted,  # noqa: F401
-    SessionShell,
-    SessionSignals,  # noqa: F401
-    drop_none,
-    utc_now,
-)
+from masking_lab.session.shell import SessionShell, drop_none, utc_now
 from masking_lab.session.trials import (
     UNIT_LABEL,
     SetPlan,
