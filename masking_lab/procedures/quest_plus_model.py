@@ -29,9 +29,10 @@ class PosteriorTrack(TrackState):
     def __eq__(self, other: object) -> bool:
         if type(other) is not type(self):
             return NotImplemented
-        return all(
-            np.array_equal(a, b) if isinstance(a, np.ndarray) else a == b
-            for a, b in zip(vars(self).values(), vars(other).values(), strict=True)
+        mine, theirs = vars(self), vars(other)
+        return mine.keys() == theirs.keys() and all(
+            np.array_equal(v, theirs[k]) if isinstance(v, np.ndarray) else v == theirs[k]
+            for k, v in mine.items()
         )
 
     __hash__ = None  # type: ignore[assignment]  # it holds arrays; equality is by value
