@@ -12,18 +12,15 @@ from __future__ import annotations
 import math
 import re
 from collections.abc import Mapping, Sequence
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from masking_lab.analysis.experiment import ExperimentResult
 from masking_lab.analysis.pooling import level_sort_key
-from masking_lab.formats.fileio import write_bytes_atomic
 from masking_lab.formats.png_figure import legible, png_bytes
 
 __all__ = [
-    "experiment_figure",
     "experiment_figure_png",
     "experiment_title",
     "masking_function_png",
@@ -184,29 +181,6 @@ def experiment_figure_png(result: ExperimentResult) -> bytes:
         for g in result.fits
     ]
     return masking_function_png(title=experiment_title(result), cells=cells, fits=fits)
-
-
-def experiment_figure(path: str | Path, result: ExperimentResult) -> Path:
-    """Write :func:`experiment_figure_png` of ``result`` to ``path`` (atomically).
-
-    Parameters
-    ----------
-    path : path
-        PNG to write.
-    result : ExperimentResult
-        The experiment's results.
-
-    Returns
-    -------
-    Path
-        The file written.
-
-    Examples
-    --------
-    >>> for r in results:  # doctest: +SKIP
-    ...     experiment_figure(out / f"masking_{safe_stem(r.experiment)}.png", r)
-    """
-    return write_bytes_atomic(Path(path), experiment_figure_png(result))
 
 
 def safe_stem(name: str) -> str:

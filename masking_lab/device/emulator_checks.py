@@ -415,24 +415,3 @@ def fmt_micro(value: int) -> str:
     whole, frac = divmod(abs(value), ONE)
     text = f"{whole}.{frac:06d}".rstrip("0").rstrip(".")
     return sign + text
-
-
-def envelope_peak(envelope_hz: float | None, duration_s: float) -> float:
-    """Supremum of the AM envelope ``(1 − cos 2π fe t)/2`` over ``[0, duration_s]``.
-
-    The envelope rises monotonically to 1 at ``t = 1/(2 fe)``, so the bound is 1 once the
-    stimulus lasts that long and ``(1 − cos 2π fe T)/2`` before; 1 without an envelope. Times
-    the carrier (|sin| ≤ 1) and the ramp (≤ 1) it bounds the whole tone in closed form.
-
-    Examples
-    --------
-    >>> envelope_peak(None, 1.8), envelope_peak(10.0, 1.8)
-    (1.0, 1.0)
-    >>> round(envelope_peak(0.05, 1.8), 4)
-    0.0778
-    """
-    if not envelope_hz:
-        return 1.0
-    if envelope_hz * duration_s >= 0.5:
-        return 1.0
-    return (1.0 - math.cos(2.0 * math.pi * envelope_hz * duration_s)) / 2.0

@@ -23,7 +23,34 @@ from masking_lab.core.errors import LogError, LogLockedError
 __all__ = ["LogLock", "RunnerLock"]
 
 
-class LogLock:
+class _Lock:
+    """An open descriptor holding an exclusive ``flock`` (the lock ends when it is closed)."""
+
+    def __init__(self, path: Path, fd: int) -> None:
+        self.path = path
+        self.fd = fd
+
+    def release(self) -> None:
+        """Close the descriptor, releasing the lock (idempotent)."""
+        if self.fd >= 0:
+            fd, self.fd = self.fd, -1
+            os.close(fd)
+
+
+def _flock(fd: int, busy: str, cannot: str, advice: str) -> None:
+    """Lock ``fd``, or close it and raise LogLockedError(``busy``) when another process holds
+    the lock, LogError(``cannot`` (why); ``advice``) when the file system has no locks."""
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError as exc:
+        os.close(fd)
+        raise LogLockedError(busy) from exc
+    except OSError as exc:  # a filesystem without flock (rare): say so, do not guess
+        os.close(fd)
+        raise LogError(f"{cannot} ({exc.strerror or exc}); {advice}") from exc
+
+
+class LogLock(_Lock):
     """An open, exclusively locked session-log file descriptor (append mode).
 
     Use :meth:`create` for a new log and :meth:`acquire` for an existing one; :meth:`release`
@@ -36,10 +63,6 @@ class LogLock:
     fd : int
         The descriptor, opened ``O_RDWR | O_APPEND``; -1 once released.
     """
-
-    def __init__(self, path: Path, fd: int) -> None:
-        self.path = path
-        self.fd = fd
 
     @classmethod
     def create(cls, path: str | Path) -> LogLock:
@@ -89,31 +112,18 @@ class LogLock:
 
     @classmethod
     def _locked(cls, path: Path, fd: int) -> LogLock:
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError as exc:
-            os.close(fd)
-            raise LogLockedError(
-                f"{path}: another masking-lab process (a run or resume of this session) is "
-                "writing this log; two processes would interleave their trials. Let it finish "
-                "or stop it (Ctrl-C in its terminal), then resume"
-            ) from exc
-        except OSError as exc:  # a filesystem without flock (rare): say so, do not guess
-            os.close(fd)
-            raise LogError(
-                f"{path}: cannot lock the session log ({exc.strerror or exc}); keep session "
-                "logs on a local disk"
-            ) from exc
+        _flock(
+            fd,
+            f"{path}: another masking-lab process (a run or resume of this session) is "
+            "writing this log; two processes would interleave their trials. Let it finish "
+            "or stop it (Ctrl-C in its terminal), then resume",
+            f"{path}: cannot lock the session log",
+            "keep session logs on a local disk",
+        )
         return cls(path, fd)
 
-    def release(self) -> None:
-        """Close the descriptor, releasing the lock (idempotent)."""
-        if self.fd >= 0:
-            fd, self.fd = self.fd, -1
-            os.close(fd)
 
-
-class RunnerLock:
+class RunnerLock(_Lock):
     """The exclusive lock of one participant's sessions of one protocol (experiment).
 
     Attributes
@@ -134,10 +144,6 @@ class RunnerLock:
     masking_lab.core.errors.LogLockedError: participant P01 is already running experiment1 ...
     >>> lock.release()
     """
-
-    def __init__(self, path: Path, fd: int) -> None:
-        self.path = path
-        self.fd = fd
 
     @classmethod
     def acquire(cls, folder: str | Path, participant: str, experiment: str) -> RunnerLock:
@@ -161,24 +167,12 @@ class RunnerLock:
                 f"{path}: cannot make the session lock ({exc.strerror or exc}); choose a --data "
                 "folder you can write to"
             ) from exc
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError as exc:
-            os.close(fd)
-            raise LogLockedError(
-                f"participant {participant} is already running {experiment} in another "
-                f"masking-lab process (lock {path}); two sessions of one protocol at once would "
-                "measure the same sets twice. Let it finish or stop it (Ctrl-C in its terminal)"
-            ) from exc
-        except OSError as exc:
-            os.close(fd)
-            raise LogError(
-                f"{path}: cannot lock ({exc.strerror or exc}); keep the data folder on a local disk"
-            ) from exc
+        _flock(
+            fd,
+            f"participant {participant} is already running {experiment} in another "
+            f"masking-lab process (lock {path}); two sessions of one protocol at once would "
+            "measure the same sets twice. Let it finish or stop it (Ctrl-C in its terminal)",
+            f"{path}: cannot lock",
+            "keep the data folder on a local disk",
+        )
         return cls(path, fd)
-
-    def release(self) -> None:
-        """Close the descriptor, releasing the lock (idempotent)."""
-        if self.fd >= 0:
-            fd, self.fd = self.fd, -1
-            os.close(fd)

@@ -14,13 +14,25 @@ dB SL in a masked one); the procedure never needs to know which.
 
 from __future__ import annotations
 
-from collections.abc import Iterable
-from dataclasses import dataclass
-from typing import Protocol, runtime_checkable
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, fields
+from typing import TYPE_CHECKING, Any, Protocol, TypeVar, runtime_checkable
 
 from masking_lab.core.errors import ProcedureError
 
-__all__ = ["Procedure", "ProcedureSettings", "ThresholdEstimate", "replay"]
+if TYPE_CHECKING:
+    from _typeshed import DataclassInstance
+
+__all__ = [
+    "Procedure",
+    "ProcedureSettings",
+    "ThresholdEstimate",
+    "TrackState",
+    "replay",
+    "settings_from_mapping",
+]
+
+SettingsT = TypeVar("SettingsT", bound="DataclassInstance")
 
 
 @dataclass(frozen=True)
@@ -106,6 +118,63 @@ class ProcedureSettings(Protocol):
     def start(self) -> Procedure:
         """A fresh track before its first trial."""
         ...
+
+
+class TrackState:
+    """What every track class shares: it is ``running`` until a stop rule sets ``status``, and
+    counts its trials by its ``responses``."""
+
+    status: str
+    responses: tuple[bool, ...]
+
+    @property
+    def finished(self) -> bool:
+        """True once a stop rule has ended the track."""
+        return self.status != "running"
+
+    @property
+    def n_trials(self) -> int:
+        """Trials answered so far."""
+        return len(self.responses)
+
+
+def settings_from_mapping(
+    cls: type[SettingsT],
+    mapping: Mapping[str, Any],
+    kind: str,
+    *,
+    tuples: tuple[str, ...] = (),
+    required: tuple[str, ...] = (),
+) -> SettingsT:
+    """Settings of procedure ``kind`` from a protocol's mapping (keys = ``cls``'s fields, an
+    optional ``kind``); ``tuples`` keys take a number or a list; ``required`` ones (dB) must be
+    given. Raises :class:`ProcedureError` naming the key (an unknown one: the valid ones too).
+
+    Examples
+    --------
+    >>> from masking_lab.procedures.quest_plus import QuestPlusSettings
+    >>> settings_from_mapping(QuestPlusSettings, {"step": 1}, "quest_plus")
+    Traceback (most recent call last):
+    masking_lab.core.errors.ProcedureError: quest_plus settings: unknown key(s) step; valid ...
+    """
+    data = dict(mapping)
+    named = data.pop("kind", kind)
+    if named != kind:
+        raise ProcedureError(f"{kind} settings: kind must be {kind!r}, got {named!r}")
+    names = [f.name for f in fields(cls)]
+    unknown = sorted(map(str, set(data) - set(names)))
+    if unknown:
+        raise ProcedureError(
+            f"{kind} settings: unknown key(s) {', '.join(unknown)}; valid keys are "
+            f"{', '.join(names)}"
+        )
+    for name in required:
+        if name not in data:
+            raise ProcedureError(f"{kind} settings: {name} is required (dB)")
+    for name in tuples:
+        if name in data and not isinstance(data[name], int | float):
+            data[name] = tuple(data[name])
+    return cls(**data)
 
 
 def replay(settings: ProcedureSettings, responses: Iterable[bool]) -> Procedure:

@@ -29,7 +29,7 @@ from __future__ import annotations
 import functools
 import math
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, replace
 from typing import Any, Literal
 
 import numpy as np
@@ -38,9 +38,9 @@ from numpy.typing import NDArray
 from masking_lab.core.errors import ProcedureError
 from masking_lab.core.masking import ramp
 from masking_lab.core.psychometric import LEVITT_1U3D
-from masking_lab.procedures.base import ThresholdEstimate
+from masking_lab.procedures.base import ThresholdEstimate, settings_from_mapping
 from masking_lab.procedures.limits import grid_memory_problem, grid_points
-from masking_lab.procedures.quest_plus_model import grid_db
+from masking_lab.procedures.quest_plus_model import PosteriorTrack, grid_db
 
 Status = Literal["running", "completed", "trial_cap", "ceiling"]
 
@@ -215,23 +215,9 @@ class FunctionalRampSettings:
         >>> s.max_trials
         60
         """
-        data = dict(mapping)
-        kind = data.pop("kind", "functional_ramp")
-        if kind != "functional_ramp":
-            raise ProcedureError(
-                f"functional_ramp settings: kind must be 'functional_ramp', got {kind!r}"
-            )
-        names = [f.name for f in fields(cls)]
-        unknown = sorted(set(data) - set(names))
-        if unknown:
-            raise ProcedureError(
-                f"functional_ramp settings: unknown key(s) {', '.join(map(str, unknown))}; "
-                f"valid keys are {', '.join(names)}"
-            )
-        for name in ("unmasked_offsets_db", "scales_db", "lapses"):
-            if name in data and not isinstance(data[name], int | float):
-                data[name] = tuple(data[name])
-        return cls(**data)
+        return settings_from_mapping(
+            cls, mapping, "functional_ramp", tuples=("unmasked_offsets_db", "scales_db", "lapses")
+        )
 
 
 @dataclass(frozen=True, eq=False)
@@ -431,7 +417,7 @@ def stop_status(settings: FunctionalRampSettings, n: int, m: dict[str, float]) -
 
 
 @dataclass(frozen=True, eq=False)
-class FunctionalRamp:
+class FunctionalRamp(PosteriorTrack):
     """Immutable state of one functional (ramp) track.
 
     Attributes
@@ -454,31 +440,6 @@ class FunctionalRamp:
     maskers_db_sl: tuple[float, ...] = ()
     responses: tuple[bool, ...] = ()
     status: Status = "running"
-
-    def __eq__(self, other: object) -> bool:
-        if not isinstance(other, FunctionalRamp):
-            return NotImplemented
-        return (
-            self.settings == other.settings
-            and self.stimulus == other.stimulus
-            and self.levels_db == other.levels_db
-            and self.maskers_db_sl == other.maskers_db_sl
-            and self.responses == other.responses
-            and self.status == other.status
-            and np.array_equal(self.posterior, other.posterior)
-        )
-
-    __hash__ = None  # type: ignore[assignment]  # unhashable on purpose: it holds arrays
-
-    @property
-    def finished(self) -> bool:
-        """True once a stop rule has ended the track."""
-        return self.status != "running"
-
-    @property
-    def n_trials(self) -> int:
-        """Trials answered so far."""
-        return len(self.responses)
 
     def next_level(self) -> float:
         """Target level of the next trial, dB SL."""

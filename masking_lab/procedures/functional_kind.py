@@ -9,7 +9,6 @@ posterior summary. Levels are dB SL; slopes dB per dB.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping, Sequence
 from dataclasses import replace
 from typing import Any
@@ -20,6 +19,7 @@ from masking_lab.core.errors import LevelError, ProcedureError
 from masking_lab.procedures.batch import TrackBatch
 from masking_lab.procedures.functional import FunctionalRamp, FunctionalRampSettings
 from masking_lab.procedures.functional_batch import simulate_ramps
+from masking_lab.procedures.limits import grid_top
 from masking_lab.procedures.registry import ProcedureKind, ProtocolContext, SettingsProblem
 
 __all__ = ["KIND", "replay_ramps"]
@@ -29,12 +29,7 @@ def _from_protocol(ctx: ProtocolContext) -> FunctionalRampSettings:
     try:
         settings = FunctionalRampSettings.from_mapping(ctx.block)
     except ProcedureError as exc:
-        head, _, detail = str(exc).partition(": ")
-        name = head.removeprefix("functional_ramp setting ").removeprefix(
-            "functional_ramp settings"
-        )
-        key = f"{ctx.block_key}.{name}" if name and " " not in name else ctx.block_key
-        raise SettingsProblem(key, detail or str(exc)) from None
+        raise SettingsProblem.of(exc, "functional_ramp", ctx.block_key) from None
     for key in ("start_level_db", "masker_level_db_sl"):
         if ctx.set_data.get(key) is not None:
             raise SettingsProblem(
@@ -50,15 +45,11 @@ def _from_protocol(ctx: ProtocolContext) -> FunctionalRampSettings:
     return settings
 
 
-def _on_grid_below(lo: float, step: float, limit: float) -> float:
-    return round(lo + step * math.floor((limit - lo) / step + 1e-9), 9)
-
-
 def _within_limit(settings: FunctionalRampSettings, max_db: float) -> FunctionalRampSettings:
     """Target levels stop at the device limit, on the protocol's grid."""
     if max_db >= settings.max_level_db:
         return settings
-    top = _on_grid_below(settings.min_level_db, settings.level_step_db, max_db)
+    top = grid_top(settings.min_level_db, settings.level_step_db, max_db)
     if top <= settings.min_level_db:
         raise LevelError(
             f"the device limit ({max_db:.2f} dB SL) leaves the functional_ramp less than one "
@@ -73,7 +64,7 @@ def _within_masker_limit(
     """Masker levels stop at the rig's rating for the masker, on the protocol's grid."""
     if max_db_sl >= settings.masker_max_db_sl:
         return settings
-    top = _on_grid_below(settings.masker_min_db_sl, settings.masker_step_db, max_db_sl)
+    top = grid_top(settings.masker_min_db_sl, settings.masker_step_db, max_db_sl)
     if top <= settings.masker_min_db_sl:
         raise LevelError(
             f"the rig's rating for the masker ({max_db_sl:.2f} dB SL) leaves the "

@@ -24,6 +24,7 @@ __all__ = [
     "MAX_TABLE_ELEMENTS",
     "grid_memory_problem",
     "grid_points",
+    "grid_top",
     "normal_prior_problem",
     "session_work_problem",
     "trial_work",
@@ -71,6 +72,18 @@ def grid_points(lo: float, hi: float, step: float) -> int:
         return 0
     n = (hi - lo) / step
     return int(n + 1e-9) + 1 if math.isfinite(n) else 10**308
+
+
+def grid_top(lo: float, step: float, limit: float) -> float:
+    """The highest point of the grid lo, lo + step, … at or below ``limit`` (dB, rounded to
+    1e-9 dB so that it stays the decimal number a protocol writes).
+
+    Examples
+    --------
+    >>> grid_top(-10.0, 1.0, 22.7)
+    22.0
+    """
+    return round(lo + step * math.floor((limit - lo) / step + 1e-9), 9)
 
 
 def grid_memory_problem(elements: int, what: str) -> str | None:

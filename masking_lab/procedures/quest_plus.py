@@ -29,7 +29,7 @@ from __future__ import annotations
 import functools
 import math
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, replace
 from typing import Any, Literal, TypeGuard
 
 import numpy as np
@@ -37,11 +37,12 @@ from numpy.typing import NDArray
 
 from masking_lab.core.errors import ProcedureError
 from masking_lab.core.psychometric import LEVITT_1U3D
-from masking_lab.procedures.base import ThresholdEstimate
+from masking_lab.procedures.base import ThresholdEstimate, settings_from_mapping
 from masking_lab.procedures.base import replay as _replay
 from masking_lab.procedures.limits import grid_memory_problem, grid_points, normal_prior_problem
 from masking_lab.procedures.quest_plus_model import (
     EntropyOver,
+    PosteriorTrack,
     expected_entropy,
     grid_db,
     psychometric_table,
@@ -292,24 +293,13 @@ class QuestPlusSettings:
         >>> s.scales_db, s.lapses
         ((1.0, 1.5, 2.0), (0.02,))
         """
-        data = dict(mapping)
-        kind = data.pop("kind", "quest_plus")
-        if kind != "quest_plus":
-            raise ProcedureError(f"quest_plus settings: kind must be 'quest_plus', got {kind!r}")
-        names = [f.name for f in fields(cls)]
-        unknown = sorted(set(data) - set(names))
-        if unknown:
-            raise ProcedureError(
-                f"quest_plus settings: unknown key(s) {', '.join(unknown)}; valid keys are "
-                f"{', '.join(names)}"
-            )
-        for name in ("min_level_db", "max_level_db"):
-            if name not in data:
-                raise ProcedureError(f"quest_plus settings: {name} is required (dB)")
-        for name in ("scales_db", "lapses"):
-            if name in data and not isinstance(data[name], int | float):
-                data[name] = tuple(data[name])
-        return cls(**data)
+        return settings_from_mapping(
+            cls,
+            mapping,
+            "quest_plus",
+            tuples=("scales_db", "lapses"),
+            required=("min_level_db", "max_level_db"),
+        )
 
 
 @dataclass(frozen=True, eq=False)
@@ -436,7 +426,7 @@ def stop_status(
 
 
 @dataclass(frozen=True, eq=False)
-class QuestPlus:
+class QuestPlus(PosteriorTrack):
     """Immutable state of one QUEST+ / psi-marginal track.
 
     Attributes
@@ -461,30 +451,6 @@ class QuestPlus:
     levels_db: tuple[float, ...] = ()
     responses: tuple[bool, ...] = ()
     status: Status = "running"
-
-    def __eq__(self, other: object) -> bool:
-        if not isinstance(other, QuestPlus):
-            return NotImplemented
-        return (
-            self.settings == other.settings
-            and self.level_db == other.level_db
-            and self.levels_db == other.levels_db
-            and self.responses == other.responses
-            and self.status == other.status
-            and np.array_equal(self.posterior, other.posterior)
-        )
-
-    __hash__ = None  # type: ignore[assignment]  # holds an array; equality is by value
-
-    @property
-    def finished(self) -> bool:
-        """True once a stop rule has ended the track."""
-        return self.status != "running"
-
-    @property
-    def n_trials(self) -> int:
-        """Trials answered so far."""
-        return len(self.responses)
 
     def next_level(self) -> float:
         """The level of the next trial, dB (the grid level of least expected entropy)."""

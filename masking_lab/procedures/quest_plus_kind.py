@@ -9,7 +9,6 @@ rule; ``analyze`` recomputes the posterior from the logged levels and answers
 from __future__ import annotations
 
 import functools
-import math
 from collections.abc import Mapping, Sequence
 from dataclasses import replace
 from typing import Any
@@ -19,7 +18,7 @@ import numpy as np
 from masking_lab.core.errors import LevelError, ProcedureError
 from masking_lab.procedures.estimators import ml_threshold
 from masking_lab.procedures.fisher import max_information
-from masking_lab.procedures.limits import DEFAULT_BAYES_TRIAL_CAP
+from masking_lab.procedures.limits import DEFAULT_BAYES_TRIAL_CAP, grid_top
 from masking_lab.procedures.quest_plus import QuestPlus, QuestPlusSettings, tables
 from masking_lab.procedures.quest_plus_batch import replay_many, simulate_quest_plus
 from masking_lab.procedures.quest_plus_model import psychometric_table
@@ -35,10 +34,7 @@ def _from_mapping(block: Mapping[str, Any], key: str) -> QuestPlusSettings:
     try:
         return QuestPlusSettings.from_mapping(block)
     except ProcedureError as exc:
-        head, _, detail = str(exc).partition(": ")
-        name = head.removeprefix("quest_plus setting ").removeprefix("quest_plus settings")
-        where = f"{key}.{name}" if name and " " not in name else key
-        raise SettingsProblem(where, detail or str(exc)) from None
+        raise SettingsProblem.of(exc, "quest_plus", key) from None
 
 
 def _from_protocol(ctx: ProtocolContext) -> QuestPlusSettings:
@@ -64,10 +60,7 @@ def _within_limit(settings: QuestPlusSettings, max_db: float) -> QuestPlusSettin
     if max_db >= settings.max_level_db:
         return settings
     step = settings.level_step_db
-    top = round(
-        settings.min_level_db + step * math.floor((max_db - settings.min_level_db) / step + 1e-9),
-        9,
-    )
+    top = grid_top(settings.min_level_db, step, max_db)
     if top <= settings.min_level_db:
         raise LevelError(
             f"the device limit ({max_db:.2f} dB) leaves QUEST+ less than one grid step "

@@ -10,6 +10,8 @@ from typing import TYPE_CHECKING, Literal
 import numpy as np
 from numpy.typing import NDArray
 
+from masking_lab.procedures.base import TrackState
+
 if TYPE_CHECKING:
     from masking_lab.procedures.quest_plus import Tables
 
@@ -18,6 +20,22 @@ EntropyOver = Literal["threshold", "all"]
 #: Elements of the (tracks × stimuli × thresholds) work array per chunk in
 #: :func:`expected_entropy`; bounds its memory to ~50 MB whatever the batch size.
 _CHUNK_ELEMENTS = 6_000_000
+
+
+class PosteriorTrack(TrackState):
+    """A track that holds a posterior array: equal by value (arrays compared element-wise),
+    unhashable on purpose."""
+
+    def __eq__(self, other: object) -> bool:
+        if type(other) is not type(self):
+            return NotImplemented
+        mine, theirs = vars(self), vars(other)
+        return mine.keys() == theirs.keys() and all(
+            np.array_equal(v, theirs[k]) if isinstance(v, np.ndarray) else v == theirs[k]
+            for k, v in mine.items()
+        )
+
+    __hash__ = None  # type: ignore[assignment]  # it holds arrays; equality is by value
 
 
 def grid_db(lo: float, hi: float, step: float) -> NDArray[np.float64]:

@@ -65,6 +65,21 @@ class SettingsProblem(ProcedureError):
         self.key = key
         self.detail = message
 
+    @classmethod
+    def of(cls, exc: ProcedureError, kind: str, key: str) -> SettingsProblem:
+        """``exc``, a ``<kind> setting NAME: ...`` error, at the protocol key ``key.NAME``.
+
+        Examples
+        --------
+        >>> SettingsProblem.of(ProcedureError("quest_plus setting lapses: < 0.5"), "quest_plus",
+        ...                    "procedure").key
+        'procedure.lapses'
+        """
+        head, _, detail = str(exc).partition(": ")
+        name = head.removeprefix(f"{kind} setting ").removeprefix(f"{kind} settings")
+        where = f"{key}.{name}" if name and " " not in name else key
+        return cls(where, detail or str(exc))
+
 
 @dataclass(frozen=True)
 class ProtocolContext:

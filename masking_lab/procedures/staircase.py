@@ -34,7 +34,7 @@ from dataclasses import dataclass, field, replace
 from typing import Literal
 
 from masking_lab.core.errors import StaircaseError
-from masking_lab.procedures.base import ThresholdEstimate
+from masking_lab.procedures.base import ThresholdEstimate, TrackState
 from masking_lab.procedures.base import replay as _replay
 
 Direction = Literal["start", "up", "down"]
@@ -147,7 +147,7 @@ class StaircaseSettings:
 
 
 @dataclass(frozen=True)
-class Staircase:
+class Staircase(TrackState):
     """Immutable state of one staircase track.
 
     Attributes
@@ -185,16 +185,6 @@ class Staircase:
     bound_hits: int = 0
     status: Status = "running"
     _initial_step_pending: bool = field(default=False, repr=False)
-
-    @property
-    def finished(self) -> bool:
-        """True once the track has stopped (for any reason)."""
-        return self.status != "running"
-
-    @property
-    def n_trials(self) -> int:
-        """Trials run so far."""
-        return len(self.levels_db)
 
     @property
     def step_db(self) -> float:

@@ -28,6 +28,7 @@ from typing import Any, Protocol, TextIO, TypeVar
 
 from masking_lab.core.clock import Clock, RealClock, VirtualClock
 from masking_lab.core.errors import DeviceTimeModeError, LogError, MaskingLabError
+from masking_lab.device import registry
 from masking_lab.device.base import Device
 from masking_lab.formats.log_lock import LogLock, RunnerLock
 from masking_lab.formats.session_log import SessionLog, SessionLogWriter, read_log
@@ -39,9 +40,7 @@ from masking_lab.session.opening import (
     check_participant,
     close_on_failure,
     create_log,
-    default_opener,
     observer_record,
-    open_device_and_responder,
     sync_policy,
     use_virtual_clock,
 )
@@ -381,14 +380,16 @@ class _Opener:
     spec: str
 
     def open(self, opening: Opening) -> tuple[Device, Closable]:
-        return open_device_and_responder(
-            self.make_responder or self.kind.default_responder,
-            opening.responder,
-            self.plan.context(opening),
-            self.open_device or default_opener(opening.device_config),
-            self.spec,
-            opening.clock,
-        )
+        """Build the responder, then open the device; close the responder if that fails."""
+        make = self.make_responder or self.kind.default_responder
+        responder = make(opening.responder, self.plan.context(opening))
+        try:
+            if self.open_device is not None:
+                return self.open_device(self.spec, opening.clock), responder
+            return registry.open_device(self.spec, opening.device_config, opening.clock), responder
+        except BaseException:
+            responder.close()
+            raise
 
     def open_in_device_time(
         self, opening: Opening, real_time: bool

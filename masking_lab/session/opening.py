@@ -12,7 +12,7 @@ from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import KW_ONLY, dataclass
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any
 
 from masking_lab.core.clock import Clock
 from masking_lab.core.errors import LogError, MaskingLabError
@@ -28,10 +28,6 @@ MAX_PARTICIPANT_CHARS = 64
 _PARTICIPANT = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]*")
 
 DeviceOpener = Callable[[str, Clock], Device]
-
-DeviceT = TypeVar("DeviceT", bound=Device)
-ResponderT = TypeVar("ResponderT", bound=Closable)
-ContextT = TypeVar("ContextT")
 
 
 def check_participant(participant: object) -> str:
@@ -153,46 +149,7 @@ class ResponderContext:
 
 
 # --------------------------------------------------------------------------------------------
-# Opening the device and the responder, creating the log
-
-
-def open_device_and_responder(
-    make_responder: Callable[[str, ContextT], ResponderT],
-    responder_name: str,
-    context: ContextT,
-    opener: Callable[[str, Clock], DeviceT],
-    spec: str,
-    clock: Clock,
-) -> tuple[DeviceT, ResponderT]:
-    """Build the responder, then open the device; close the responder if the device fails.
-
-    Parameters
-    ----------
-    make_responder : callable
-        ``(name, context) -> responder``.
-    responder_name : str
-        Responder name (``sim``, ``keys``, ``psychopy``).
-    context : object
-        What the responder factory needs (the runner's context dataclass).
-    opener : callable
-        ``(spec, clock) -> Device``.
-    spec : str
-        Checked device spec (see :func:`masking_lab.device.registry.check_device_spec`).
-    clock : Clock
-        The session clock, handed to the device.
-
-    Returns
-    -------
-    (Device, responder)
-        Both open; the caller must close them (:func:`close_quietly`).
-    """
-    responder = make_responder(responder_name, context)
-    try:
-        device = opener(spec, clock)
-    except BaseException:
-        responder.close()
-        raise
-    return device, responder
+# Closing what opened if a later step fails, creating the log
 
 
 @contextmanager
@@ -271,17 +228,3 @@ def new_log_path(data_dir: Path, experiment: str, participant: str) -> Path:
         path = folder / f"{base}-{n}.jsonl"
         n += 1
     return path
-
-
-def default_opener(device_config: Path | None) -> DeviceOpener:
-    """``(spec, clock) -> Device`` through :func:`masking_lab.device.registry.open_device`.
-
-    The factory is imported on first use, so the core runs without device drivers installed.
-    """
-
-    def opener(spec: str, clock: Clock) -> Device:
-        from masking_lab.device import registry as factory
-
-        return factory.open_device(spec, device_config, clock)
-
-    return opener

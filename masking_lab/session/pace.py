@@ -14,10 +14,9 @@ from collections.abc import Sequence
 import numpy as np
 
 from masking_lab.procedures.base import Procedure
-from masking_lab.procedures.quest_plus_kind import QUEST_EFFICIENCY, quest_trials_left
 from masking_lab.procedures.registry import kind_of
 
-__all__ = ["QUEST_EFFICIENCY", "quest_trials_left", "session_time_left_s", "track_trials_left"]
+__all__ = ["session_time_left_s", "track_trials_left"]
 
 
 def track_trials_left(state: Procedure, finished_set_trials: Sequence[int] = ()) -> float:

@@ -1,7 +1,7 @@
-"""A logged set's procedure settings and the reason a track has no AL (pure).
+"""A logged set's procedure settings (pure).
 
-The record fields themselves are built by :mod:`masking_lab.procedures.log_fields`
-(re-exported here for the session loop). Levels are dB in the set's ``level_unit``.
+The record fields themselves are built by :mod:`masking_lab.procedures.log_fields`. Levels are
+dB in the set's ``level_unit``.
 """
 
 from __future__ import annotations
@@ -11,24 +11,10 @@ from typing import Any
 
 from masking_lab.core.errors import LogError, ProcedureError
 from masking_lab.formats.protocol import SetSpec
-from masking_lab.procedures.base import Procedure
-from masking_lab.procedures.log_fields import (
-    SetProcedure,
-    end_fields,
-    settings_record,
-    start_fields,
-    trial_fields,
-)
-from masking_lab.procedures.registry import kind_of, settings_from_start
+from masking_lab.procedures.log_fields import SetProcedure
+from masking_lab.procedures.registry import settings_from_start
 
-__all__ = [
-    "bound_reason",
-    "end_fields",
-    "settings_from_record",
-    "settings_record",
-    "start_fields",
-    "trial_fields",
-]
+__all__ = ["settings_from_record"]
 
 
 def settings_from_record(start_record: Mapping[str, Any], spec: SetSpec) -> SetProcedure:
@@ -42,6 +28,7 @@ def settings_from_record(start_record: Mapping[str, Any], spec: SetSpec) -> SetP
     Examples
     --------
     >>> from masking_lab.core.stimulus import parse_stimulus
+    >>> from masking_lab.procedures.log_fields import start_fields
     >>> from masking_lab.procedures.quest_plus import QuestPlusSettings
     >>> spec = SetSpec("s", parse_stimulus("EV270"), None, None, None,
     ...                QuestPlusSettings(-20.0, 45.0))
@@ -56,16 +43,3 @@ def settings_from_record(start_record: Mapping[str, Any], spec: SetSpec) -> SetP
         raise LogError(
             f"set {spec.id}: the settings in its set_start record: {str(exc)[:200]}"
         ) from exc
-
-
-def bound_reason(state: Procedure, unit: str, target_max_v: float) -> str:
-    """Why a track that did not complete has no AL, for ``set_end.reason``.
-
-    Examples
-    --------
-    >>> from masking_lab.procedures.quest_plus import QuestPlusSettings
-    >>> s = QuestPlusSettings(-20.0, 45.0, max_trials=1, target_sd_db=1.0)
-    >>> bound_reason(s.start().update(True), "dB SL", 10.0)[:26]
-    'reached the trial cap (1 t'
-    """
-    return kind_of(state).no_al_reason(state, unit, target_max_v)

@@ -34,11 +34,11 @@ from masking_lab.formats.protocol import ThresholdProtocol, load_protocol
 from masking_lab.formats.session_log import SessionLog, SetRecords
 from masking_lab.responders.base import Responder
 from masking_lab.session import frame
-
-# EXIT_* and the signal classes were public here first; the noqa lines re-export them.
 from masking_lab.session.header import session_header
 from masking_lab.session.opening import DeviceOpener, ResponderContext
 from masking_lab.session.progress import ProgressLine
+
+# EXIT_* and the signal classes were public here first; the noqa lines re-export them.
 from masking_lab.session.shell import (
     EXIT_COMPLETED,  # noqa: F401
     EXIT_DEVICE_FAULT,  # noqa: F401

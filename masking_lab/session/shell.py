@@ -17,7 +17,8 @@ import shlex
 import signal
 import sys
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from types import FrameType
 from typing import Any, Generic, Protocol, TypeVar
@@ -313,24 +314,17 @@ class SessionSignals:
             return
         raise SessionInterrupted(signum)
 
-    def deferred(self) -> _Deferred:
-        """A context in which signals wait: use it around each log write."""
-        return _Deferred(self)
-
-
-class _Deferred:
-    """While active, a signal is remembered and raised when the block ends (unless it raised)."""
-
-    def __init__(self, signals: SessionSignals) -> None:
-        self.signals = signals
-
-    def __enter__(self) -> None:
-        self.signals._deferring = True
-
-    def __exit__(self, exc_type: object, *rest: object) -> None:
-        self.signals._deferring = False
-        pending, self.signals._pending = self.signals._pending, None
-        if pending is not None and exc_type is None:
+    @contextmanager
+    def deferred(self) -> Iterator[None]:
+        """A context in which signals wait: use it around each log write. A signal is raised
+        when the block ends (unless the block raised)."""
+        self._deferring = True
+        try:
+            yield
+        finally:
+            self._deferring = False
+            pending, self._pending = self._pending, None
+        if pending is not None:
             raise SessionInterrupted(pending)
 
 

@@ -19,11 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from masking_lab.core.clock import Clock
-from masking_lab.core.errors import (
-    CalibrationError,
-    LevelError,
-    MaskingLabError,
-)
+from masking_lab.core.errors import CalibrationError, LevelError, MaskingLabError
 from masking_lab.core.seeding import draw_target_interval
 from masking_lab.core.trial import TrialPlan
 from masking_lab.device.base import Device
@@ -32,30 +28,14 @@ from masking_lab.formats.protocol import SetSpec, ThresholdProtocol
 from masking_lab.formats.records import jsonable
 from masking_lab.formats.session_log import SessionLogWriter, SetRecords
 from masking_lab.procedures.base import Procedure, replay
+from masking_lab.procedures.log_fields import end_fields, start_fields, trial_fields
 from masking_lab.procedures.registry import kind_of
 from masking_lab.responders.base import Responder, SetInfo, TrialPresentation
 from masking_lab.session.interleave import next_set
 from masking_lab.session.pace import session_time_left_s, track_trials_left
-from masking_lab.session.procedure_records import (
-    bound_reason,
-    end_fields,
-    settings_from_record,
-    start_fields,
-    trial_fields,
-)
-
-# EXIT_* and the signal classes were public here first; the noqa lines re-export them.
+from masking_lab.session.procedure_records import settings_from_record
 from masking_lab.session.progress import ProgressLine, format_progress
-from masking_lab.session.shell import (
-    EXIT_COMPLETED,  # noqa: F401
-    EXIT_DEVICE_FAULT,  # noqa: F401
-    EXIT_INTERRUPTED,  # noqa: F401
-    SessionInterrupted,  # noqa: F401
-    SessionShell,
-    SessionSignals,  # noqa: F401
-    drop_none,
-    utc_now,
-)
+from masking_lab.session.shell import SessionShell, drop_none, utc_now
 from masking_lab.session.trials import (
     UNIT_LABEL,
     SetPlan,
@@ -392,7 +372,8 @@ class ThresholdSession(SessionShell[SessionResult]):
         # What else the procedure reports at the end (sd_db; a ramp's posterior summary).
         record.update({k: v for k, v in ends.items() if k not in record})
         if state.status != "completed":
-            record["reason"] = bound_reason(state, UNIT_LABEL[plan.level_unit], plan.target_max_v)
+            unit = UNIT_LABEL[plan.level_unit]
+            record["reason"] = kind_of(state).no_al_reason(state, unit, plan.target_max_v)
         self._append(record)
         self.finished_trials.append(state.n_trials)
         found = kind_of(state).result_text(state, UNIT_LABEL[plan.level_unit])

@@ -18,17 +18,8 @@ from masking_lab.core.errors import (
 )
 from masking_lab.formats.protocol import ThresholdProtocol, protocol_from_mapping
 from masking_lab.formats.session_log import SessionLog, SetRecords
-
-# EXIT_* and the signal classes were public here first; the noqa lines re-export them.
 from masking_lab.session.procedure_records import settings_from_record
 from masking_lab.session.progress import ProgressLine
-from masking_lab.session.shell import (
-    EXIT_COMPLETED,  # noqa: F401
-    EXIT_DEVICE_FAULT,  # noqa: F401
-    EXIT_INTERRUPTED,  # noqa: F401
-    SessionInterrupted,  # noqa: F401
-    SessionSignals,  # noqa: F401
-)
 
 
 def select_sets(
