@@ -68,6 +68,15 @@ def pytest_xdist_make_scheduler(config, log):
     return FileScheduling(config, log)
 
 
+def pytest_xdist_auto_num_workers(config) -> int:
+    """``-n auto``: one worker more than the cores.
+
+    Some tests spend much of their time waiting on real time (QEMU, the host build over a pty,
+    windows under Xvfb, a watchdog's trip): with one worker per core, a core idles meanwhile.
+    """
+    return (os.cpu_count() or 1) + 1
+
+
 @pytest.fixture(scope="session")
 def x_display():
     """A virtual X display for this test process (see tests/xdisplay.py for why per process)."""
