@@ -21,19 +21,23 @@ settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "repeatable"))
 # The files with the longest tests, longest first. pytest-xdist hands tests to its workers in
 # collection order, so these start at once and the many short tests fill in around them;
 # collected last, one of them would run alone on one core at the end while the others idle.
-SLOW_FIRST = (  # from `--durations` of a full run
+SLOW_FIRST = (  # from `--durations` of full runs, 2026-11-24
     "test_demo_rerun.py",
-    "test_log_records.py",
-    "test_demo.py",
-    "test_quest_plus_study.py",
-    "test_output_kills.py",
-    "test_log_reading_hardening.py",
-    "test_pooling_lr.py",
-    "test_plan.py",
-    "test_lab_outputs.py",
     "test_functional_study.py",
+    "test_figure_legibility.py",
+    "test_demo.py",
+    "test_render.py",
+    "test_output_kills.py",
+    "test_adversarial_corpus.py",
+    "test_log_reading_hardening.py",
+    "test_firmware_build.py",
+    "test_device_conformance.py",
+    "test_virtual_time_waits.py",
     "test_html_report.py",
-    "test_fuzz_regressions.py",
+    "test_log_records.py",
+    "test_window_metadata.py",
+    "test_quest_plus_study.py",
+    "test_study.py",
     "test_analysis.py",
 )
 
