@@ -105,14 +105,20 @@ def test_the_typed_view_gives_the_general_reader_s_rows_and_checks(study, monkey
     # between them get a fit each, and the rows then differ.
     monkeypatch.setattr(thresholds, "ml_threshold", once_per_input(thresholds.ml_threshold))
     monkeypatch.setattr(thresholds, "fit_pf", once_per_input(thresholds.fit_pf))
-    for path in sorted(study.rglob("*.jsonl")):
+    paths = sorted(study.rglob("*.jsonl"))
+    # The ML rows over the first two participants' sessions (all three protocols): the other
+    # participants' logs have the same records and fields, and their fits are most of the cost.
+    with_ml = set(paths[:6])
+    assert {json.loads(p.read_bytes().split(b"\n", 1)[0])["protocol"]["experiment"]
+            for p in with_ml} == {"baseline", "experiment1", "experiment2"}  # fmt: skip
+    for path in paths:
         raw = path.read_bytes()
         fast, slow = fast_parse(raw, path), parse_log(raw, path)
         assert fast is not None
         for key in ("record", "participant", "session_id", "created_utc", "calibration"):
             assert fast.header[key] == slow.header[key]
         assert fast.header["protocol"]["experiment"] == slow.header["protocol"]["experiment"]
-        for estimator in ("reversals", "ml"):
+        for estimator in ("reversals", "ml") if path in with_ml else ("reversals",):
             settings = EstimatorSettings(estimator=estimator)
             assert session_rows(fast, "x", settings) == session_rows(slow, "x", settings)
         assert fast.continuity_problems() == slow.continuity_problems() == []
