@@ -188,16 +188,18 @@ def test_figure8a_notes_clipping(saved, tmp_path):
     assert "compensated: 4 of 8 trials were clipped at the rig's limits" in text
 
 
-def test_track_figures_reused_in_parallel_draw_the_same_pixels(tmp_path):
+def test_track_figures_reused_in_parallel_draw_the_same_pixels(tmp_path, monkeypatch):
+    from masking_lab.analysis import track_figures
     from masking_lab.analysis.track_figures import draw_tracks, track_job
     from masking_lab.formats.session_log import read_log
 
     logs = simulate_study(tmp_path / "data", n_participants=2, seed=8)
     parsed = [read_log(p) for p in logs]
-    # 18 figures: more than one chunk per worker, every log drawn after a different one.
-    order = [
-        parsed[i % len(parsed)] for i in (0, 3, 1, 4, 2, 5, 5, 4, 3, 2, 1, 0, 1, 3, 5, 0, 2, 4)
-    ]
+    # Chunks of 3 instead of 8 (the workers fork, so they see it): 9 figures make three
+    # chunks on two workers, so one worker reuses its canvases across chunks, as 18 figures
+    # did with chunks of 8; every log is drawn, the first two after different neighbours.
+    monkeypatch.setattr(track_figures, "_CHUNK", 3)
+    order = [parsed[i % len(parsed)] for i in (0, 3, 1, 4, 2, 5, 1, 2, 0)]
 
     def jobs(folder: Path):
         return [track_job(folder / f"{k:02d}.png", log, {}) for k, log in enumerate(order)]
@@ -208,5 +210,6 @@ def test_track_figures_reused_in_parallel_draw_the_same_pixels(tmp_path):
     for a, b in zip(serial, parallel, strict=True):
         assert a.read_bytes() == b.read_bytes(), a.name
     # Same session, different neighbours: identical pixels, so nothing leaks between figures.
-    assert serial[0].read_bytes() == serial[11].read_bytes()
+    assert serial[0].read_bytes() == serial[8].read_bytes()
+    assert serial[2].read_bytes() == serial[6].read_bytes()
     assert serial[0].read_bytes() != serial[2].read_bytes()
