@@ -96,9 +96,10 @@ def _commands(kind: str, studies, tmp_path: Path) -> tuple[list[str], list[str],
         return ["fit", str(a), *common], ["fit", str(b), *common], out
     if kind == "plan":
         exp1 = str(PROTOCOLS / "experiment1.yaml")
-        # --force: each run replaces the plan already in --out (else plan refuses it); no ML fits
-        # or QUEST+ comparison, the costly parts of a plan and no concern of the swap
+        # --force: each run replaces the plan already in --out (else plan refuses it); one step
+        # schedule, no ML fits or QUEST+ comparison: the costly parts, no concern of the swap
         common = ["--out", str(out), "--ml-replicates", "0", "--quest-replicates", "0", "--force"]
+        common += ["--schedules", "4"]
         return (
             ["plan", exp1, "--replicates", "5", *common],
             ["plan", exp1, "--replicates", "6", *common],
