@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 from typing import Any
 
 from masking_lab.commands.options import command_texts
@@ -163,17 +164,14 @@ def _check_for_participant(
     holds the unmasked AL of every stimulus a masked protocol plays, and puts every level the
     sets may ask for within the rig's reach. Returns the summary's tail."""
     from masking_lab.core.errors import CalibrationError, LevelError, ProtocolError
-    from masking_lab.device.level_check import refuse_unplayable
-    from masking_lab.formats.calibration import load_calibration, require
+    from masking_lab.session.threshold_plan import checked_calibration
 
     data_dir, participant_id = participant
     try:
-        cal = load_calibration(data_dir, participant_id)
-        calibration: dict[str, float] = {}
-        if protocol.kind == "masked":
-            require(cal, protocol.stimuli(), data_dir)
-            calibration = {name: float(cal.unmasked_al_db_v[name]) for name in protocol.stimuli()}
-        refuse_unplayable(protocol, [s.id for s in protocol.sets], calibration, device_config)
+        order = [s.id for s in protocol.sets]
+        calibration = checked_calibration(
+            protocol, order, Path(data_dir), participant_id, device_config
+        )
     except (CalibrationError, LevelError) as exc:
         # Name the protocol being validated first; the message names the calibration file.
         raise ProtocolError(

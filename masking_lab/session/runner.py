@@ -27,9 +27,8 @@ from masking_lab.core.errors import (
     MaskingLabError,
 )
 from masking_lab.device.base import Device
-from masking_lab.device.level_check import refuse_unplayable
 from masking_lab.device.rig_limits import max_level_db_sl
-from masking_lab.formats.calibration import load_calibration, require
+from masking_lab.formats.calibration import load_calibration
 from masking_lab.formats.protocol import ThresholdProtocol, load_protocol
 from masking_lab.formats.session_log import SessionLog, SetRecords
 from masking_lab.responders.base import Responder
@@ -49,10 +48,10 @@ from masking_lab.session.shell import (
 from masking_lab.session.threshold_loop import SessionResult, ThresholdSession
 from masking_lab.session.threshold_plan import (
     check_trials,
+    checked_calibration,
     position,
     protocol_from_header,
     select_sets,
-    stimuli_of,
 )
 from masking_lab.simulation.observer import make_participant
 
@@ -201,16 +200,9 @@ class ThresholdKind:
         )
         order = select_sets(protocol, protocol.set_order(seed), options.sets)
         data_dir = Path(options.data_dir)
-        calibration: dict[str, float] = {}
-        # Read (and so validate) the calibration file before anything plays: a baseline session
-        # writes its ALs into it, and a broken file must not surface after a set was played.
-        cal = load_calibration(data_dir, participant)
-        if protocol.kind == "masked":
-            needed = stimuli_of(protocol, order)
-            require(cal, needed, data_dir)
-            calibration = {name: float(cal.unmasked_al_db_v[name]) for name in sorted(needed)}
-        # Every level the sets may ask for must be playable on this rig (converter resolution).
-        refuse_unplayable(protocol, order, calibration, options.device_config)
+        calibration = checked_calibration(
+            protocol, order, data_dir, participant, options.device_config
+        )
         info, pending = _participant_info(protocol, options.info, options.responder)
         return _ThresholdPlan(
             protocol, data_dir, order, calibration, {}, (None, None), info, pending

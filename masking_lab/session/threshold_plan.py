@@ -16,6 +16,8 @@ from masking_lab.core.errors import (
     LogError,
     ProtocolError,
 )
+from masking_lab.device.level_check import refuse_unplayable
+from masking_lab.formats.calibration import load_calibration, require
 from masking_lab.formats.protocol import ThresholdProtocol, protocol_from_mapping
 from masking_lab.formats.session_log import SessionLog, SetRecords
 from masking_lab.session.procedure_records import settings_from_record
@@ -48,6 +50,35 @@ def stimuli_of(protocol: ThresholdProtocol, order: Sequence[str]) -> set[str]:
         if spec.masker is not None:
             names.add(spec.masker.name)
     return names
+
+
+def checked_calibration(
+    protocol: ThresholdProtocol,
+    order: Sequence[str],
+    data_dir: Path,
+    participant: str,
+    device_config: str | Path | None,
+) -> dict[str, float]:
+    """What a new session checks before its first trial; the unmasked ALs it plays from, dB V.
+
+    The participant's calibration file reads (a baseline writes its ALs there, so a broken file
+    must not surface after a set was played), holds the unmasked AL of every stimulus of a
+    masked protocol's sets in ``order``, and every level those sets may ask for is playable on
+    the rig (converter resolution). ``run`` and ``validate --data --participant`` both call it.
+
+    Raises
+    ------
+    CalibrationError, LevelError
+        The file is unreadable or lacks an AL; a level is out of the rig's reach.
+    """
+    calibration: dict[str, float] = {}
+    cal = load_calibration(data_dir, participant)
+    if protocol.kind == "masked":
+        needed = stimuli_of(protocol, order)
+        require(cal, needed, data_dir)
+        calibration = {name: float(cal.unmasked_al_db_v[name]) for name in sorted(needed)}
+    refuse_unplayable(protocol, list(order), calibration, device_config)
+    return calibration
 
 
 def protocol_from_header(
