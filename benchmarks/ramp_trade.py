@@ -6,8 +6,9 @@ the paper's precision, by the paper's route, QUEST+ per set and the functional p
 
 Simulated participants with the ground truth's EV270-by-MV120 ramp (a = -7.442 dB,
 b = 0.711 dB/dB), logistic scale 1.5 dB, lapse 0.02; every route from the same calibration
-errors (see masking_lab/planning/ramp_trade.py). Prints a Markdown table and the Cramér-Rao
-trials for the paper's precision.
+errors (see masking_lab/planning/ramp_trade.py). Prints a Markdown table, each route's precision
+over the paper route's with a paired bootstrap 95 % interval (the same participants resampled
+for every route), and the Cramér-Rao trials for the paper's precision.
 """
 
 from __future__ import annotations
@@ -16,7 +17,13 @@ import argparse
 import math
 import time
 
-from masking_lab.planning.ramp_trade import TradeSettings, cramer_rao_ramp, run_trade
+from masking_lab.planning.ramp_trade import (
+    TradeSettings,
+    cramer_rao_ramp,
+    precision_ratios,
+    summarize_trade,
+    trade_estimates,
+)
 
 
 def main() -> None:
@@ -33,7 +40,9 @@ def main() -> None:
     settings = TradeSettings(replicates=args.replicates)
     t0 = time.perf_counter()
     scheduler = None if args.scheduler == "local" else args.scheduler
-    results = run_trade(settings, seed=args.seed, scheduler=scheduler)
+    estimates = trade_estimates(settings, seed=args.seed, scheduler=scheduler)
+    results = summarize_trade(settings, estimates)
+    ratios = precision_ratios(settings, estimates, seed=args.seed)
     paper = results[0]
     print(
         f"{args.replicates} simulated participants, seed {args.seed}, "
@@ -54,6 +63,15 @@ def main() -> None:
             f"| {r.route} | {r.trials_mean:.0f} | {r.minutes:.1f} | {r.sd_intercept_db:.2f} | "
             f"{r.sd_slope:.3f} | {r.rms_al_db:.2f} | {'yes' if ok else 'no'} |"
         )
+    print(
+        "\nPrecision over the paper route's (RMS error ratio; below 1 is better), paired "
+        "bootstrap 95 % interval over participants:\n"
+    )
+    print("| route | intercept | slope | RMS AL |")
+    print("|---|---:|---:|---:|")
+    for name, r in ratios.items():
+        cells = " | ".join(f"{v:.2f} ({lo:.2f}-{hi:.2f})" for v, lo, hi in r)
+        print(f"| {name} | {cells} |")
     # Cramér-Rao: fewest trials for each of the paper's three precisions.
     need = []
     for k, target in enumerate((paper.sd_intercept_db, paper.sd_slope, paper.rms_al_db)):

@@ -49,11 +49,15 @@ from masking_lab.procedures.staircase_batch import Observer, simulate
 
 __all__ = [
     "RouteResult",
+    "TradeEstimates",
     "TradeSettings",
     "cramer_rao_ramp",
     "format_trade",
+    "precision_ratios",
     "ramp_precision",
     "run_trade",
+    "summarize_trade",
+    "trade_estimates",
     "trade_for_protocol",
 ]
 
@@ -184,7 +188,7 @@ def _calibration_errors(s: TradeSettings, rng: np.random.Generator) -> NDArray[n
 def _per_level_fits(
     s: TradeSettings, name: str, errors: NDArray[np.float64], rng: np.random.Generator
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
-    """(intercepts, slopes) of the replicates that gave five ALs, and every replicate's trials."""
+    """Every replicate's (intercept, slope), NaN where it gave fewer than five ALs, and trials."""
     truth = np.array([float(ramp(x, s.intercept_db, s.slope)) for x in s.levels_db_sl])
     als, trials = [], np.zeros(s.replicates)
     for k in range(len(s.levels_db_sl)):
@@ -203,9 +207,9 @@ def _per_level_fits(
             trials += q.n_trials
     shifts = np.stack(als, axis=1)
     ok = np.all(np.isfinite(shifts), axis=1)
-    if not ok.any():
-        return np.zeros(0), np.zeros(0), trials
-    a_hat, b_hat = ramp_least_squares_batch(np.array(s.levels_db_sl), shifts[ok])
+    a_hat, b_hat = np.full(s.replicates, np.nan), np.full(s.replicates, np.nan)
+    if ok.any():
+        a_hat[ok], b_hat[ok] = ramp_least_squares_batch(np.array(s.levels_db_sl), shifts[ok])
     return a_hat, b_hat, trials
 
 
@@ -252,26 +256,46 @@ def simulate_chunk(
 
 
 def _route(s: TradeSettings, name: str, a_hat: Any, b_hat: Any, trials: float) -> RouteResult:
-    sd_a, sd_b, rms = ramp_precision(a_hat, b_hat, s.intercept_db, s.slope, s.levels_db_sl)
+    ok = np.isfinite(a_hat) & np.isfinite(b_hat)
+    sd_a, sd_b, rms = ramp_precision(a_hat[ok], b_hat[ok], s.intercept_db, s.slope, s.levels_db_sl)
     return RouteResult(
-        name, trials, trials * s.seconds_per_trial / 60, sd_a, sd_b, rms, int(a_hat.size)
+        name, trials, trials * s.seconds_per_trial / 60, sd_a, sd_b, rms, int(ok.sum())
     )
 
 
-def run_trade(
+@dataclass(frozen=True)
+class TradeEstimates:
+    """Every simulated participant's fitted ramp by every route, in participant order.
+
+    Attributes
+    ----------
+    intercepts_db, slopes : dict of str to ndarray
+        Per route (``"paper"``, ``"quest_plus"``, ``"functional (N)"``), one intercept (dB) and
+        slope (dB/dB) per participant; NaN where the route gave no ramp. Index i is the same
+        participant (the same calibration error) in every route.
+    trials : dict of str to float
+        Mean trials per participant for the route's masking function.
+    """
+
+    intercepts_db: dict[str, NDArray[np.float64]]
+    slopes: dict[str, NDArray[np.float64]]
+    trials: dict[str, float]
+
+
+def trade_estimates(
     s: TradeSettings, seed: int = 0, *, scheduler: str | None = "synchronous", chunk: int = 10
-) -> list[RouteResult]:
-    """The three routes on the same simulated participants (same calibration errors).
+) -> TradeEstimates:
+    """Simulate the three routes on the same participants; their fitted ramps.
 
     Participants are simulated in chunks of ``chunk`` (:mod:`masking_lab.planning.parallel`):
-    ``scheduler`` ``"synchronous"`` in this process, None on a local Dask cluster, or a Dask
-    scheduler's address; the same seed gives the same results whichever.
+    ``scheduler`` ``"synchronous"`` in this process, None on worker processes of this machine,
+    or a Dask scheduler's address; the same seed gives the same results whichever.
 
     Examples
     --------
-    >>> small = TradeSettings(replicates=3, checkpoints=(10,))
-    >>> [r.route for r in run_trade(small)]
-    ['paper', 'quest_plus', 'functional (10)']
+    >>> est = trade_estimates(TradeSettings(replicates=3, checkpoints=(10,)))
+    >>> list(est.intercepts_db), est.slopes["paper"].shape
+    (['paper', 'quest_plus', 'functional (10)'], (3,))
     """
     from masking_lab.planning.parallel import chunk_plan, run_chunks
 
@@ -279,16 +303,109 @@ def run_trade(
         int(np.random.SeedSequence([seed, 0x7A1D]).generate_state(1)[0]), s.replicates, chunk
     )
     parts = run_chunks(simulate_chunk, [(s, n, ss) for n, ss in plan], scheduler=scheduler)
-    out = []
+    a: dict[str, NDArray[np.float64]] = {}
+    b: dict[str, NDArray[np.float64]] = {}
+    trials: dict[str, float] = {}
     for name in ("paper", "quest_plus"):
-        a_hat = np.concatenate([p[name][0] for p in parts])
-        b_hat = np.concatenate([p[name][1] for p in parts])
-        trials = float(np.concatenate([p[name][2] for p in parts]).mean())
-        out.append(_route(s, name, a_hat, b_hat, trials))
+        a[name] = np.concatenate([p[name][0] for p in parts])
+        b[name] = np.concatenate([p[name][1] for p in parts])
+        trials[name] = float(np.concatenate([p[name][2] for p in parts]).mean())
     for c in s.checkpoints:
-        a_hat = np.concatenate([p["functional"][c][0] for p in parts])
-        b_hat = np.concatenate([p["functional"][c][1] for p in parts])
-        out.append(_route(s, f"functional ({c})", a_hat, b_hat, float(c)))
+        name = f"functional ({c})"
+        a[name] = np.concatenate([p["functional"][c][0] for p in parts])
+        b[name] = np.concatenate([p["functional"][c][1] for p in parts])
+        trials[name] = float(c)
+    return TradeEstimates(a, b, trials)
+
+
+def summarize_trade(s: TradeSettings, est: TradeEstimates) -> list[RouteResult]:
+    """One :class:`RouteResult` per route, the paper's first.
+
+    Examples
+    --------
+    >>> small = TradeSettings(replicates=3, checkpoints=(10,))
+    >>> [r.n for r in summarize_trade(small, trade_estimates(small))]
+    [3, 3, 3]
+    """
+    return [
+        _route(s, name, est.intercepts_db[name], est.slopes[name], est.trials[name])
+        for name in est.intercepts_db
+    ]
+
+
+def run_trade(
+    s: TradeSettings, seed: int = 0, *, scheduler: str | None = "synchronous", chunk: int = 10
+) -> list[RouteResult]:
+    """The three routes on the same simulated participants (same calibration errors).
+
+    :func:`trade_estimates` then :func:`summarize_trade`.
+
+    Examples
+    --------
+    >>> small = TradeSettings(replicates=3, checkpoints=(10,))
+    >>> [r.route for r in run_trade(small)]
+    ['paper', 'quest_plus', 'functional (10)']
+    """
+    return summarize_trade(s, trade_estimates(s, seed, scheduler=scheduler, chunk=chunk))
+
+
+def _squared_errors(
+    s: TradeSettings, a_hat: NDArray[np.float64], b_hat: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """Per participant: squared intercept error, squared slope error, mean squared AL error."""
+    x = np.linspace(min(s.levels_db_sl), max(s.levels_db_sl), 41)
+    pred = np.maximum(0.0, a_hat[:, None] + b_hat[:, None] * x[None, :])
+    err_al = pred - ramp(x, s.intercept_db, s.slope)[None, :]
+    return np.stack(
+        [(a_hat - s.intercept_db) ** 2, (b_hat - s.slope) ** 2, np.mean(err_al**2, axis=1)], axis=1
+    )
+
+
+def precision_ratios(
+    s: TradeSettings, est: TradeEstimates, *, n_boot: int = 2000, seed: int = 0
+) -> dict[str, NDArray[np.float64]]:
+    """Each route's precision over the paper's, with a paired bootstrap 95 % interval.
+
+    The participants are resampled together (every route measured the same participants, so
+    their errors are paired), and for each resample each route's RMS errors (intercept, slope,
+    predicted AL) are divided by the paper route's. A ratio below 1 is better than the paper.
+
+    Returns
+    -------
+    dict of str to ndarray, shape (3, 3)
+        Per route other than ``"paper"``: rows intercept, slope, RMS AL; columns the ratio on
+        all participants, the 2.5th and the 97.5th percentile of the resampled ratios.
+
+    Examples
+    --------
+    >>> small = TradeSettings(replicates=4, checkpoints=(10,))
+    >>> r = precision_ratios(small, trade_estimates(small), n_boot=50)
+    >>> sorted(r), r["quest_plus"].shape
+    (['functional (10)', 'quest_plus'], (3, 3))
+    """
+    rng = np.random.default_rng(seed)
+    n = est.intercepts_db["paper"].size
+    idx = rng.integers(0, n, size=(n_boot, n))
+
+    def rms(sq: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        # NaN rows (no ramp) drop out of their route's mean, as in summarize_trade.
+        ok = np.isfinite(sq[:, 0]) & np.isfinite(sq[:, 1])
+        sq0 = np.where(ok[:, None], sq, 0.0)
+        whole = np.sqrt(sq0.sum(axis=0) / max(1, ok.sum()))
+        counts = np.maximum(1, ok[idx].sum(axis=1))[:, None]
+        return whole, np.sqrt(sq0[idx].sum(axis=1) / counts)
+
+    paper_whole, paper_boot = rms(
+        _squared_errors(s, est.intercepts_db["paper"], est.slopes["paper"])
+    )
+    out = {}
+    for name in est.intercepts_db:
+        if name == "paper":
+            continue
+        whole, boot = rms(_squared_errors(s, est.intercepts_db[name], est.slopes[name]))
+        ratios = boot / paper_boot
+        lo, hi = np.percentile(ratios, [2.5, 97.5], axis=0)
+        out[name] = np.stack([whole / paper_whole, lo, hi], axis=1)
     return out
 
 
