@@ -61,6 +61,7 @@ def test_plan_on_a_functional_protocol_prints_the_trade(tmp_path, capsys):
     assert main(argv) == 0
     text = capsys.readouterr().out
     assert "paper" in text and "functional (14)" in text and "Cramér-Rao" in text
+    assert "paired bootstrap 95 % interval" in text and "  functional (14)" in text
     assert (tmp_path / "plan" / "masking_function_trade.txt").read_text(encoding="utf-8") == text
 
 
@@ -88,3 +89,42 @@ def test_the_same_seed_gives_the_same_table_in_process_and_on_a_two_process_clus
     assert cluster == here
     # and the chunking, not the workers, fixes the streams: another chunk size differs
     assert run_trade(small, seed=5, scheduler="synchronous", chunk=4) != here
+
+
+def test_precision_ratios_pair_the_participants_across_routes():
+    """Ratios of RMS errors to the paper route's, with a paired bootstrap interval."""
+    from masking_lab.planning.ramp_trade import TradeEstimates, precision_ratios
+
+    s = TradeSettings()
+    rng = np.random.default_rng(0)
+    a_err, b_err = rng.normal(0, 3.0, 40), rng.normal(0, 0.15, 40)
+    paper_a, paper_b = s.intercept_db + a_err, s.slope + b_err
+    est = TradeEstimates(
+        intercepts_db={
+            "paper": paper_a,
+            "same": paper_a.copy(),
+            "half": s.intercept_db + a_err / 2,
+            "gaps": np.where(np.arange(40) % 4 == 0, np.nan, paper_a),
+        },
+        slopes={
+            "paper": paper_b,
+            "same": paper_b.copy(),
+            "half": s.slope + b_err / 2,
+            "gaps": paper_b.copy(),
+        },
+        trials={"paper": 260.0, "same": 260.0, "half": 87.0, "gaps": 87.0},
+    )
+    r = precision_ratios(s, est, n_boot=300, seed=1)
+    assert sorted(r) == ["gaps", "half", "same"]
+    # the same participants' errors: the ratio is 1 in every resample (pairing, not chance)
+    np.testing.assert_allclose(r["same"], 1.0)
+    # every error halved: intercept and slope exactly half in every resample
+    np.testing.assert_allclose(r["half"][:2], 0.5)
+    for row in r.values():
+        assert np.all(np.isfinite(row)) and np.all(row[:, 1] <= row[:, 0] + 1e-12)
+        assert np.all(row[:, 0] <= row[:, 2] + 1e-12)
+    # a route without a ramp for some participants is measured on those it has
+    kept = ~np.isnan(est.intercepts_db["gaps"])
+    whole = math.sqrt(np.mean(a_err[kept] ** 2)) / math.sqrt(np.mean(a_err**2))
+    assert r["gaps"][0, 0] == pytest.approx(whole)
+    assert r["gaps"][0, 2] > r["gaps"][0, 1]  # resampling spreads it

@@ -260,14 +260,14 @@ def _masking_function_plan(args: argparse.Namespace, protocol: object, out: Path
 
     truth = load_ground_truth(args.ground_truth)
     replicates = min(args.replicates, _FUNCTIONAL_REPLICATES)
-    trade, results = trade_for_protocol(
+    trade, results, ratios = trade_for_protocol(
         protocol,
         truth,
         replicates=replicates,
         seed=args.seed,
         scheduler=None if args.scheduler == "local" else args.scheduler,
     )
-    text = format_trade(trade, results)
+    text = format_trade(trade, results, ratios)
     out.mkdir(parents=True, exist_ok=True)
     write_text_atomic(out / "masking_function_trade.txt", text)
     print(text, end="")

@@ -416,8 +416,9 @@ def trade_for_protocol(
     replicates: int,
     seed: int,
     scheduler: str | None = "synchronous",
-) -> tuple[TradeSettings, list[RouteResult]]:
-    """The trade for the first set of a protocol whose procedure places the masker level.
+) -> tuple[TradeSettings, list[RouteResult], dict[str, NDArray[np.float64]]]:
+    """The trade for the first set of a protocol whose procedure places the masker level:
+    its settings, each route's result and its precision ratios (:func:`precision_ratios`).
 
     The pair's true ramp and the observers' psychometric function come from the ground truth;
     the functional grids, masker range and the checkpoints (up to the protocol's trial cap)
@@ -449,11 +450,17 @@ def trade_for_protocol(
         checkpoints=checkpoints,
         functional=settings,
     )
-    return trade, run_trade(trade, seed=seed, scheduler=scheduler)
+    est = trade_estimates(trade, seed, scheduler=scheduler)
+    return trade, summarize_trade(trade, est), precision_ratios(trade, est, seed=seed)
 
 
-def format_trade(trade: TradeSettings, results: Sequence[RouteResult]) -> str:
-    """The trade as a text table with the Cramér–Rao trials for the paper's precision.
+def format_trade(
+    trade: TradeSettings,
+    results: Sequence[RouteResult],
+    ratios: dict[str, NDArray[np.float64]] | None = None,
+) -> str:
+    """The trade as a text table with the Cramér–Rao trials for the paper's precision, and,
+    given ``ratios`` (:func:`precision_ratios`), each route's precision over the paper's.
 
     Examples
     --------
@@ -480,6 +487,17 @@ def format_trade(trade: TradeSettings, results: Sequence[RouteResult]) -> str:
             f"{r.route:<20} {r.trials_mean:>6.0f} {r.minutes:>8.1f} {r.sd_intercept_db:>10.2f} "
             f"{r.sd_slope:>13.3f} {r.rms_al_db:>12.2f}{mark}"
         )
+    if ratios:
+        lines.append(
+            "RMS error over the paper route's (below 1 is better; paired bootstrap 95 % interval "
+            "over the participants):"
+        )
+        for name, r in ratios.items():
+            cells = ", ".join(
+                f"{what} {v:.2f} ({lo:.2f}-{hi:.2f})"
+                for what, (v, lo, hi) in zip(("intercept", "slope", "RMS AL"), r, strict=True)
+            )
+            lines.append(f"  {name:<18} {cells}")
     need = []
     for k, target in enumerate((paper.sd_intercept_db, paper.sd_slope, paper.rms_al_db)):
         n = 1.0
