@@ -492,10 +492,10 @@ def format_trade(
             "RMS error over the paper route's (below 1 is better; paired bootstrap 95 % interval "
             "over the participants):"
         )
-        for name, r in ratios.items():
+        for name, ratio in ratios.items():
             cells = ", ".join(
                 f"{what} {v:.2f} ({lo:.2f}-{hi:.2f})"
-                for what, (v, lo, hi) in zip(("intercept", "slope", "RMS AL"), r, strict=True)
+                for what, (v, lo, hi) in zip(("intercept", "slope", "RMS AL"), ratio, strict=True)
             )
             lines.append(f"  {name:<18} {cells}")
     need = []
