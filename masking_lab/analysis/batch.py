@@ -309,12 +309,19 @@ def _functional_ramps(
 
 
 def _may_hold_functional(path: Path) -> bool:
-    """Whether the log at ``path`` can hold a ``functional_ramp`` set (unreadable: maybe)."""
+    """Whether the log at ``path`` can hold a set whose procedure places the masker level
+    (the registry's ``places_masker`` kinds; unreadable: maybe)."""
     try:
         raw = path.read_bytes()
     except OSError:
         return True
-    return b"functional_ramp" in raw or b"\\u" in raw
+    return any(name in raw for name in _masker_placing_names()) or b"\\u" in raw
+
+
+def _masker_placing_names() -> list[bytes]:
+    from masking_lab.procedures.registry import kinds
+
+    return [k.name.encode() for k in kinds() if k.places_masker]
 
 
 def _lab_outputs(

@@ -27,10 +27,12 @@ from typing import Any
 
 import numpy as np
 
+from masking_lab.analysis.procedure_estimates import places_masker
 from masking_lab.analysis.ramp_fit import fit_ramp
 from masking_lab.core.errors import ProcedureError
 from masking_lab.core.masking import ramp
 from masking_lab.procedures.functional import FunctionalRampSettings, likelihood, ramp_tables
+from masking_lab.procedures.functional_kind import KIND as FUNCTIONAL
 
 __all__ = [
     "GroupRamp",
@@ -174,7 +176,7 @@ def ramp_posteriors_from_logs(logs: Iterable[Any]) -> tuple[list[RampPosterior],
         participant = str(log.header.get("participant", ""))
         for set_id, rec in log.sets().items():
             procedure = rec.start.get("procedure") or {}
-            if procedure.get("kind") != "functional_ramp" or rec.end is None:
+            if not places_masker(procedure) or rec.end is None:
                 continue
             status = str(rec.end.get("status", ""))
             if status not in ("completed", "trial_cap"):
@@ -285,7 +287,7 @@ def group_ramps(posteriors: Sequence[RampPosterior]) -> list[GroupRamp]:
                 target,
                 masker,
                 "random_effects",
-                "functional_ramp",
+                FUNCTIONAL.name,
                 a,
                 b,
                 se_a,
@@ -314,7 +316,7 @@ def _paper_route(target: str, masker: str, ps: Sequence[RampPosterior]) -> Group
         target,
         masker,
         "paper_route",
-        "functional_ramp",
+        FUNCTIONAL.name,
         fit.intercept_db if fit.intercept_db is not None else math.nan,
         fit.slope if fit.slope is not None else math.nan,
         fit.intercept_se_db if fit.intercept_se_db is not None else math.nan,
