@@ -19,12 +19,19 @@ from masking_lab.core.errors import LevelError, ProcedureError
 from masking_lab.procedures.estimators import ml_threshold
 from masking_lab.procedures.fisher import max_information
 from masking_lab.procedures.limits import DEFAULT_BAYES_TRIAL_CAP, grid_top
+from masking_lab.procedures.model_note import stated_model_note
 from masking_lab.procedures.quest_plus import QuestPlus, QuestPlusSettings, tables
 from masking_lab.procedures.quest_plus_batch import replay_many, simulate_quest_plus
 from masking_lab.procedures.quest_plus_model import psychometric_table
 from masking_lab.procedures.registry import ProcedureKind, ProtocolContext, SettingsProblem
 
-__all__ = ["KIND", "PSI_MARGINAL_EFFICIENCY", "QUEST_EFFICIENCY", "posterior_summary", "quest_trials_left"]
+__all__ = [
+    "KIND",
+    "PSI_MARGINAL_EFFICIENCY",
+    "QUEST_EFFICIENCY",
+    "posterior_summary",
+    "quest_trials_left",
+]
 
 #: QUEST+'s measured efficiency against the Cramér-Rao bound (docs/procedures.md: 59 %).
 QUEST_EFFICIENCY = 0.6
@@ -221,14 +228,16 @@ def _estimate_log(
     if not len(levels_db):
         return None, None, None, None, method, "estimator_failed", "no trials to estimate from"
     mean, sd, lo, hi = posterior_summary(settings, levels_db, correct)
+    # A stated slope or lapse: the interval holds for that observer only; say so beside it.
+    caveat = stated_model_note(record)
     if estimator != "ml":
-        return mean, sd, lo, hi, method, "completed", None
+        return mean, sd, lo, hi, method, "completed", caveat
     fit = ml_threshold(
         levels_db, correct, guess=settings.guess, lapse=lapse, p_target=settings.p_at_threshold
     )
     if not fit.ok or fit.threshold_db is None:
         return None, sd, lo, hi, method, "estimator_failed", fit.message
-    return float(fit.threshold_db), sd, lo, hi, method, "completed", None
+    return float(fit.threshold_db), sd, lo, hi, method, "completed", caveat
 
 
 def _simulate_batch(
