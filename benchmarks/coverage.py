@@ -10,8 +10,10 @@ central 95 % credible interval (recomputed from the track's trials, as `analyze`
 the truth, with its binomial standard error:
 
 * ``quest``: single thresholds with the shipped ``experiment1_questplus.yaml`` (slope and lapse
-  marginalised, the defaults of ``QuestPlusSettings``), every track counted (capped ones too);
-* ``known``: the same with the slope and lapse known (scale 1.5 dB, lapse 0.02), for contrast;
+  marginalised, the defaults of ``QuestPlusSettings``): over every track (capped ones too), and
+  over the completed ones (those `analyze` turns into ALs) with their RMS error (dB);
+* ``known``: the protocol as shipped before: slope and lapse known (scale 1.5 dB, lapse 0.02),
+  posterior SD ≤ 1.08 dB, for contrast;
 * ``functional``: the ramp's intercept and slope with the shipped
   ``experiment1_functional.yaml`` (one masker frequency).
 
@@ -53,7 +55,8 @@ def _settings(column: str):
         return load_protocol(shipped("protocols", "experiment1_functional.yaml")).sets[0].settings
     quest = load_protocol(shipped("protocols", "experiment1_questplus.yaml")).sets[0].settings
     if column == "known":
-        return replace(quest, scales_db=(1.5,), lapses=(0.02,), max_trials=80)
+        # The protocol as shipped before issue 18: slope and lapse known, SD ≤ 1.08 dB.
+        return replace(quest, scales_db=(1.5,), lapses=(0.02,), target_sd_db=1.08, max_trials=80)
     return quest
 
 
@@ -81,13 +84,18 @@ def run_chunk(job: tuple[str, float, float, int, np.random.SeedSequence]) -> dic
         return {"n": n, "a": hits_a, "b": hits_b, "trials": float(sim.n_trials.sum())}
     truth = rng.uniform(0.0, 13.0, n)
     sim = simulate_quest_plus(settings, truth, scale_db=scale, lapse=lapse, rng=rng)
-    hits = 0
+    out = {"n": n, "hits": 0, "trials": float(sim.n_trials.sum()), "completed": 0}
+    out |= {"hits_completed": 0, "sq_err": 0.0}
     for i in range(n):
         k = int(sim.n_trials[i])
-        _, _, lo, hi = posterior_summary(settings, sim.levels_db[i, :k], sim.correct[i, :k])
-        hits += lo <= truth[i] <= hi
-    done = int(np.sum(sim.status == "completed"))
-    return {"n": n, "hits": hits, "trials": float(sim.n_trials.sum()), "completed": done}
+        mean, _, lo, hi = posterior_summary(settings, sim.levels_db[i, :k], sim.correct[i, :k])
+        inside = int(lo <= truth[i] <= hi)
+        out["hits"] += inside
+        if sim.status[i] == "completed":  # the sets `analyze` turns into ALs
+            out["completed"] += 1
+            out["hits_completed"] += inside
+            out["sq_err"] += (mean - truth[i]) ** 2
+    return out
 
 
 def _share(hits: float, n: float) -> str:
@@ -142,12 +150,13 @@ def main() -> None:
             acc[name] = acc.get(name, 0.0) + v
     print(f"{args.tracks} tracks per cell, seed {args.seed}, {args.workers} workers\n")
     head = {
-        "quest": "QUEST+ shipped (marginal): coverage (trials, completed)",
+        "quest": "QUEST+ shipped (marginal): all tracks (mean trials, completed) | "
+        "completed tracks; RMS error",
         "known": "QUEST+ slope & lapse known",
         "functional": "functional: intercept | functional: slope",
     }
     print("| observer scale, lapse | " + " | ".join(head[c] for c in columns) + " |")
-    print("|---|" + "---:|" * sum(2 if c == "functional" else 1 for c in columns))
+    print("|---|" + "---:|" * sum(2 if c in ("functional", "quest") else 1 for c in columns))
     for cell in cells:
         row = []
         for c in columns:
@@ -156,7 +165,10 @@ def main() -> None:
                 row += [_share(r["a"], r["n"]), _share(r["b"], r["n"])]
             elif c == "quest":
                 mean_n, done = r["trials"] / r["n"], r["completed"] / r["n"]
+                rms = np.sqrt(r["sq_err"] / max(r["completed"], 1))
+                among = _share(r["hits_completed"], max(r["completed"], 1))
                 row.append(f"{_share(r['hits'], r['n'])} ({mean_n:.0f}, {done:.0%})")
+                row.append(f"{among}; RMS {rms:.2f} dB")
             else:
                 row.append(_share(r["hits"], r["n"]))
         print(f"| {cell[0]:g} dB, {cell[1]:g} | " + " | ".join(row) + " |")
