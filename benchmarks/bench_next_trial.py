@@ -5,8 +5,9 @@
 Times every ``update`` (posterior update, stop rules and the placement of the next trial: what
 the session does between an answer and the next stimulus) over tracks against simulated
 observers, for the shipped QUEST+ grid (experiment1_questplus.yaml: 131 levels × 131
-thresholds × 28 (7 scales × 4 lapses), psi-marginal placement), a 131 × 131 × 40 grid with Watson's joint entropy (10 scales × 4
-lapses) and the shipped functional (ramp) grid (experiment1_functional.yaml), each
+thresholds × 28 (7 scales × 4 lapses), psi-marginal placement), a 131 × 131 × 40 grid with
+Watson's joint entropy (10 scales × 4 lapses) and the shipped functional (ramp) grid
+(experiment1_functional.yaml), each
 
 * idle, and with every other core saturated by busy processes this benchmark starts,
 * as the session runs it (one BLAS thread, ``session.blas_threads``), beside the library's
