@@ -98,6 +98,24 @@ def run_chunk(job: tuple[str, float, float, int, np.random.SeedSequence]) -> dic
     return out
 
 
+def _row(cell, columns, total) -> str:
+    """One table row: every column's coverage ± binomial SE for this (scale, lapse) cell."""
+    row = []
+    for c in columns:
+        r = total[(c, cell)]
+        if c == "functional":
+            row += [_share(r["a"], r["n"]), _share(r["b"], r["n"])]
+        elif c == "quest":
+            mean_n, done = r["trials"] / r["n"], r["completed"] / r["n"]
+            rms = np.sqrt(r["sq_err"] / max(r["completed"], 1))
+            among = _share(r["hits_completed"], max(r["completed"], 1))
+            row.append(f"{_share(r['hits'], r['n'])} ({mean_n:.0f}, {done:.0%})")
+            row.append(f"{among}; RMS {rms:.2f} dB")
+        else:
+            row.append(_share(r["hits"], r["n"]))
+    return f"| {cell[0]:g} dB, {cell[1]:g} | " + " | ".join(row) + " |"
+
+
 def _share(hits: float, n: float) -> str:
     p = hits / n
     return f"{p:.1%} ± {np.sqrt(p * (1 - p) / n):.1%}"
@@ -126,28 +144,18 @@ def main() -> None:
         cells = all_cells
     root = np.random.SeedSequence(args.seed)
     jobs, keys = [], []
-    for ci, column in enumerate(COLUMNS):
-        if column not in columns:
-            continue
-        for cj, (scale, lapse) in enumerate(all_cells):
-            if (scale, lapse) not in cells:
+    for cell in cells:  # cell by cell, so each row prints as soon as its tracks are done
+        cj = all_cells.index(cell)
+        for ci, column in enumerate(COLUMNS):
+            if column not in columns:
                 continue
             for k, start in enumerate(range(0, args.tracks, args.chunk)):
                 n = min(args.chunk, args.tracks - start)
                 # The seed of (column, cell, chunk) is fixed by its indices: any worker count,
                 # any subset of columns or cells gives the same tracks.
                 seed = np.random.SeedSequence(root.entropy, spawn_key=(ci, cj, k))
-                jobs.append((column, scale, lapse, n, seed))
-                keys.append((column, (scale, lapse)))
-    t0 = time.perf_counter()
-    with ProcessPoolExecutor(max_workers=max(1, args.workers)) as pool:
-        results = list(pool.map(run_chunk, jobs))
-    wall = time.perf_counter() - t0
-    total: dict[tuple[str, tuple[float, float]], dict[str, float]] = {}
-    for key, res in zip(keys, results, strict=True):
-        acc = total.setdefault(key, {})
-        for name, v in res.items():
-            acc[name] = acc.get(name, 0.0) + v
+                jobs.append((column, *cell, n, seed))
+                keys.append((column, cell))
     print(f"{args.tracks} tracks per cell, seed {args.seed}, {args.workers} workers\n")
     head = {
         "quest": "QUEST+ shipped (marginal): all tracks (mean trials, completed) | "
@@ -157,21 +165,18 @@ def main() -> None:
     }
     print("| observer scale, lapse | " + " | ".join(head[c] for c in columns) + " |")
     print("|---|" + "---:|" * sum(2 if c in ("functional", "quest") else 1 for c in columns))
-    for cell in cells:
-        row = []
-        for c in columns:
-            r = total[(c, cell)]
-            if c == "functional":
-                row += [_share(r["a"], r["n"]), _share(r["b"], r["n"])]
-            elif c == "quest":
-                mean_n, done = r["trials"] / r["n"], r["completed"] / r["n"]
-                rms = np.sqrt(r["sq_err"] / max(r["completed"], 1))
-                among = _share(r["hits_completed"], max(r["completed"], 1))
-                row.append(f"{_share(r['hits'], r['n'])} ({mean_n:.0f}, {done:.0%})")
-                row.append(f"{among}; RMS {rms:.2f} dB")
-            else:
-                row.append(_share(r["hits"], r["n"]))
-        print(f"| {cell[0]:g} dB, {cell[1]:g} | " + " | ".join(row) + " |")
+    left = {cell: sum(1 for _, c in keys if c == cell) for cell in cells}
+    total: dict[tuple[str, tuple[float, float]], dict[str, float]] = {}
+    t0 = time.perf_counter()
+    with ProcessPoolExecutor(max_workers=max(1, args.workers)) as pool:
+        for key, res in zip(keys, pool.map(run_chunk, jobs), strict=True):
+            acc = total.setdefault(key, {})
+            for name, v in res.items():
+                acc[name] = acc.get(name, 0.0) + v
+            left[key[1]] -= 1
+            if not left[key[1]]:
+                print(_row(key[1], columns, total), flush=True)
+    wall = time.perf_counter() - t0
     print(f"\nwall time {wall:.0f} s ({len(jobs)} chunks)")
 
 
