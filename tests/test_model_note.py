@@ -71,3 +71,19 @@ def test_analyze_prints_the_caveat_beside_the_intervals_of_stated_slope_sets(tmp
     assert all(r["al_ci95_low_db"] and r["note"].startswith(STATED_MODEL) for r in rows)
     # The shipped protocol marginalises both: no caveat.
     assert all(stated_model_note(s.settings) is None for s in marginal.sets)
+
+
+def test_the_shipped_bayesian_protocols_marginalise_slope_and_lapse_past_008():
+    """Issue 18: both shipped Bayesian protocols and both settings' defaults put grids over the
+    slope and the lapse, the lapse grid reaching past 0.08 (an observer on a grid's edge is
+    undercovered), and neither gets the caveat."""
+    functional = shipped("protocols", "experiment1_functional.yaml")
+    for settings in (
+        QuestPlusSettings(-20.0, 45.0),
+        FunctionalRampSettings(),
+        *(s.settings for s in load_protocol(str(QUEST)).sets),
+        *(s.settings for s in load_protocol(str(functional)).sets),
+    ):
+        assert len(settings.scales_db) > 1 and max(settings.lapses) > 0.08, settings
+        assert min(settings.scales_db) <= 0.75 and max(settings.scales_db) >= 3.0
+        assert stated_model_note(settings) is None
