@@ -5,8 +5,9 @@
 Times every ``update`` (posterior update, stop rules and the placement of the next trial: what
 the session does between an answer and the next stimulus) over tracks against simulated
 observers, for the shipped QUEST+ grid (experiment1_questplus.yaml: 131 levels × 131
-thresholds, slope known), a 131 × 131 × 40 grid with Watson's joint entropy (10 scales × 4
-lapses) and the shipped functional (ramp) grid (experiment1_functional.yaml), each
+thresholds × 28 (7 scales × 4 lapses), psi-marginal placement), a 131 × 131 × 40 grid with
+Watson's joint entropy (10 scales × 4 lapses) and the shipped functional (ramp) grid
+(experiment1_functional.yaml), each
 
 * idle, and with every other core saturated by busy processes this benchmark starts,
 * as the session runs it (one BLAS thread, ``session.blas_threads``), beside the library's
@@ -167,9 +168,9 @@ def main() -> None:
     quest = load_protocol(shipped("protocols", "experiment1_questplus.yaml")).sets[0].settings
     functional = load_protocol(shipped("protocols", "experiment1_functional.yaml")).sets[0].settings
     grids = [
-        ("shipped", "QUEST+ shipped 131×131×1", quest, _threshold_answer),
+        ("shipped", "QUEST+ shipped 131×131×28 psi-marginal", quest, _threshold_answer),
         ("joint", "QUEST+ joint 131×131×40", JOINT, _threshold_answer),
-        ("functional", "functional shipped 230×899×18", functional, _ramp_answer),
+        ("functional", "functional shipped 230×899×27", functional, _ramp_answer),
     ]
     load = ", ".join(f"{v:.1f}" for v in os.getloadavg())
     print(f"{os.cpu_count()} cores, load average {load} (before the benchmark's own load)")

@@ -66,8 +66,9 @@ def test_a_session_whose_placements_would_take_minutes_is_refused_by_validate(tm
     from masking_lab.commands.cli import main
 
     # 3,251 levels × 3,251 thresholds fit in memory, but 500 trials × 15 sets scanning them
-    # took minutes of computing in the simulator.
-    path = _protocol(tmp_path, level_step_db=0.02, max_trials=500)
+    # took minutes of computing in the simulator (slope and lapse known: the marginalised
+    # default grid would exceed the memory limit first).
+    path = _protocol(tmp_path, level_step_db=0.02, max_trials=500, scales_db=1.5, lapses=0.02)
     assert main(["validate", str(path)]) == 1
     err = capsys.readouterr()
     text = err.out + err.err

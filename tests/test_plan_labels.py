@@ -46,16 +46,17 @@ def staircase_plan(tmp_path_factory):
 
 def test_a_questplus_protocol_is_described_as_questplus(questplus_plan):
     text = (questplus_plan / "plan.txt").read_text()
-    assert "this protocol: QUEST+ (slope known), stops at posterior SD ≤ 1.08 dB" in text
-    assert "trial cap 80" in text and "not this protocol" in text
+    # The shipped QUEST+ protocol marginalises slope and lapse (issue 18): psi-marginal.
+    assert "this protocol: psi-marginal (slope unknown), stops at posterior SD ≤ 1.6 dB" in text
+    assert "trial cap 120" in text and "not this protocol" in text
     assert not _own(_rows(questplus_plan / "plan_table.csv"))  # no staircase row is its own
     own = _own(_rows(questplus_plan / "plan_procedures.csv"))
     assert [(r["procedure"], r["setting"], r["max_trials"]) for r in own] == [
-        ("QUEST+", "SD ≤ 1.08 dB", "80")
+        ("psi-marginal", "SD ≤ 1.6 dB", "120")
     ]
     assert "Per set, the paper's staircase beside this protocol" in text
     assert not re.search(r"^\S.*\*\s*11/8", text, re.M)  # the 11/8 row is not starred
-    assert "QUEST+ (this protocol)" in (questplus_plan / "report.html").read_text()
+    assert "psi-marginal (this protocol)" in (questplus_plan / "report.html").read_text()
 
 
 def test_a_staircase_protocol_stars_its_staircase_and_no_questplus_row(staircase_plan):

@@ -84,12 +84,14 @@ def _observer_answers(rng, true_db: float, level: float) -> bool:
 
 
 ORACLE_CASES = [
-    # known slope, flat prior over the level range (the paper's default observer)
-    QuestPlusSettings(-20.0, 45.0, max_trials=40),
+    # known slope and lapse (stated: the defaults marginalise them), flat prior over the level
+    # range (the paper's default observer)
+    QuestPlusSettings(-20.0, 45.0, scales_db=1.5, lapses=0.02, max_trials=40),
     # normal prior, coarser threshold grid wider than the stimulus range
     QuestPlusSettings(
         -10.0, 30.0, threshold_min_db=-15.0, threshold_max_db=35.0, threshold_step_db=1.0,
-        prior="normal", prior_mean_db=10.0, prior_sd_db=8.0, max_trials=30,
+        prior="normal", prior_mean_db=10.0, prior_sd_db=8.0, scales_db=1.5, lapses=0.02,
+        max_trials=30,
     ),
     # unknown slope and lapse, joint entropy: Watson's QUEST+ exactly
     QuestPlusSettings(

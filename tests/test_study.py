@@ -156,7 +156,7 @@ def test_the_command_writes_figures_tables_and_blocks_into_out_byte_for_byte(gen
     assert "| 3IFC | 0.25 | 0.375 | 1 | 0.7937 |" in convergence
     assert "| 2AFC | 0.25 | 0.375 | 0.7393 | 0.8315 |" in convergence
     procedures = first["blocks/procedures.md"].decode()
-    assert "| QUEST+ | SD ≤ 1.08 dB **(protocol)** | posterior mean |" in procedures
+    assert "| psi-marginal | SD ≤ 1.6 dB **(protocol)** | posterior mean |" in procedures
     assert "Fewest trials for ±1 dB" in procedures
     assert first["convergence.png"][:4] == b"\x89PNG"
     # a second run gives the same bytes: the committed study only changes with its results

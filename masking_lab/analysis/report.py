@@ -126,11 +126,16 @@ class ThresholdsSection:
         Sets that are not ``completed``, in table order.
     unmasked_sources : tuple of (source, count)
         Where the unmasked ALs of the masked sets come from, sorted by source.
+    model_notes : tuple of (note, count)
+        What the 95 % intervals of completed sets assume (a Bayesian procedure with a stated
+        slope or lapse: :func:`masking_lab.procedures.model_note.stated_model_note`), with the
+        number of sets, sorted by note.
     """
 
     status_counts: tuple[tuple[str, int], ...]
     excluded: tuple[ExcludedSet, ...]
     unmasked_sources: tuple[tuple[str, int], ...]
+    model_notes: tuple[tuple[str, int], ...] = ()
 
 
 @dataclass(frozen=True)
@@ -452,7 +457,19 @@ def _thresholds_section(thresholds: pd.DataFrame) -> ThresholdsSection:
             for _, r in excluded.iterrows()
         ),
         unmasked_sources=tuple((str(k), int(v)) for k, v in sources.items()),
+        model_notes=_model_notes(thresholds),
     )
+
+
+def _model_notes(thresholds: pd.DataFrame) -> tuple[tuple[str, int], ...]:
+    """Distinct interval caveats of sets that have an interval, with their counts."""
+    from masking_lab.procedures.model_note import STATED_MODEL
+
+    if not {"al_ci95_low_db", "note"} <= set(thresholds.columns):
+        return ()
+    notes = thresholds.loc[thresholds["al_ci95_low_db"].notna(), "note"].dropna().astype(str)
+    counts = notes[notes.str.startswith(STATED_MODEL)].value_counts().sort_index()
+    return tuple((str(k), int(v)) for k, v in counts.items())
 
 
 def _experiment_section(r: ExperimentResult, test_alpha: float) -> ExperimentSection:

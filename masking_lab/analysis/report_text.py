@@ -105,6 +105,8 @@ def _threshold_lines(t: ThresholdsSection) -> list[str]:
             "  masked sets' unmasked ALs (the reference of each shift) from: "
             + ", ".join(f"{k} ({v} masked sets)" for k, v in t.unmasked_sources)
         )
+    for note, n in t.model_notes:  # the caveat beside the intervals (al_ci95_* columns)
+        out.append(f"  intervals of {n} set(s): {note}")
     return out
 
 

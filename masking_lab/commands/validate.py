@@ -81,6 +81,8 @@ def run(args: argparse.Namespace) -> int:
                 participant=(args.data, args.participant) if args.data is not None else None,
             )
             print(f"ok      {f}: {summary}")
+            for note in model_notes(f):
+                print(f"warning {f}: {note}")
         except MaskingLabError as exc:
             bad += 1
             print(f"INVALID {exc}", file=sys.stderr)
@@ -155,6 +157,19 @@ def check_file(
 
     doc = read_masking_params(path)
     return f"masking params, {len(doc['functions'])} functions"
+
+
+def model_notes(path: str) -> list[str]:
+    """Warnings of a valid protocol whose Bayesian procedure states a single psychometric
+    slope or lapse: its intervals assume them (``procedures.model_note``). Empty for every
+    other file."""
+    from masking_lab.formats.protocol import load_protocol
+    from masking_lab.procedures.model_note import stated_model_note
+
+    if sniff(path)[0] != "protocol":
+        return []
+    notes = {stated_model_note(s.settings) for s in load_protocol(path).sets}
+    return sorted(n for n in notes if n is not None)
 
 
 def _check_for_participant(

@@ -92,7 +92,7 @@ class FunctionalRampSettings:
     slope_step: float = 0.05
     unmasked_offsets_db: tuple[float, ...] = (-1.5, 0.0, 1.5)
     scales_db: tuple[float, ...] = (0.75, 1.5, 3.0)
-    lapses: tuple[float, ...] = (0.0, 0.04)
+    lapses: tuple[float, ...] = (0.0, 0.06, 0.12)
     n_intervals: int = 3
     p_at_threshold: float = LEVITT_1U3D
     max_trials: int = 90
@@ -329,7 +329,7 @@ def ramp_tables(settings: FunctionalRampSettings) -> RampTables:
     --------
     >>> t = ramp_tables(FunctionalRampSettings(max_trials=5))
     >>> t.p_correct.shape, t.p_correct.dtype.name
-    ((18, 899, 230), 'float32')
+    ((27, 899, 230), 'float32')
     """
     s = settings
     maskers = grid_db(s.masker_min_db_sl, s.masker_max_db_sl, s.masker_step_db)

@@ -144,8 +144,10 @@ def trial_work(settings: object) -> int:
     Examples
     --------
     >>> from masking_lab.procedures.quest_plus import QuestPlusSettings
-    >>> trial_work(QuestPlusSettings(-20.0, 45.0))
+    >>> trial_work(QuestPlusSettings(-20.0, 45.0, scales_db=1.5, lapses=0.02))
     17161
+    >>> trial_work(QuestPlusSettings(-20.0, 45.0))  # 7 scales × 4 lapses marginalised
+    480508
     """
     cells = getattr(settings, "table_cells", 0)
     weight = _WORK_PER_CELL.get(str(getattr(settings, "kind", "")), 1.0)

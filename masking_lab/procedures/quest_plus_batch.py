@@ -220,7 +220,8 @@ def simulate_quest_plus(
 
     Examples
     --------
-    >>> s = QuestPlusSettings(-20.0, 45.0, target_sd_db=1.08, max_trials=100)
+    >>> s = QuestPlusSettings(-20.0, 45.0, scales_db=1.5, lapses=0.02,  # slope, lapse known
+    ...                       target_sd_db=1.08, max_trials=100)
     >>> sim = simulate_quest_plus(s, np.full(20, 10.0), rng=np.random.default_rng(1))
     >>> bool(np.all(sim.status == "completed")), bool(np.median(sim.n_trials) < 40)
     (True, True)

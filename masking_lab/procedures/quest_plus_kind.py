@@ -19,15 +19,26 @@ from masking_lab.core.errors import LevelError, ProcedureError
 from masking_lab.procedures.estimators import ml_threshold
 from masking_lab.procedures.fisher import max_information
 from masking_lab.procedures.limits import DEFAULT_BAYES_TRIAL_CAP, grid_top
+from masking_lab.procedures.model_note import stated_model_note
 from masking_lab.procedures.quest_plus import QuestPlus, QuestPlusSettings, tables
 from masking_lab.procedures.quest_plus_batch import replay_many, simulate_quest_plus
 from masking_lab.procedures.quest_plus_model import psychometric_table
 from masking_lab.procedures.registry import ProcedureKind, ProtocolContext, SettingsProblem
 
-__all__ = ["KIND", "QUEST_EFFICIENCY", "posterior_summary", "quest_trials_left"]
+__all__ = [
+    "KIND",
+    "PSI_MARGINAL_EFFICIENCY",
+    "QUEST_EFFICIENCY",
+    "posterior_summary",
+    "quest_trials_left",
+]
 
 #: QUEST+'s measured efficiency against the Cramér-Rao bound (docs/procedures.md: 59 %).
 QUEST_EFFICIENCY = 0.6
+#: The same for psi-marginal on the default scale and lapse grids: the posterior SD also
+#: carries the slope and lapse the trials have not pinned down (median 65 trials to SD 1.08 dB
+#: for the 1.5 dB / 0.02 observer, docs/procedures.md).
+PSI_MARGINAL_EFFICIENCY = 0.27
 
 
 def _from_mapping(block: Mapping[str, Any], key: str) -> QuestPlusSettings:
@@ -81,11 +92,15 @@ def _progress(state: QuestPlus, unit: str) -> str:
 
 @functools.lru_cache(maxsize=32)
 def _information(settings: QuestPlusSettings) -> float:
-    """I* of the settings' model (first scale and lapse of its grids), dB⁻²."""
+    """I* of the settings' model (the middle scale and lapse of its grids) times the
+    procedure's efficiency, dB⁻² per trial."""
     info, _, _ = max_information(
-        scale_db=settings.scales_db[0], guess=settings.guess, lapse=settings.lapses[0]
+        scale_db=float(np.median(settings.scales_db)),
+        guess=settings.guess,
+        lapse=float(np.median(settings.lapses)),
     )
-    return info
+    known = len(settings.scales_db) * len(settings.lapses) == 1
+    return info * (QUEST_EFFICIENCY if known else PSI_MARGINAL_EFFICIENCY)
 
 
 def quest_trials_left(
@@ -94,8 +109,9 @@ def quest_trials_left(
     """Expected trials before a QUEST+ track stops.
 
     Each trial adds to the posterior precision 1/SD² about ``QUEST_EFFICIENCY`` × I* (the
-    Fisher information of the most informative trial), so a track at SD σ needs about
-    (1/target² − 1/σ²)/(0.6·I*) more.
+    Fisher information of the most informative trial, at the grids' middle scale and lapse),
+    so a track at SD σ needs about (1/target² − 1/σ²)/(0.6·I*) more; with slope or lapse
+    marginalised the efficiency is ``PSI_MARGINAL_EFFICIENCY``.
 
     Parameters
     ----------
@@ -117,7 +133,10 @@ def quest_trials_left(
     Examples
     --------
     >>> s = QuestPlusSettings(-20.0, 45.0, target_sd_db=1.08, max_trials=80)
-    >>> round(quest_trials_left(s, 0))
+    >>> round(quest_trials_left(s, 0))   # slope and lapse marginalised (the default)
+    70
+    >>> round(quest_trials_left(QuestPlusSettings(-20.0, 45.0, scales_db=1.5, lapses=0.02,
+    ...                                            target_sd_db=1.08, max_trials=80), 0))
     27
     >>> quest_trials_left(s, 20, 1.0)
     0.0
@@ -128,7 +147,7 @@ def quest_trials_left(
         return cap
     have = 0.0 if sd_db is None or not sd_db > 0 else 1.0 / sd_db**2
     missing = max(0.0, 1.0 / s.target_sd_db**2 - have)
-    left = missing / (QUEST_EFFICIENCY * _information(s))
+    left = missing / _information(s)
     left = max(left, float(s.min_trials - n_trials))
     return float(min(left, cap))
 
@@ -209,14 +228,16 @@ def _estimate_log(
     if not len(levels_db):
         return None, None, None, None, method, "estimator_failed", "no trials to estimate from"
     mean, sd, lo, hi = posterior_summary(settings, levels_db, correct)
+    # A stated slope or lapse: the interval holds for that observer only; say so beside it.
+    caveat = stated_model_note(record)
     if estimator != "ml":
-        return mean, sd, lo, hi, method, "completed", None
+        return mean, sd, lo, hi, method, "completed", caveat
     fit = ml_threshold(
         levels_db, correct, guess=settings.guess, lapse=lapse, p_target=settings.p_at_threshold
     )
     if not fit.ok or fit.threshold_db is None:
         return None, sd, lo, hi, method, "estimator_failed", fit.message
-    return float(fit.threshold_db), sd, lo, hi, method, "completed", None
+    return float(fit.threshold_db), sd, lo, hi, method, "completed", caveat
 
 
 def _simulate_batch(
