@@ -128,3 +128,14 @@ def test_precision_ratios_pair_the_participants_across_routes():
     whole = math.sqrt(np.mean(a_err[kept] ** 2)) / math.sqrt(np.mean(a_err**2))
     assert r["gaps"][0, 0] == pytest.approx(whole)
     assert r["gaps"][0, 2] > r["gaps"][0, 1]  # resampling spreads it
+
+
+def test_the_quest_plus_route_is_the_shipped_protocols():
+    """The trade's QUEST+ per set runs what `experiment1_questplus.yaml` ships (psi-marginal)."""
+    from masking_lab.formats.protocol import load_protocol
+    from masking_lab.formats.resources import shipped
+    from masking_lab.planning.ramp_trade import PAPER_QUEST
+
+    protocol = load_protocol(shipped("protocols", "experiment1_questplus.yaml"))
+    assert {s.procedure for s in protocol.sets} == {PAPER_QUEST}
+    assert len(PAPER_QUEST.scales_db) > 1 and len(PAPER_QUEST.lapses) > 1

@@ -104,7 +104,7 @@ def protocol_quest_plus(protocol: ThresholdProtocol) -> QuestPlusSettings | None
     >>> from masking_lab.formats.protocol import load_protocol
     >>> p = load_protocol(shipped("protocols", "experiment1_questplus.yaml"))
     >>> protocol_quest_plus(p).target_sd_db
-    1.08
+    1.6
     """
     quests = [s.procedure for s in protocol.sets if s.procedure is not None]
     return quests[0] if quests else None
@@ -185,7 +185,7 @@ def compare_procedures(
     >>> c = compare_procedures(p, None, s, np.full((15, 20), 5.0), quest_replicates=20,
     ...                        sd_ladder_db=(1.5,))
     >>> sorted({r["setting"] for r in c.rows})
-    ['SD ≤ 1.08 dB', 'SD ≤ 1.5 dB']
+    ['SD ≤ 1.5 dB', 'SD ≤ 1.6 dB']
     """
     say = progress or (lambda _msg: None)
     obs = settings.observer

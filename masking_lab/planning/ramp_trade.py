@@ -11,8 +11,8 @@ level the session plays (dB SL of the *calibrated* AL). Then:
     masker levels ``levels_db_sl``; shifts = the five ALs (already relative to the calibrated
     AL); the least-squares ramp (:func:`masking_lab.analysis.ramp_fit.ramp_least_squares_batch`).
 ``quest_plus``
-    the same with a QUEST+ track per level (slope known, stop at posterior SD 1.08 dB after 10
-    trials, cap 80: ``protocols/experiment1_questplus.yaml``).
+    the same with a QUEST+ track per level (psi-marginal, slope and lapse marginalised, stop
+    at posterior SD 1.6 dB after 10 trials, cap 120: ``protocols/experiment1_questplus.yaml``).
 ``functional``
     one functional_ramp track over the same masker range (``protocols/experiment1_functional
     .yaml``'s grids), run to ``max(checkpoints)`` trials; its posterior means at each
@@ -65,7 +65,8 @@ PAPER_STAIRCASE = StaircaseSettings(
     20.0, step_sizes_db=(4.0, 4.0, 4.0, 2.0), min_level_db=-20.0, max_level_db=45.0,
     max_trials=150,
 )  # fmt: skip
-PAPER_QUEST = QuestPlusSettings(-20.0, 45.0, target_sd_db=1.08, min_trials=10, max_trials=80)
+# protocols/experiment1_questplus.yaml's settings: slope and lapse marginalised (the defaults).
+PAPER_QUEST = QuestPlusSettings(-20.0, 45.0, target_sd_db=1.6, min_trials=10, max_trials=120)
 
 
 @dataclass(frozen=True)
