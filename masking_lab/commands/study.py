@@ -66,16 +66,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from masking_lab.session.blas_threads import one_blas_thread
-
-    say = step_bar("study", progress_wanted(args.progress))
-    with one_blas_thread():  # as plan: the workers fill the cores
-        return _regenerate(args, say)
-
-
-def _regenerate(args: argparse.Namespace, say: Callable[[str], None]) -> int:
     from masking_lab.planning.study import regenerate
 
+    say = step_bar("study", progress_wanted(args.progress))
     regenerate(
         Path(args.out),
         replicates=args.replicates,
