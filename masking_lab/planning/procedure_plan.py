@@ -272,7 +272,8 @@ def _targets(own: QuestPlusSettings, sd_ladder_db: Sequence[float]) -> list[floa
     return sorted({*sd_ladder_db, *([own.target_sd_db] if own.target_sd_db else [])})
 
 
-#: QUEST+ tracks per set in one chunk (a worker holds its (tracks × 300) posterior arrays).
+#: QUEST+ tracks per set in one chunk: a worker holds its (tracks × 300) posterior arrays
+#: (peak ~30 MB for the 15 sets of experiment I).
 QUEST_CHUNK_REPLICATES = 100
 
 #: A QUEST+ chunk's outcomes: per (posterior-SD target, capped), each track's status code,
