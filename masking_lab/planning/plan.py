@@ -329,7 +329,11 @@ def assemble_plan(
             np.concatenate([c[i].reshape(n_sets, -1) for c in mls], axis=1).reshape(-1)
             for i in range(len(settings.stop_rules))
         ] if mls else None  # fmt: skip
-        say(f"schedule {k}/{len(settings.schedules)}: summarised")
+        sched = settings.schedules[k - 1].label
+        say(
+            f"schedule {k}/{len(settings.schedules)} ({sched}): stop rules and reversal ladder "
+            f"3…{settings.max_reversals}"
+        )
         parts.append(_schedule_part(protocol, settings, thresholds_db, k, rules, rungs, ml_al))
     base = protocol_staircase(protocol)
     return PlanResult(
