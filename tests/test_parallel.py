@@ -168,3 +168,22 @@ def test_a_scheduler_that_is_no_address_is_a_usage_error(tmp_path, capsys, comma
     err = capsys.readouterr().err
     assert "--scheduler" in err and "tcp://host:8786" in err and "Traceback" not in err
     assert not (tmp_path / "o").exists()
+
+
+def test_chunk_results_that_do_not_match_the_chunks_are_refused():
+    from masking_lab.core.errors import AnalysisError
+    from masking_lab.formats.protocol import load_protocol
+    from masking_lab.planning.plan import assemble_plan, plan_tasks
+    from masking_lab.planning.procedure_plan import compare_procedures
+    from masking_lab.planning.settings import PlanSettings, Schedule, StopRule
+
+    p = load_protocol(shipped("protocols", "baseline.yaml"))
+    s = PlanSettings((StopRule(7, 4),), (Schedule((2.0,)),), replicates=4, ml_replicates=0,
+                     max_reversals=8)  # fmt: skip
+    thr = np.full((4, 4), -30.0)
+    results = run_tasks(plan_tasks(p, s, thr))
+    assert assemble_plan(p, s, thr, results).table
+    with pytest.raises(AnalysisError, match="chunk results"):
+        assemble_plan(p, s, thr, [*results, *results])
+    with pytest.raises(ValueError, match="QUEST\\+ chunk results"):
+        compare_procedures(p, None, s, thr, quest_replicates=4, outcomes=[])
