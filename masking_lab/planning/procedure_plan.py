@@ -10,6 +10,8 @@ mean trials it used (the paper's 11/8 staircase: ~30 %).
 QUEST+ runs once per variant to the strictest posterior-SD target of a ladder; a track's levels
 do not depend on its stop rule until it stops, so every looser target is read off that run
 exactly (:meth:`~masking_lab.procedures.quest_plus_batch.SimulatedQuestPlus.trials_to_sd`).
+The tracks run in chunks, each with its own seed (:func:`quest_tasks`), anywhere
+(:mod:`masking_lab.planning.parallel`); a chunk hands back how each track ends, not the track.
 Each target is then summarised like a staircase rule: trials and minutes (median, p90, mean),
 bias, SD and RMSE of the AL against the true threshold, and how often a track ends at a bound
 or the trial cap. "Fewest trials for ±X dB" is answered across procedures from uncapped rows.
