@@ -41,10 +41,10 @@ __all__ = [
 
 #: Replicates per set in one chunk of a schedule's simulation, and of its ML fits (whose tracks
 #: keep every trial's level): a worker holds one chunk, which bounds its memory (peak ~26 MB
-#: for the 15 sets of experiment I; smaller chunks cost more CPU per session). The tables
-#: depend on these sizes and the seed, never on where the chunks run.
+#: and ~56 MB for the 15 sets of experiment I; smaller chunks cost more CPU per session). The
+#: tables depend on these sizes and the seed, never on where the chunks run.
 CHUNK_REPLICATES = 1000
-ML_CHUNK_REPLICATES = 250
+ML_CHUNK_REPLICATES = 500
 
 
 Chunk = tuple[int, int, np.random.SeedSequence]
