@@ -315,14 +315,17 @@ def assemble_plan(
     """The plan from the results of :func:`plan_tasks` (same arguments), in their order."""
     say = progress or (lambda _msg: None)
     long_chunks, ml_chunks = chunk_layout(settings)
-    per_schedule = len(long_chunks) + len(ml_chunks)
-    if len(results) != per_schedule * len(settings.schedules):
-        raise AnalysisError(f"expected {per_schedule} chunk results per schedule")
+    n_sched = len(settings.schedules)
+    if len(results) != (len(long_chunks) + len(ml_chunks)) * n_sched:
+        raise AnalysisError(
+            f"expected {len(long_chunks) + len(ml_chunks)} chunk results per schedule"
+        )
+    n_ml = len(ml_chunks) * n_sched
     n_sets = len(protocol.sets)
     parts = []
-    for k in range(1, len(settings.schedules) + 1):
-        mine = results[(k - 1) * per_schedule : k * per_schedule]
-        longs, mls = mine[: len(long_chunks)], mine[len(long_chunks) :]
+    for k in range(1, n_sched + 1):
+        mls = results[(k - 1) * len(ml_chunks) : k * len(ml_chunks)]
+        longs = results[n_ml + (k - 1) * len(long_chunks) : n_ml + k * len(long_chunks)]
         rules = [_joined([c[0][i] for c in longs], n_sets) for i in range(len(settings.stop_rules))]
         rungs = [_joined([c[1][i] for c in longs], n_sets) for i in range(len(longs[0][1]))]
         ml_al = [

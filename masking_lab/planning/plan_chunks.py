@@ -69,7 +69,8 @@ def chunk_layout(settings: PlanSettings) -> tuple[list[Chunk], list[Chunk]]:
 def plan_tasks(
     protocol: ThresholdProtocol, settings: PlanSettings, thresholds_db: NDArray[np.float64]
 ) -> list[Task]:
-    """The chunks of :func:`run_plan`'s simulations, to run anywhere
+    """The chunks of :func:`run_plan`'s simulations (every schedule's ML chunks, then every
+    schedule's long runs), to run anywhere
     (:func:`masking_lab.planning.parallel.run_tasks`); :func:`assemble_plan` reads their
     results, in this order, into the plan.
 
@@ -85,12 +86,18 @@ def plan_tasks(
             f"got {thresholds_db.shape}"
         )
     long_chunks, ml_chunks = chunk_layout(settings)
-    tasks: list[Task] = []
-    for k in range(1, len(settings.schedules) + 1):
-        for a, n, ss in long_chunks:
-            tasks.append((schedule_chunk, (protocol, settings, thresholds_db[:, a : a + n], k, ss)))
-        for a, n, ss in ml_chunks:
-            tasks.append((ml_chunk, (protocol, settings, thresholds_db[:, a : a + n], k, ss)))
+    # The ML fits first: the longest chunks, started first, leave the short ones to fill in.
+    schedules = range(1, len(settings.schedules) + 1)
+    tasks: list[Task] = [
+        (ml_chunk, (protocol, settings, thresholds_db[:, a : a + n], k, ss))
+        for k in schedules
+        for a, n, ss in ml_chunks
+    ]
+    tasks += [
+        (schedule_chunk, (protocol, settings, thresholds_db[:, a : a + n], k, ss))
+        for k in schedules
+        for a, n, ss in long_chunks
+    ]
     return tasks
 
 
