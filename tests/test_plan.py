@@ -223,15 +223,20 @@ def test_plan_table_covers_the_grid_and_marks_the_protocol(small_plan):
 
 
 def test_plan_numbers_equal_a_direct_simulation_of_the_rule(exp1, small_plan):
-    # The plan derives 11/8 with a 150-trial cap from one long run; re-simulate it directly.
+    # The plan derives 11/8 with a 150-trial cap from one long run; re-simulate it directly
+    # (its 40 replicates are one chunk, with the first seed of the chunk plan).
+    from masking_lab.planning.parallel import chunk_plan
+    from masking_lab.planning.plan_chunks import CHUNK_REPLICATES
+
     settings, thr, result = small_plan
+    [(_, seed)] = chunk_plan(settings.seed, 40, CHUNK_REPLICATES)
     base = P.protocol_staircase(exp1)
     starts = np.repeat([s.staircase.start_level_db for s in exp1.sets], 40)
     direct = simulate(
         base,
         thr.reshape(-1),
         settings.observer,
-        np.random.default_rng(settings.seed),
+        np.random.default_rng(seed),
         start_level_db=starts,
     )
     truth = thr.reshape(-1)

@@ -3,10 +3,18 @@
 from __future__ import annotations
 
 import argparse
+import re
 import textwrap
 from typing import TypedDict
 
-__all__ = ["command_texts", "progress_flags", "rating_options", "session_options"]
+__all__ = [
+    "add_scheduler_option",
+    "check_scheduler",
+    "command_texts",
+    "progress_flags",
+    "rating_options",
+    "session_options",
+]
 
 
 def finite_float(text: str) -> float:
@@ -29,6 +37,50 @@ def finite_float(text: str) -> float:
     if not math.isfinite(value):
         raise argparse.ArgumentTypeError(f"{text[:40]!r} is not a finite number")
     return value
+
+
+def add_scheduler_option(p: argparse.ArgumentParser) -> None:
+    """``--scheduler`` (plan, study): where the simulations' chunks run.
+
+    Examples
+    --------
+    >>> p = argparse.ArgumentParser()
+    >>> add_scheduler_option(p)
+    >>> p.parse_args([]).scheduler, p.parse_args(["--scheduler", "tcp://h:8786"]).scheduler
+    ('local', 'tcp://h:8786')
+    """
+    p.add_argument(
+        "--scheduler",
+        type=check_scheduler,
+        default="local",
+        metavar="ADDRESS",
+        help="where the simulations run, in chunks of replicates: 'local' (worker processes "
+        "on this machine, one per core; default), 'synchronous' (this process) or a Dask "
+        "scheduler's address (tcp://host:8786; its workers need masking_lab installed); the "
+        "same --seed gives the same tables on any",
+    )
+
+
+_DASK_ADDRESS = re.compile(r"^(tcp|tls|ucx|ws|wss|inproc)://\S+$")
+
+
+def check_scheduler(text: str) -> str:
+    """``--scheduler``'s value: ``local``, ``synchronous`` or a Dask address (argparse type).
+
+    Examples
+    --------
+    >>> check_scheduler("tcp://10.0.0.5:8786")
+    'tcp://10.0.0.5:8786'
+    >>> check_scheduler("10.0.0.5")  # doctest: +ELLIPSIS
+    Traceback (most recent call last):
+    argparse.ArgumentTypeError: '10.0.0.5' is not local, synchronous or a Dask scheduler ...
+    """
+    if text in ("local", "synchronous") or _DASK_ADDRESS.match(text):
+        return text
+    raise argparse.ArgumentTypeError(
+        f"{text[:80]!r} is not local, synchronous or a Dask scheduler address such as "
+        "tcp://host:8786"
+    )
 
 
 def rating_options(p: argparse.ArgumentParser, device_config_help: str) -> None:

@@ -27,7 +27,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from masking_lab.commands.options import command_texts
+from masking_lab.commands.options import add_scheduler_option, command_texts
 from masking_lab.commands.plan_scene import add_scene_options, run_scene
 from masking_lab.commands.progress_bars import add_progress_options
 
@@ -225,14 +225,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--per-set", action="store_true", help="print every setting per set, not just pooled"
     )
-    p.add_argument(
-        "--scheduler",
-        default="local",
-        metavar="ADDRESS",
-        help="where the masking-function simulations of a functional protocol run: 'local' "
-        "(worker processes on this machine, default), 'synchronous' (this process) or a Dask "
-        "scheduler's address (tcp://host:8786); the same --seed gives the same table on any",
-    )
+    add_scheduler_option(p)
     add_progress_options(p)
     add_scene_options(p)
     p.set_defaults(handler=run)
@@ -294,8 +287,8 @@ def _run(args: argparse.Namespace) -> int:
     from masking_lab.formats.protocol import load_protocol
     from masking_lab.planning import plan as P
     from masking_lab.planning.figures import png_bytes, speed_accuracy
-    from masking_lab.planning.parallel import in_background
-    from masking_lab.planning.procedure_plan import compare_procedures
+    from masking_lab.planning.parallel import run_tasks
+    from masking_lab.planning.procedure_plan import compare_procedures, quest_tasks
     from masking_lab.planning.procedure_report import (
         format_comparison,
         format_fewest,
@@ -379,38 +372,28 @@ def _run(args: argparse.Namespace) -> int:
 
     progress = step_bar("plan", progress_wanted(args.progress))
 
-    # The QUEST+ tracks and each schedule of the staircase plan are independent: the tracks
-    # and the last schedule run on the other core meanwhile (the same numbers as here).
-    last = len(settings.schedules) if len(settings.schedules) > 1 else None
-    quest = None
-    if args.quest_replicates or last is not None:
-        quest = in_background(
-            _second_core,
-            protocol,
-            settings,
-            thresholds,
-            quest_replicates=args.quest_replicates,
-            psi=args.psi,
-            quest_max_trials=args.quest_max_trials,
-            schedule=last,
-        )
-    done = {}
-    if quest is not None and last is not None:
-        background = quest
-        done[last] = lambda: background.result()[1]
-    result = P.run_plan(protocol, settings, thresholds, progress=progress, done=done)
+    # The staircase plan's chunks (its ML fits, the longest, first) and the QUEST+ tracks' run
+    # together, so both workers stay busy to the end; every chunk has its own seed, so the
+    # tables do not depend on where it ran.
+    quest_kw = {"quest_replicates": args.quest_replicates, "psi": args.psi}
+    quest_kw["quest_max_trials"] = args.quest_max_trials
+    staircase = P.plan_tasks(protocol, settings, thresholds)
+    quest = quest_tasks(protocol, settings, thresholds, **quest_kw) if args.quest_replicates else []
+    progress(f"simulating {len(staircase) + len(quest)} chunks ({args.scheduler})")
+    results = run_tasks([*staircase, *quest], scheduler=args.scheduler)
+    result = P.assemble_plan(
+        protocol, settings, thresholds, results[: len(staircase)], progress=progress
+    )
     comparison = None
-    if quest is not None and args.quest_replicates:
+    if quest:
         comparison = compare_procedures(
             protocol,
             result,
             settings,
             thresholds,
-            quest_replicates=args.quest_replicates,
-            psi=args.psi,
             progress=progress,
-            quest_max_trials=args.quest_max_trials,
-            simulations=quest.result()[0],
+            outcomes=results[len(staircase) :],
+            **quest_kw,
         )
     cap = P.protocol_staircase(protocol).max_trials
     own_text = protocol_procedure_text(protocol)
@@ -493,35 +476,6 @@ def _run(args: argparse.Namespace) -> int:
             write_bytes_atomic(stage / name, png)
     print(f"\nwrote {', '.join(str(out / n) for n in [*files, *figures])}", file=sys.stderr)
     return 0
-
-
-def _second_core(
-    protocol: ThresholdProtocol,
-    settings: Any,
-    thresholds: Any,
-    *,
-    quest_replicates: int,
-    psi: bool,
-    quest_max_trials: int | None,
-    schedule: int | None,
-) -> tuple[Any, Any]:
-    """What ``plan`` runs in its second process: the procedures comparison's QUEST+ tracks
-    (None without ``quest_replicates``) and staircase schedule number ``schedule`` (or None)."""
-    from masking_lab.planning.plan import plan_schedule
-    from masking_lab.planning.procedure_plan import quest_simulations
-
-    sims = None
-    if quest_replicates:
-        sims = quest_simulations(
-            protocol,
-            settings,
-            thresholds,
-            quest_replicates=quest_replicates,
-            psi=psi,
-            quest_max_trials=quest_max_trials,
-        )
-    part = None if schedule is None else plan_schedule(protocol, settings, thresholds, schedule)
-    return sims, part
 
 
 def plan_folder(out: str | None, *, force: bool) -> Path:

@@ -1,7 +1,8 @@
 """``masking-lab study --out OUT``: run the speed–accuracy study (docs/speed-accuracy.md).
 
 Simulate the speed–accuracy study and write its tables, figures and the study document's
-generated blocks (blocks/NAME.md) into OUT. Same arguments, same bytes.
+generated blocks (blocks/NAME.md) into OUT. Same arguments, same bytes, wherever --scheduler
+runs the simulations' chunks.
 
 Convergence of 1-up-3-down tracks by step size in 3IFC and 2AFC, the stop-rule / schedule /
 estimator grid on experiment I, and the procedures (staircase settings, QUEST+) against the
@@ -14,7 +15,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from masking_lab.commands.options import command_texts
+from masking_lab.commands.options import add_scheduler_option, command_texts
 from masking_lab.commands.plan import _count, _positive_int
 from masking_lab.commands.progress_bars import add_progress_options, progress_wanted, step_bar
 
@@ -59,6 +60,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--psi", action="store_true", help="add the psi-marginal (slow)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    add_scheduler_option(p)
     add_progress_options(p)
     p.set_defaults(handler=run)
 
@@ -77,5 +79,6 @@ def run(args: argparse.Namespace) -> int:
         psi=args.psi,
         seed=args.seed,
         progress=say,
+        scheduler=args.scheduler,
     )
     return 0

@@ -6,10 +6,11 @@ inputs, so the same seed gives the same tables however many workers run them, in
 on a cluster. A chunk holds a bounded number of replicates, which bounds a worker's memory.
 
 ``scheduler``: ``"synchronous"`` runs the chunks one after another in this process (no Dask);
-None runs them on worker processes of this machine (one per core, at most ``max_workers``,
-forked from this one so they start with its imports and one BLAS thread each: a local Dask
-cluster cost seconds to start and, its idle workers polling, more system time than the
-simulation itself); an address (``tcp://host:8786``) joins that Dask cluster's scheduler.
+``"local"`` (or None) runs them on worker processes of this machine (one per core, at most
+``max_workers``, forked from this one so they start with its imports: a local Dask cluster cost
+seconds to start and, its idle workers polling, more system time than the simulation itself);
+an address (``tcp://host:8786``) joins that Dask cluster's scheduler. Every chunk runs with one
+BLAS thread wherever it runs, so its floating-point sums are the same everywhere.
 """
 
 from __future__ import annotations
@@ -19,11 +20,28 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["Pending", "chunk_plan", "in_background", "run_chunks"]
+from masking_lab.core.errors import AnalysisError
+
+__all__ = [
+    "CONNECT_TIMEOUT_S",
+    "Task",
+    "chunk_plan",
+    "run_chunks",
+    "run_tasks",
+]
+
+#: Seconds to wait for a Dask scheduler to answer before giving up with a clear error.
+CONNECT_TIMEOUT_S = 10.0
+#: A chunk of work: a module-level function and its arguments (both picklable).
+Task = tuple[Callable[..., Any], tuple[Any, ...]]
 
 
-def chunk_plan(seed: int, replicates: int, chunk: int) -> list[tuple[int, np.random.SeedSequence]]:
+def chunk_plan(
+    seed: int | Sequence[int], replicates: int, chunk: int
+) -> list[tuple[int, np.random.SeedSequence]]:
     """(replicates, seed sequence) of every chunk, in order.
+
+    ``seed`` is an int or a sequence of ints (a stream of its own, e.g. ``[seed, 1]``).
 
     Examples
     --------
@@ -48,6 +66,11 @@ def run_chunks(
     Results come back in the order of ``args``. ``fn`` must be a module-level function (it is
     pickled to the workers).
 
+    Raises
+    ------
+    AnalysisError
+        If no Dask scheduler answers at the address within :data:`CONNECT_TIMEOUT_S`.
+
     Examples
     --------
     >>> run_chunks(pow, [(2, 3), (3, 2)])
@@ -55,12 +78,43 @@ def run_chunks(
     """
     if scheduler == "synchronous":
         return [fn(*a) for a in args]
-    if scheduler is None:
+    if scheduler is None or scheduler == "local":
         return _local_pool(fn, args, max_workers)
+    return _gather(_connect(scheduler), fn, args)
+
+
+def run_tasks(tasks: Sequence[Task], *, scheduler: str | None = "synchronous") -> list[Any]:
+    """Each task's ``fn(*args)``, in order, wherever ``scheduler`` says, each with one BLAS
+    thread (a product's sums then do not depend on where it ran).
+
+    Examples
+    --------
+    >>> run_tasks([(pow, (2, 3)), (divmod, (7, 2))])
+    [8, (3, 1)]
+    """
+    return run_chunks(_one_thread_call, list(tasks), scheduler=scheduler)
+
+
+def _one_thread_call(fn: Callable[..., Any], args: tuple[Any, ...]) -> Any:
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(1, user_api="blas"):
+        return fn(*args)
+
+
+def _connect(address: str) -> Any:
+    """A Dask client of the scheduler at ``address`` (an error naming it if none answers)."""
     from distributed import Client
 
-    with Client(scheduler) as client:
-        return _gather(client, fn, args)
+    try:
+        return Client(address, timeout=CONNECT_TIMEOUT_S)
+    except (OSError, TimeoutError, ValueError) as exc:
+        raise AnalysisError(
+            f"--scheduler {address}: no Dask scheduler answered there within "
+            f"{CONNECT_TIMEOUT_S:g} s ({type(exc).__name__}: {str(exc)[:200]}); start one "
+            "(`dask scheduler`, and `dask worker ADDRESS` on each machine) or use --scheduler "
+            "local"
+        ) from None
 
 
 def _local_pool(
@@ -87,49 +141,6 @@ def _one_blas_thread() -> None:
     threadpool_limits(1, user_api="blas")
 
 
-class Pending:
-    """A call running in a forked worker process (or, without ``fork``, deferred to
-    :meth:`result`); :meth:`result` waits for it and ends the worker."""
-
-    def __init__(self, fn: Callable[..., Any], args: tuple[Any, ...], kwargs: dict[str, Any]):
-        import multiprocessing
-        from concurrent.futures import ProcessPoolExecutor
-
-        self._call = (fn, args, kwargs)
-        self._pool = None
-        self._future = None
-        if "fork" in multiprocessing.get_all_start_methods() and _cores() > 1:
-            context = multiprocessing.get_context("fork")
-            self._pool = ProcessPoolExecutor(1, mp_context=context, initializer=_one_blas_thread)
-            self._future = self._pool.submit(fn, *args, **kwargs)
-
-    def result(self) -> Any:
-        """The call's return value (its exception re-raised here); asked again, the same."""
-        if self._future is None or self._pool is None:
-            if not hasattr(self, "_value"):
-                fn, args, kwargs = self._call
-                self._value = fn(*args, **kwargs)
-            return self._value
-        try:
-            return self._future.result()
-        finally:
-            self._pool.shutdown()
-
-
-def in_background(fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Pending:
-    """Start ``fn(*args, **kwargs)`` on the machine's other core while this process goes on.
-
-    ``fn`` must be a module-level function and its result picklable. On one core, or where
-    processes cannot be forked, the call runs when its result is asked for instead.
-
-    Examples
-    --------
-    >>> in_background(pow, 2, 10).result()
-    1024
-    """
-    return Pending(fn, args, kwargs)
-
-
 def _cores() -> int:
     import os
 
@@ -139,5 +150,6 @@ def _cores() -> int:
 
 
 def _gather(client: Any, fn: Callable[..., Any], args: Sequence[tuple[Any, ...]]) -> list[Any]:
-    futures = [client.submit(fn, *a, pure=False) for a in args]
-    return list(client.gather(futures))
+    with client:
+        futures = [client.submit(fn, *a, pure=False) for a in args]
+        return list(client.gather(futures))

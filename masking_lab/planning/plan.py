@@ -18,15 +18,18 @@ formatted by :mod:`masking_lab.planning.report`.
 
 Efficiency: all sets run together as rows of one simulation, every stop rule and the trial cap
 are derived exactly from one long run per schedule
-(:func:`masking_lab.procedures.staircase_batch.outcome_under`),
-and each schedule reuses the same seed, so settings are compared on common random numbers.
+(:func:`masking_lab.procedures.staircase_batch.outcome_under`). The sessions are simulated in
+chunks of replicates (:mod:`masking_lab.planning.plan_chunks`), each with its own seed, run
+wherever ``scheduler`` says (:mod:`masking_lab.planning.parallel`): the tables depend on the
+seed only. Each schedule reuses the same chunk seeds, so settings are compared on common random
+numbers.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, replace
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -34,6 +37,8 @@ from numpy.typing import NDArray
 
 from masking_lab.core.errors import AnalysisError
 from masking_lab.formats.protocol import ThresholdProtocol
+from masking_lab.planning.parallel import run_tasks
+from masking_lab.planning.plan_chunks import chunk_layout, plan_tasks
 from masking_lab.planning.settings import (
     ESTIMATOR_LABELS,
     ESTIMATORS,
@@ -56,7 +61,6 @@ from masking_lab.planning.settings import (
     true_thresholds_db,
 )
 from masking_lab.procedures.fisher import cramer_rao_trials
-from masking_lab.procedures.ml_batch import index_levels, ml_threshold_from_counts
 from masking_lab.procedures.staircase_batch import (
     CEILING,
     COMPLETED,
@@ -65,8 +69,6 @@ from masking_lab.procedures.staircase_batch import (
     TRIAL_CAP,
     Observer,
     StopOutcome,
-    outcome_under,
-    simulate,
 )
 
 __all__ = [
@@ -81,6 +83,7 @@ __all__ = [
     "Schedule",
     "SchedulePart",
     "StopRule",
+    "assemble_plan",
     "default_schedules",
     "default_stop_rules",
     "efficiency_fields",
@@ -88,7 +91,7 @@ __all__ = [
     "parse_ratios",
     "parse_schedules",
     "parse_stop_rules",
-    "plan_schedule",
+    "plan_tasks",
     "pool",
     "protocol_schedule",
     "protocol_staircase",
@@ -276,7 +279,7 @@ def run_plan(
     thresholds_db: NDArray[np.float64],
     *,
     progress: Progress | None = None,
-    done: Mapping[int, Callable[[], SchedulePart]] | None = None,
+    scheduler: str | None = "synchronous",
 ) -> PlanResult:
     """Simulate every schedule and summarise every (schedule, stop rule, estimator).
 
@@ -290,35 +293,74 @@ def run_plan(
         True thresholds (:func:`true_thresholds_db`), in the protocol's level unit.
     progress : callable, optional
         Receives one line per step (the command prints them to stderr).
-    done : mapping of int to callable, optional
-        Schedules (by number, from 1) computed elsewhere (``plan`` runs one in a second
-        process): each callable returns that schedule's :func:`plan_schedule`, waiting for it,
-        and is called when the schedules before it are done; the others are computed here.
+    scheduler : str or None
+        Where the chunks run (:func:`masking_lab.planning.parallel.run_chunks`): the same
+        result on any.
     """
     say = progress or (lambda _msg: None)
-    elsewhere = done or {}
-    parts: dict[int, SchedulePart] = {}
+    tasks = plan_tasks(protocol, settings, thresholds_db)
+    say(f"staircase plan: {len(tasks)} chunks of simulated sessions")
+    results = run_tasks(tasks, scheduler=scheduler)
+    return assemble_plan(protocol, settings, thresholds_db, results, progress=say)
+
+
+def assemble_plan(
+    protocol: ThresholdProtocol,
+    settings: PlanSettings,
+    thresholds_db: NDArray[np.float64],
+    results: Sequence[Any],
+    *,
+    progress: Progress | None = None,
+) -> PlanResult:
+    """The plan from the results of :func:`plan_tasks` (same arguments), in their order."""
+    say = progress or (lambda _msg: None)
+    long_chunks, ml_chunks = chunk_layout(settings)
     n_sched = len(settings.schedules)
+    if len(results) != (len(long_chunks) + len(ml_chunks)) * n_sched:
+        raise AnalysisError(
+            f"expected {len(long_chunks) + len(ml_chunks)} chunk results per schedule"
+        )
+    n_ml = len(ml_chunks) * n_sched
+    n_sets = len(protocol.sets)
+    parts = []
     for k in range(1, n_sched + 1):
-        if k in elsewhere:
-            parts[k] = elsewhere[k]()
-            say(f"schedule {k}/{n_sched}: simulated in a second process")
-        else:
-            parts[k] = plan_schedule(protocol, settings, thresholds_db, k, progress=say)
+        mls = results[(k - 1) * len(ml_chunks) : k * len(ml_chunks)]
+        longs = results[n_ml + (k - 1) * len(long_chunks) : n_ml + k * len(long_chunks)]
+        rules = [_joined([c[0][i] for c in longs], n_sets) for i in range(len(settings.stop_rules))]
+        rungs = [_joined([c[1][i] for c in longs], n_sets) for i in range(len(longs[0][1]))]
+        ml_al = [
+            np.concatenate([c[i].reshape(n_sets, -1) for c in mls], axis=1).reshape(-1)
+            for i in range(len(settings.stop_rules))
+        ] if mls else None  # fmt: skip
+        sched = settings.schedules[k - 1].label
+        say(
+            f"schedule {k}/{len(settings.schedules)} ({sched}): stop rules and reversal ladder "
+            f"3…{settings.max_reversals}"
+        )
+        parts.append(_schedule_part(protocol, settings, thresholds_db, k, rules, rungs, ml_al))
     base = protocol_staircase(protocol)
-    trial_s = trial_duration_s(protocol.timing, settings.response_s)
-    ordered = [parts[k] for k in range(1, n_sched + 1)]
     return PlanResult(
         settings,
         protocol_stop_rule(protocol),
         protocol_schedule(protocol),
-        trial_s,
+        trial_duration_s(protocol.timing, settings.response_s),
         base.max_trials,
-        [r for p in ordered for r in p.table],
-        [r for p in ordered for r in p.per_set],
-        [r for p in ordered for r in p.ladder],
-        [p.answer for p in ordered],
+        [r for p in parts for r in p.table],
+        [r for p in parts for r in p.per_set],
+        [r for p in parts for r in p.ladder],
+        [p.answer for p in parts],
     )
+
+
+def _joined(chunks: Sequence[StopOutcome], n_sets: int) -> StopOutcome:
+    """Chunk outcomes (rows set-major within each) → one, rows set-major over all replicates."""
+
+    def cat(name: str) -> NDArray:
+        return np.concatenate(
+            [getattr(c, name).reshape(n_sets, -1) for c in chunks], axis=1
+        ).reshape(-1)
+
+    return StopOutcome(cat("n_trials"), cat("status_code"), cat("al_db"))
 
 
 @dataclass(frozen=True)
@@ -331,42 +373,20 @@ class SchedulePart:
     answer: Answer
 
 
-def plan_schedule(
+def _schedule_part(
     protocol: ThresholdProtocol,
     settings: PlanSettings,
     thresholds_db: NDArray[np.float64],
     k: int,
-    *,
-    progress: Progress | None = None,
+    rule_outs: Sequence[StopOutcome],
+    rung_outs: Sequence[StopOutcome],
+    ml_als: Sequence[NDArray[np.float64]] | None,
 ) -> SchedulePart:
-    """Schedule number ``k`` (from 1) of :func:`run_plan`: its simulation, fits and rows.
-
-    Every schedule draws from the same seed (common random numbers), so a schedule's part
-    depends on nothing but these arguments and may be computed in another process.
-
-    Examples
-    --------
-    >>> from masking_lab.formats.resources import shipped
-    >>> from masking_lab.formats.protocol import load_protocol
-    >>> p = load_protocol(shipped("protocols", "baseline.yaml"))
-    >>> s = PlanSettings((StopRule(11, 8),), (Schedule((4.0, 2.0)),), replicates=20,
-    ...                  ml_replicates=0, max_reversals=12)
-    >>> part = plan_schedule(p, s, np.full((4, 20), -30.0), 1)
-    >>> len(part.table), part.table[0]["estimator"]
-    (1, 'reversal_mean')
-    """
-    say = progress or (lambda _msg: None)
-    base = protocol_staircase(protocol)
+    """Schedule ``k``'s rows from its sessions' outcomes (rows set-major over all replicates)."""
     n_sets = len(protocol.sets)
     reps = settings.replicates
-    if thresholds_db.shape != (n_sets, reps):
-        raise AnalysisError(
-            f"thresholds must have shape (sets, replicates) = ({n_sets}, {reps}), "
-            f"got {thresholds_db.shape}"
-        )
     trial_s = trial_duration_s(protocol.timing, settings.response_s)
-    cap = base.max_trials
-    starts = np.repeat([(s.staircase or base).start_level_db for s in protocol.sets], reps)
+    cap = protocol_staircase(protocol).max_trials
     thr = thresholds_db.reshape(-1)
     set_of_row = np.repeat(np.arange(n_sets), reps)
     ml_reps = min(settings.ml_replicates, reps)
@@ -374,68 +394,19 @@ def plan_schedule(
     own_rule, own_sched = protocol_stop_rule(protocol), protocol_schedule(protocol)
     own_is_staircase = runs_staircase(protocol)
     rungs = ladder_rules(own_rule, settings.max_reversals)
-    longest_table = max(r.n_reversals for r in settings.stop_rules)
     obs = settings.observer
+    sched = settings.schedules[k - 1]
 
     table: list[dict] = []
     per_set: list[dict] = []
-    ladder: list[dict] = []
-    answers: list[Answer] = []
-    sched = settings.schedules[k - 1]
-    head = f"schedule {k}/{len(settings.schedules)} ({sched.label})"
-    sc = replace(
-        base,
-        step_sizes_db=sched.step_sizes_db,
-        down_up_ratio=sched.down_up_ratio,
-        n_reversals=settings.max_reversals,
-        n_reversals_averaged=1,
-        max_trials=None,
-    )
-    say(f"{head}: simulating {thr.size} sessions to {settings.max_reversals} reversals")
-    long_run = simulate(
-        sc,
-        thr,
-        obs,
-        np.random.default_rng(settings.seed),
-        start_level_db=starts,
-        trial_limit=TRIAL_LIMIT,
-        store_levels=False,
-    )
-    ml_index = None
-    ml_run = None
-    if ml_reps:
-        say(f"{head}: simulating {ml_rows.size} sessions for the ML fits")
-        ml_run = simulate(
-            replace(sc, n_reversals=longest_table),
-            thr[ml_rows],
-            obs,
-            np.random.default_rng(settings.seed + 1),
-            start_level_db=starts[ml_rows],
-            trial_limit=TRIAL_LIMIT,
-        )
-        ml_index = index_levels(ml_run.levels_db, ml_run.correct)
-
-    for rule in settings.stop_rules:
-        out = outcome_under(long_run, rule.n_reversals, rule.n_averaged, cap, exact=False)
-        estimates: dict[str, tuple[StopOutcome, NDArray[np.float64], NDArray]] = {
-            "reversal_mean": (out, out.al_db, np.arange(thr.size)),
+    for i, rule in enumerate(settings.stop_rules):
+        out = rule_outs[i]
+        estimates: dict[str, tuple[NDArray[np.float64], NDArray]] = {
+            "reversal_mean": (out.al_db, np.arange(thr.size)),
         }
-        if ml_run is not None and ml_index is not None:
-            say(f"{head}: ML fits for stop rule {rule.label}")
-            ml_out = outcome_under(ml_run, rule.n_reversals, rule.n_averaged, cap, exact=False)
-            done = np.flatnonzero(ml_out.completed)
-            ml_al = np.full(ml_rows.size, np.nan)
-            if done.size:
-                fit = ml_threshold_from_counts(
-                    ml_index.counts(ml_out.n_trials, rows=done),
-                    scale_db=obs.scale_db,
-                    lapse=settings.ml_lapse,
-                    guess=obs.guess,
-                    fit_scale=settings.ml_fit_scale,
-                )
-                ml_al[done] = fit.threshold_db
-            estimates["ml"] = (ml_out, ml_al, ml_rows)
-        for est, (o, al, rows) in estimates.items():
+        if ml_als is not None:
+            estimates["ml"] = (ml_als[i], ml_rows)
+        for est, (al, rows) in estimates.items():
             sets_rows = []
             for j, spec in enumerate(protocol.sets):
                 mine = set_of_row[rows] == j
@@ -443,7 +414,11 @@ def plan_schedule(
                 cost = set_of_row == j
                 row = summarize(out.n_trials[cost], out.status_code[cost], None, thr, trial_s)
                 err = summarize(
-                    o.n_trials[mine], o.status_code[mine], al[mine], thr[rows][mine], trial_s
+                    out.n_trials[rows][mine],
+                    out.status_code[rows][mine],
+                    al[mine],
+                    thr[rows][mine],
+                    trial_s,
                 )
                 row.update({key: err[key] for key in ("n_al", "bias_db", "sd_db", "rmse_db")})
                 sets_rows.append(row)
@@ -458,10 +433,8 @@ def plan_schedule(
             pooled |= efficiency_fields(pooled["sd_db"], pooled["trials_mean"], obs)
             table.append(_label(pooled, sched, rule, est, None))
 
-    say(f"{head}: reversal ladder 3…{settings.max_reversals}")
-    sched_ladder = []
-    for rung in rungs:
-        out = outcome_under(long_run, rung.n_reversals, rung.n_averaged, exact=False)
+    ladder = []
+    for rung, out in zip(rungs, rung_outs, strict=True):
         sets_rows = [
             summarize(
                 out.n_trials[set_of_row == j],
@@ -478,11 +451,9 @@ def plan_schedule(
         row["capped_by_protocol"] = (
             0.0 if cap is None else float(np.mean(out.completed & (out.n_trials > cap)))
         )
-        sched_ladder.append(row)
-    ladder.extend(sched_ladder)
-    answers.append(_answer(sched, rungs, sched_ladder, settings.precision_db))
-
-    return SchedulePart(table, per_set, ladder, answers[0])
+        ladder.append(row)
+    answer = _answer(sched, rungs, ladder, settings.precision_db)
+    return SchedulePart(table, per_set, ladder, answer)
 
 
 def _label(

@@ -10,6 +10,8 @@ mean trials it used (the paper's 11/8 staircase: ~30 %).
 QUEST+ runs once per variant to the strictest posterior-SD target of a ladder; a track's levels
 do not depend on its stop rule until it stops, so every looser target is read off that run
 exactly (:meth:`~masking_lab.procedures.quest_plus_batch.SimulatedQuestPlus.trials_to_sd`).
+The tracks run in chunks, each with its own seed (:func:`quest_tasks`), anywhere
+(:mod:`masking_lab.planning.parallel`); a chunk hands back how each track ends, not the track.
 Each target is then summarised like a staircase rule: trials and minutes (median, p90, mean),
 bias, SD and RMSE of the AL against the true threshold, and how often a track ends at a bound
 or the trial cap. "Fewest trials for ±X dB" is answered across procedures from uncapped rows.
@@ -29,6 +31,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from masking_lab.formats.protocol import ThresholdProtocol
+from masking_lab.planning.parallel import Task, chunk_plan, run_tasks
 from masking_lab.planning.plan import PlanResult, efficiency_fields, pool, summarize
 from masking_lab.planning.settings import PlanSettings, trial_duration_s
 from masking_lab.procedures.fisher import max_information
@@ -45,11 +48,14 @@ from masking_lab.procedures.staircase_batch import (
 
 __all__ = [
     "PSI_SCALES_DB",
+    "QUEST_CHUNK_REPLICATES",
     "SD_LADDER_DB",
     "ProcedureComparison",
+    "QuestChunk",
     "compare_procedures",
     "protocol_quest_plus",
-    "quest_simulations",
+    "quest_chunk",
+    "quest_tasks",
 ]
 
 #: Posterior-SD stop rules read off each QUEST+ run, dB.
@@ -145,7 +151,8 @@ def compare_procedures(
     psi: bool = False,
     progress: Progress | None = None,
     quest_max_trials: int | None = None,
-    simulations: Sequence[SimulatedQuestPlus] | None = None,
+    outcomes: Sequence[QuestChunk] | None = None,
+    scheduler: str | None = "synchronous",
 ) -> ProcedureComparison:
     """Simulate QUEST+ beside the staircase plan and rate every setting against the bound.
 
@@ -171,9 +178,12 @@ def compare_procedures(
     quest_max_trials : int, optional
         Trial cap of the capped QUEST+ rows (default: the protocol's QUEST+ ``max_trials``, or
         for a staircase protocol its staircase's cap).
-    simulations : sequence of SimulatedQuestPlus, optional
-        :func:`quest_simulations` of the same arguments, run elsewhere (``plan`` runs them in
-        a second process beside the staircase plan); simulated here when None.
+    outcomes : sequence of QuestChunk, optional
+        The results of :func:`quest_tasks` of the same arguments, in order, run elsewhere
+        (``plan`` runs them beside the staircase plan's chunks); simulated here when None.
+    scheduler : str or None
+        Where the QUEST+ chunks run when simulated here
+        (:func:`masking_lab.planning.parallel.run_chunks`); the same rows on any.
 
     Examples
     --------
@@ -212,27 +222,36 @@ def compare_procedures(
     # Only a protocol that runs QUEST+ has a QUEST+ row of its own ("this protocol").
     quest_is_protocol = protocol_quest_plus(protocol) is not None
     variants = _variants(protocol, obs, psi, quest_max_trials)
-    if simulations is not None:  # run elsewhere: the progress line says so here
-        for (name, own), sim in zip(variants, simulations, strict=True):
-            target = min(_targets(own, sd_ladder_db))
-            say(f"{name}: simulated {sim.n_trials.size} tracks to posterior SD {target:g} dB")
-    else:
-        simulations = quest_simulations(
-            protocol,
-            settings,
-            thresholds_db,
-            quest_replicates=quest_replicates,
-            sd_ladder_db=sd_ladder_db,
-            psi=psi,
-            progress=say,
-            quest_max_trials=quest_max_trials,
-        )
-    for k, ((name, own), sim) in enumerate(zip(variants, simulations, strict=True)):
+    tasks = quest_tasks(
+        protocol,
+        settings,
+        thresholds_db,
+        quest_replicates=quest_replicates,
+        sd_ladder_db=sd_ladder_db,
+        psi=psi,
+        quest_max_trials=quest_max_trials,
+    )
+    verb = "simulating" if outcomes is None else "simulated"
+    for name, own in variants:
+        target = min(_targets(own, sd_ladder_db))
+        say(f"{name}: {verb} {thr.size} tracks to posterior SD {target:g} dB")
+    if outcomes is None:
+        outcomes = run_tasks(tasks, scheduler=scheduler)
+    if len(outcomes) != len(tasks):
+        raise ValueError(f"expected {len(tasks)} QUEST+ chunk results, got {len(outcomes)}")
+    per_variant = len(tasks) // len(variants)
+    n_sets = len(protocol.sets)
+    for k, (name, own) in enumerate(variants):
+        chunks = outcomes[k * per_variant : (k + 1) * per_variant]
         targets = _targets(own, sd_ladder_db)
         for target in targets:
             for capped in (True, False):
-                cap = own.max_trials if capped else None
-                status, n, est = _outcome(sim, replace(own, target_sd_db=target), cap)
+                status, n, est = (
+                    np.concatenate(
+                        [c[(target, capped)][i].reshape(n_sets, -1) for c in chunks], axis=1
+                    ).reshape(-1)
+                    for i in range(3)
+                )
                 sets_rows = []
                 for j, spec in enumerate(protocol.sets):
                     mine = set_of_row == j
@@ -255,7 +274,16 @@ def _targets(own: QuestPlusSettings, sd_ladder_db: Sequence[float]) -> list[floa
     return sorted({*sd_ladder_db, *([own.target_sd_db] if own.target_sd_db else [])})
 
 
-def quest_simulations(
+#: QUEST+ tracks per set in one chunk: a worker holds its (tracks × 300) posterior arrays
+#: (peak ~30 MB for the 15 sets of experiment I).
+QUEST_CHUNK_REPLICATES = 100
+
+#: A QUEST+ chunk's outcomes: per (posterior-SD target, capped), each track's status code,
+#: trials and estimate (rows set-major), as :func:`_outcome` gives them.
+QuestChunk = dict[tuple[float, bool], tuple[NDArray[np.int8], NDArray[np.int64], NDArray]]
+
+
+def quest_tasks(
     protocol: ThresholdProtocol,
     settings: PlanSettings,
     thresholds_db: NDArray[np.float64],
@@ -263,14 +291,14 @@ def quest_simulations(
     quest_replicates: int = 400,
     sd_ladder_db: Sequence[float] = SD_LADDER_DB,
     psi: bool = False,
-    progress: Progress | None = None,
     quest_max_trials: int | None = None,
-) -> list[SimulatedQuestPlus]:
-    """The QUEST+ tracks :func:`compare_procedures` reads its rows from, one run per variant
-    (QUEST+, and with ``psi`` the psi-marginal), each to the smallest posterior SD asked.
+) -> list[Task]:
+    """The chunks of QUEST+ tracks :func:`compare_procedures` reads its rows from: per variant
+    (QUEST+, and with ``psi`` the psi-marginal), chunks of :data:`QUEST_CHUNK_REPLICATES` tracks
+    per set, each with its own seed; run them anywhere, in order
+    (:func:`masking_lab.planning.parallel.run_tasks`).
 
-    Arguments as for :func:`compare_procedures`; the result depends on nothing else, so it
-    may be computed in another process.
+    Arguments as for :func:`compare_procedures`; a chunk's result depends on nothing else.
 
     Examples
     --------
@@ -279,32 +307,53 @@ def quest_simulations(
     >>> from masking_lab.planning.settings import StopRule, Schedule
     >>> p = load_protocol(shipped("protocols", "experiment1_questplus.yaml"))
     >>> s = PlanSettings((StopRule(11, 8),), (Schedule((4.0, 2.0)),), replicates=5)
-    >>> sims = quest_simulations(p, s, np.full((15, 5), 5.0), quest_replicates=5)
-    >>> len(sims), sims[0].n_trials.shape
+    >>> tasks = quest_tasks(p, s, np.full((15, 5), 5.0), quest_replicates=5)
+    >>> fn, args = tasks[0]
+    >>> out = fn(*args)
+    >>> len(tasks), out[(1.08, True)][1].shape
     (1, (75,))
     """
-    say = progress or (lambda _msg: None)
-    obs = settings.observer
     reps = min(quest_replicates, thresholds_db.shape[1])
-    thr = thresholds_db[:, :reps].reshape(-1)
-    out = []
-    for k, (name, own) in enumerate(_variants(protocol, obs, psi, quest_max_trials)):
-        targets = _targets(own, sd_ladder_db)
-        longest = replace(
-            own, target_sd_db=min(targets), max_trials=max(QUEST_TRIAL_LIMIT, own.max_trials or 0)
+    tasks: list[Task] = []
+    for k, (_name, own) in enumerate(_variants(protocol, settings.observer, psi, quest_max_trials)):
+        targets = tuple(_targets(own, sd_ladder_db))
+        plan = chunk_plan([settings.seed, 0x9E57, k], reps, QUEST_CHUNK_REPLICATES)
+        first = 0
+        for n, seq in plan:
+            thr = thresholds_db[:, first : first + n]
+            tasks.append((quest_chunk, (own, targets, settings.observer, thr, seq)))
+            first += n
+    return tasks
+
+
+def quest_chunk(
+    own: QuestPlusSettings,
+    targets: Sequence[float],
+    observer: Observer,
+    thresholds_db: NDArray[np.float64],
+    seed: np.random.SeedSequence,
+) -> QuestChunk:
+    """One chunk of QUEST+ tracks (``thresholds_db``: sets × tracks), run to the strictest
+    posterior-SD target, and how each would have ended under every target, capped at
+    ``own.max_trials`` and uncapped. The tracks themselves stay here."""
+    longest = replace(
+        own, target_sd_db=min(targets), max_trials=max(QUEST_TRIAL_LIMIT, own.max_trials or 0)
+    )
+    sim = simulate_quest_plus(
+        longest,
+        thresholds_db.reshape(-1),
+        scale_db=observer.scale_db,
+        lapse=observer.lapse,
+        guess=observer.guess,
+        rng=np.random.default_rng(seed),
+    )
+    return {
+        (target, capped): _outcome(
+            sim, replace(own, target_sd_db=target), own.max_trials if capped else None
         )
-        say(f"{name}: simulating {thr.size} tracks to posterior SD {min(targets):g} dB")
-        out.append(
-            simulate_quest_plus(
-                longest,
-                thr,
-                scale_db=obs.scale_db,
-                lapse=obs.lapse,
-                guess=obs.guess,
-                rng=np.random.default_rng([settings.seed, 0x9E57, k]),
-            )
-        )
-    return out
+        for target in targets
+        for capped in (True, False)
+    }
 
 
 def _head(

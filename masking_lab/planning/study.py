@@ -28,9 +28,11 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from numpy.typing import NDArray
 
 from masking_lab.formats.protocol import load_protocol
 from masking_lab.formats.resources import shipped
+from masking_lab.planning.parallel import Task, chunk_plan, run_tasks
 from masking_lab.planning.plan import (
     ESTIMATOR_LABELS,
     GARCIA_PEREZ_RATIO,
@@ -48,6 +50,8 @@ from masking_lab.procedures.staircase import StaircaseSettings, implied_target_p
 from masking_lab.procedures.staircase_batch import Observer, simulate
 from masking_lab.simulation.observer import load_ground_truth
 
+#: Tracks in one chunk of the convergence study (a worker holds their trial-by-trial levels).
+CONVERGENCE_CHUNK = 500
 STEP_OVER_SCALE = (0.25, 0.5, 1.0, 2.0, 4.0, 8.0)
 STUDY_RULES = ((7, 4), (9, 6), (11, 8), (13, 10), (15, 12))
 STUDY_SCHEDULES = ((4.0, 4.0, 4.0, 2.0), (4.0, 2.0), (2.0,))
@@ -73,8 +77,13 @@ def convergence_study(
     n_averaged: int = 48,
     replicates: int = 2000,
     seed: int = 0,
+    scheduler: str | None = "synchronous",
 ) -> list[dict]:
     """Where 1-up-3-down tracks settle, by step size and down/up ratio.
+
+    The tracks run in chunks of :data:`CONVERGENCE_CHUNK` (each with its own seed, the same
+    seeds for every step and ratio) wherever ``scheduler`` says
+    (:func:`masking_lab.planning.parallel.run_chunks`); the rows do not depend on where.
 
     The observer guesses with probability ``guess`` (1/3: 3IFC; 1/2: 2AFC, the task of
     García-Pérez's simulations). Each track starts at the observer's 0.794 point (0 dB), runs
@@ -95,55 +104,89 @@ def convergence_study(
     """
     observer = Observer(scale_db=scale_db, lapse=lapse, guess=guess)
     psy = observer.psychometric
+    chunks = chunk_plan(seed, replicates, CONVERGENCE_CHUNK)
+    grid = [(ratio, k) for ratio in ratios for k in step_over_scale]
+    tasks: list[Task] = []
+    for ratio, k in grid:
+        sc = StaircaseSettings(
+            start_level_db=0.0,
+            step_sizes_db=(k * scale_db,),
+            down_up_ratio=ratio,
+            n_reversals=n_reversals,
+            n_reversals_averaged=n_averaged,
+            max_trials=None,
+        )
+        tasks += [(convergence_chunk, (sc, observer, n, seq)) for n, seq in chunks]
+    results = run_tasks(tasks, scheduler=scheduler)
     rows = []
-    for ratio in ratios:
-        for k in step_over_scale:
-            sc = StaircaseSettings(
-                start_level_db=0.0,
-                step_sizes_db=(k * scale_db,),
-                down_up_ratio=ratio,
-                n_reversals=n_reversals,
-                n_reversals_averaged=n_averaged,
-                max_trials=None,
-            )
-            tracks = simulate(
-                sc,
-                np.zeros(replicates),
-                observer,
-                np.random.default_rng(seed),
-                trial_limit=100 * n_reversals,
-            )
-            done = tracks.completed
-            al = tracks.al_db[done]
-            mean = float(al.mean())
-            se = float(al.std(ddof=1) / math.sqrt(al.size))
-            # The track itself, not just its reversals: mean p(correct) over the trials from the
-            # first averaged reversal on (the percent correct the track settles at).
-            first = tracks.reversal_trials[done, n_reversals - n_averaged]
-            levels = tracks.levels_db[done]
-            cols = np.arange(levels.shape[1])[None, :]
-            keep = (cols >= first[:, None]) & ~np.isnan(levels)
-            p_trials = float(psy.p_correct(levels[keep]).mean())
-            p = psy.p_correct([mean, mean - 1.96 * se, mean + 1.96 * se])
-            rows.append(
-                {
-                    "step_over_scale": float(k),
-                    "up_step_db": float(k * scale_db),
-                    "step_over_width": float(k / (2.0 * math.log(9.0))),
-                    "down_up_ratio": float(ratio),
-                    "target_p": implied_target_p(sc),
-                    "al_mean_db": mean,
-                    "al_se_db": se,
-                    "p_converged": float(p[0]),
-                    "p_low": float(p[1]),
-                    "p_high": float(p[2]),
-                    "p_trials": p_trials,
-                    "trials_median": float(np.median(tracks.n_trials)),
-                    "completed": float(np.mean(done)),
-                    "guess": float(guess),
-                }
-            )
+    for g, (ratio, k) in enumerate(grid):
+        parts = results[g * len(chunks) : (g + 1) * len(chunks)]
+        al, n_trials, done = (np.concatenate([p[i] for p in parts]) for i in range(3))
+        p_trials = float(sum(p[3] for p in parts) / sum(p[4] for p in parts))
+        mean = float(al.mean())
+        se = float(al.std(ddof=1) / math.sqrt(al.size))
+        p = psy.p_correct([mean, mean - 1.96 * se, mean + 1.96 * se])
+        sc = tasks[g * len(chunks)][1][0]
+        rows.append(
+            {
+                "step_over_scale": float(k),
+                "up_step_db": float(k * scale_db),
+                "step_over_width": float(k / (2.0 * math.log(9.0))),
+                "down_up_ratio": float(ratio),
+                "target_p": implied_target_p(sc),
+                "al_mean_db": mean,
+                "al_se_db": se,
+                "p_converged": float(p[0]),
+                "p_low": float(p[1]),
+                "p_high": float(p[2]),
+                "p_trials": p_trials,
+                "trials_median": float(np.median(n_trials)),
+                "completed": float(np.mean(done)),
+                "guess": float(guess),
+            }
+        )
     return rows
+
+
+def convergence_chunk(
+    settings: StaircaseSettings,
+    observer: Observer,
+    replicates: int,
+    seed: np.random.SeedSequence,
+) -> tuple[NDArray[np.float64], NDArray[np.int64], NDArray[np.bool_], float, int]:
+    """One chunk of :func:`convergence_study`'s tracks (their observer's 0.794 point at 0 dB).
+
+    Returns
+    -------
+    tuple
+        The completed tracks' ALs (dB), every track's trials and whether it completed, and
+        the sum and count of p(correct) over the trials from each completed track's first
+        averaged reversal on.
+
+    Examples
+    --------
+    >>> sc = StaircaseSettings(0.0, step_sizes_db=(1.5,), n_reversals=12, n_reversals_averaged=8)
+    >>> al, n, done, p_sum, count = convergence_chunk(sc, Observer(1.5, 0.0), 20,
+    ...                                               np.random.SeedSequence(0))
+    >>> al.shape, bool(done.all()), 0.6 < p_sum / count < 0.95
+    ((20,), True, True)
+    """
+    tracks = simulate(
+        settings,
+        np.zeros(replicates),
+        observer,
+        np.random.default_rng(seed),
+        trial_limit=100 * settings.n_reversals,
+    )
+    done = tracks.completed
+    # The track itself, not just its reversals: p(correct) over the trials from the first
+    # averaged reversal on (the percent correct the track settles at).
+    first = tracks.reversal_trials[done, settings.n_reversals - settings.n_reversals_averaged]
+    levels = tracks.levels_db[done]
+    cols = np.arange(levels.shape[1])[None, :]
+    keep = (cols >= first[:, None]) & ~np.isnan(levels)
+    p = observer.psychometric.p_correct(levels[keep])
+    return tracks.al_db[done], tracks.n_trials, done, float(p.sum()), int(p.size)
 
 
 # --------------------------------------------------------------------------------------------
@@ -158,8 +201,10 @@ def settings_study(
     seed: int = 0,
     max_reversals: int = 41,
     progress=None,
+    scheduler: str | None = "synchronous",
 ) -> PlanResult:
-    """:func:`masking_lab.planning.plan.run_plan` on experiment I with the study's grid."""
+    """:func:`masking_lab.planning.plan.run_plan` on experiment I with the study's grid,
+    its chunks run wherever ``scheduler`` says."""
     path = protocol_path or shipped("protocols", "experiment1.yaml")
     protocol = load_protocol(str(path))
     truth = load_ground_truth()
@@ -175,7 +220,7 @@ def settings_study(
     thresholds = true_thresholds_db(
         protocol, truth, replicates, np.random.default_rng(np.random.SeedSequence([seed, 0x7412]))
     )
-    return run_plan(protocol, settings, thresholds, progress=progress)
+    return run_plan(protocol, settings, thresholds, progress=progress, scheduler=scheduler)
 
 
 @dataclass(frozen=True)
@@ -367,8 +412,12 @@ def regenerate(
     psi: bool = False,
     seed: int = 0,
     progress: Callable[[str], None] | None = None,
+    scheduler: str | None = "synchronous",
 ) -> dict[str, str]:
     """Run the study; write its tables, figures and generated blocks into ``out``.
+
+    Its simulations run in chunks wherever ``scheduler`` says
+    (:func:`masking_lab.planning.parallel.run_chunks`): the same bytes on any.
 
     Returns
     -------
@@ -385,7 +434,9 @@ def regenerate(
     conv = [
         row
         for guess in STUDY_GUESSES
-        for row in convergence_study(replicates=convergence_replicates, seed=seed, guess=guess)
+        for row in convergence_study(
+            replicates=convergence_replicates, seed=seed, guess=guess, scheduler=scheduler
+        )
     ]
     levitt = implied_target_p(StaircaseSettings(0.0))
     gp = implied_target_p(StaircaseSettings(0.0, down_up_ratio=GARCIA_PEREZ_RATIO))
@@ -420,6 +471,7 @@ def regenerate(
         seed=seed,
         max_reversals=max_reversals,
         progress=say,
+        scheduler=scheduler,
     )
     write_text_atomic(out / "settings.csv", rows_to_csv(result.table))
     write_text_atomic(out / "ladder.csv", rows_to_csv(result.ladder))
@@ -438,7 +490,12 @@ def regenerate(
     if quest_replicates:
         say("procedures against the Cramér-Rao bound")
         comparison = procedures_study(
-            result, quest_replicates=quest_replicates, psi=psi, seed=seed, progress=say
+            result,
+            quest_replicates=quest_replicates,
+            psi=psi,
+            seed=seed,
+            progress=say,
+            scheduler=scheduler,
         )
         write_text_atomic(out / "procedures.csv", rows_to_csv(comparison.rows))
         write_bytes_atomic(
@@ -461,6 +518,7 @@ def procedures_study(
     psi: bool = False,
     seed: int = 0,
     progress: Callable[[str], None] | None = None,
+    scheduler: str | None = "synchronous",
 ) -> ProcedureComparison:
     """QUEST+ (shipped experiment1_questplus.yaml) beside the staircase settings of
     :func:`settings_study`, observers drawn from the same population and seed."""
@@ -478,4 +536,5 @@ def procedures_study(
         quest_replicates=reps,
         psi=psi,
         progress=progress,
+        scheduler=scheduler,
     )
