@@ -127,9 +127,11 @@ def _variants(
         lo = -20.0 if sc is None or sc.min_level_db is None else float(sc.min_level_db)
         hi = 45.0 if sc is None or sc.max_level_db is None else float(sc.max_level_db)
         cap = max_trials if max_trials is not None else (None if sc is None else sc.max_trials)
+        # Told the observer's slope and lapse, as the Cramér-Rao bound it is set beside is
+        # (the defaults would marginalise both).
         own = QuestPlusSettings(
-            lo, hi, scales_db=(observer.scale_db,), target_sd_db=1.08, min_trials=10,
-            max_trials=cap,
+            lo, hi, scales_db=(observer.scale_db,), lapses=(observer.lapse,), target_sd_db=1.08,
+            min_trials=10, max_trials=cap,
         )  # fmt: skip
     elif max_trials is not None:
         own = replace(own, max_trials=max_trials)
