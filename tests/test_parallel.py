@@ -41,7 +41,8 @@ def small_chunks(monkeypatch):
 @pytest.fixture(scope="module")
 def cluster():
     """A real Dask cluster of two worker processes, one thread each."""
-    distributed = pytest.importorskip("distributed")
+    import distributed  # a runtime dependency (dask[distributed]): never skipped
+
     with distributed.LocalCluster(
         n_workers=2, processes=True, threads_per_worker=1, dashboard_address=None
     ) as c:
@@ -114,6 +115,29 @@ def test_study_files_are_the_same_in_process_on_local_workers_and_on_a_dask_clus
     assert {"settings.csv", "convergence.csv", "procedures.csv"} <= set(here)
     assert _study(tmp_path, "local", "local") == here
     assert _study(tmp_path, "dask", cluster.scheduler_address) == here
+
+
+def test_a_scene_plan_is_the_same_in_process_on_local_workers_and_on_a_dask_cluster(
+    tmp_path, monkeypatch, cluster
+):
+    """`plan --scene` simulates each function's participants in seeded chunks too."""
+    from masking_lab.planning import scene_budget
+
+    monkeypatch.setattr(scene_budget, "PARTICIPANTS_PER_CHUNK", 2)
+    scene = str(shipped("protocols", "scenes/bump_rough.yaml"))
+    quick = ["--tracks", "5", "--studies", "10", "--participants", "2,4", "--trials", "12"]
+
+    def scene_plan(name: str, scheduler: str, seed: str = "3") -> dict[str, bytes]:
+        out = tmp_path / name
+        argv = ["plan", "--scene", scene, *quick, "--seed", seed, "--out", str(out)]
+        assert cli_main([*argv, "--scheduler", scheduler]) == 0
+        return _files(out)
+
+    here = scene_plan("sync", "synchronous")
+    assert any(name.endswith(".csv") for name in here)
+    assert scene_plan("local", "local") == here
+    assert scene_plan("dask", cluster.scheduler_address) == here
+    assert scene_plan("seed4", "synchronous", seed="4") != here
 
 
 def test_the_plan_is_the_same_whatever_the_number_of_workers(small_chunks):

@@ -14,7 +14,7 @@ import argparse
 import sys
 from dataclasses import replace
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     from masking_lab.planning.scene_budget import BudgetRow
@@ -123,7 +123,7 @@ def run_scene(args: argparse.Namespace, out: Path) -> int:
         BudgetRow,
         Observers,
         budget_table,
-        participant_errors,
+        participant_errors_chunked,
     )
     from masking_lab.planning.scene_needs import function_needs, measure_ranges, provisional_pair
     from masking_lab.planning.scene_protocols import masker_levels, measurement_protocol
@@ -151,8 +151,10 @@ def run_scene(args: argparse.Namespace, out: Path) -> int:
     gt = load_ground_truth(args.ground_truth)
     rig = load_device_config(args.device_config)
     max_mv, max_ev = rig.max_level_db_sl.get("MV"), rig.max_level_db_sl.get("EV")
+    # Participants are simulated in seeded chunks ([seed, tag, function]), the studies on a
+    # stream of their own: the tables do not depend on where the chunks run (--scheduler).
     seed = np.random.SeedSequence([args.seed, 0x5CE7E])
-    rng_tracks, rng_studies = (np.random.default_rng(s) for s in seed.spawn(2))
+    rng_studies = np.random.default_rng(seed.spawn(2)[1])
     header = [
         f"masking-lab plan --scene {args.scene}: scene {scene.name!r}, "
         f"{scene.path.n_points} points",
@@ -182,7 +184,7 @@ def run_scene(args: argparse.Namespace, out: Path) -> int:
         )
         pair_line = _pair_line(scene)
         observers = Observers(gt.scale_db, gt.lapse, gt.shift_sd_db)
-        measured = {}
+        measured: dict[str, Any] = {}
         trials_cap = max(args.trials)
         for need in needs:
             key = "g" if need.target.startswith("EV") else "f"
@@ -200,15 +202,16 @@ def run_scene(args: argparse.Namespace, out: Path) -> int:
                 doc = measurement_protocol(
                     need, lo, hi, procedure=args.procedure, trials=trials_cap, scene_name=scene.name
                 )
-                measured[key] = participant_errors(
+                measured[key] = participant_errors_chunked(
                     doc["procedure"],
                     args.procedure,
                     (need.intercept_db, need.slope),
                     args.trials,
                     tracks=args.tracks,
                     observers=observers,
-                    rng=rng_tracks,
+                    seed=[args.seed, 0x5CE7E, 1 + len(measured)],
                     masker_levels_db_sl=masker_levels(lo, hi),
+                    scheduler=args.scheduler,
                 )
         known = {}
         if params is not None:

@@ -49,7 +49,17 @@ from masking_lab.rendering.render import render_scene
 from masking_lab.rendering.scene import Scene
 from masking_lab.rendering.solver import forward
 
-__all__ = ["BudgetRow", "Observers", "budget_table", "participant_errors", "scene_error"]
+__all__ = [
+    "BudgetRow",
+    "Observers",
+    "budget_table",
+    "participant_errors",
+    "participant_errors_chunked",
+    "scene_error",
+]
+
+#: Simulated participants per chunk of :func:`participant_errors_chunked`.
+PARTICIPANTS_PER_CHUNK = 25
 
 
 @dataclass(frozen=True)
@@ -164,6 +174,64 @@ def participant_errors(
         a_hat, b_hat = ramp_least_squares_batch(levels, shifts[ok])
         result[t] = np.stack([a_hat - a, b_hat - b], axis=1)
     return result
+
+
+def _errors_chunk(
+    procedure: dict[str, Any],
+    kind: str,
+    ramp_ab: tuple[float, float],
+    trials: tuple[int, ...],
+    tracks: int,
+    observers: Observers,
+    seed: np.random.SeedSequence,
+    masker_levels_db_sl: tuple[float, ...],
+) -> dict[int, NDArray[np.float64]]:
+    """One chunk of :func:`participant_errors_chunked` (what a worker runs)."""
+    return participant_errors(
+        procedure, kind, ramp_ab, trials, tracks=tracks, observers=observers,
+        rng=np.random.default_rng(seed), masker_levels_db_sl=masker_levels_db_sl,
+    )  # fmt: skip
+
+
+def participant_errors_chunked(
+    procedure: Mapping[str, Any],
+    kind: str,
+    ramp_ab: tuple[float, float],
+    trials: Sequence[int],
+    *,
+    tracks: int,
+    observers: Observers,
+    seed: Sequence[int],
+    masker_levels_db_sl: Sequence[float] = (),
+    scheduler: str | None = "synchronous",
+    chunk: int = PARTICIPANTS_PER_CHUNK,
+) -> dict[int, NDArray[np.float64]]:
+    """:func:`participant_errors` in chunks of ``chunk`` participants, each seeded from
+    ``seed`` (:func:`masking_lab.planning.parallel.chunk_plan`), run wherever ``scheduler``
+    says (``"synchronous"``, ``"local"`` or a Dask address): the same seed gives the same
+    errors on any number of workers.
+
+    Examples
+    --------
+    >>> from masking_lab.planning.scene_protocols import measurement_protocol
+    >>> from masking_lab.planning.scene_needs import FunctionNeed
+    >>> n = FunctionNeed("EV270", "MV180", (25, 30), "missing", None, 0, 0, "missing", -5.9, 0.66)
+    >>> doc = measurement_protocol(n, 25.0, 30.0, procedure="quest_plus")
+    >>> e = participant_errors_chunked(doc["procedure"], "quest_plus", (-5.9, 0.66), [20],
+    ...     tracks=7, observers=Observers(), seed=[0, 1], masker_levels_db_sl=[25, 30], chunk=3)
+    >>> e[20].shape
+    (7, 2)
+    """
+    from masking_lab.planning.parallel import chunk_plan, run_tasks
+
+    args = (dict(procedure), kind, (float(ramp_ab[0]), float(ramp_ab[1])), tuple(trials))
+    levels = tuple(float(x) for x in masker_levels_db_sl)
+    tasks = [
+        (_errors_chunk, (*args, n, observers, ss, levels))
+        for n, ss in chunk_plan(list(seed), tracks, chunk)
+    ]
+    parts = run_tasks(tasks, scheduler=scheduler)
+    return {t: np.concatenate([p[t] for p in parts]) for t in parts[0]}
 
 
 @dataclass(frozen=True)

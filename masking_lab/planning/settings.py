@@ -324,8 +324,13 @@ def protocol_procedure_text(protocol: ThresholdProtocol) -> str:
     >>> text = protocol_procedure_text(load_protocol(shipped("protocols", "experiment1.yaml")))
     >>> text.split(", ")[0], text.split(", ")[-2:]
     ('staircase 1-up 3-down', ['steps 4,4,4,2 dB', 'trial cap 150'])
-    >>> protocol_procedure_text(load_protocol(shipped("protocols", "experiment1_questplus.yaml")))
-    'psi-marginal (slope unknown), stops at posterior SD ≤ 1.6 dB (at least 10 trials), trial cap 120'
+    >>> text = protocol_procedure_text(
+    ...     load_protocol(shipped("protocols", "experiment1_questplus.yaml")))
+    >>> for part in text.split(", "):
+    ...     print(part)
+    psi-marginal (slope unknown)
+    stops at posterior SD ≤ 1.6 dB (at least 10 trials)
+    trial cap 120
     """
     quests = [s.procedure for s in protocol.sets if s.procedure is not None]
     if not runs_staircase(protocol) and quests:
