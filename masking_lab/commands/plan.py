@@ -188,8 +188,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--quest-replicates",
         type=_count,
-        default=400,
-        help="QUEST+ tracks per set for the procedures comparison (default 400; 0 skips it)",
+        default=None,
+        help="QUEST+ tracks per set for the procedures comparison (default 400, or 40 when the "
+        "protocol's QUEST+ marginalises slope or lapse: each of its trials costs ~30 times "
+        "more; 0 skips it)",
     )
     p.add_argument(
         "--psi",
@@ -317,6 +319,10 @@ def _run(args: argparse.Namespace) -> int:
     out = plan_folder(args.out, force=args.force)
     if _places_masker(protocol):
         return _masking_function_plan(args, protocol, out)
+    if args.quest_replicates is None:
+        from masking_lab.planning.procedure_plan import default_quest_replicates
+
+        args.quest_replicates = default_quest_replicates(protocol)
     if args.ground_truth is not None and not Path(args.ground_truth).is_file():
         raise ProtocolError(
             args.ground_truth,

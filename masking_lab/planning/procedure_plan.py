@@ -53,6 +53,7 @@ __all__ = [
     "ProcedureComparison",
     "QuestChunk",
     "compare_procedures",
+    "default_quest_replicates",
     "protocol_quest_plus",
     "quest_chunk",
     "quest_tasks",
@@ -99,6 +100,30 @@ class ProcedureComparison:
     fewest: list[dict]
     precision_db: float
     z: float
+
+
+#: QUEST+ tracks per set in ``plan``'s procedures comparison by default.
+QUEST_REPLICATES = 400
+#: The same for a protocol whose QUEST+ marginalises slope or lapse: its every placement weighs
+#: each nuisance point (28 on the shipped grid), about 30 times a known-slope track's work.
+MARGINAL_QUEST_REPLICATES = 40
+
+
+def default_quest_replicates(protocol: ThresholdProtocol) -> int:
+    """QUEST+ tracks per set for ``plan``'s comparison when ``--quest-replicates`` is not given.
+
+    Examples
+    --------
+    >>> from masking_lab.formats.resources import shipped
+    >>> from masking_lab.formats.protocol import load_protocol
+    >>> [default_quest_replicates(load_protocol(shipped("protocols", f"{name}.yaml")))
+    ...  for name in ("experiment1", "experiment1_questplus")]
+    [400, 40]
+    """
+    own = protocol_quest_plus(protocol)
+    if own is not None and (len(own.scales_db) > 1 or len(own.lapses) > 1):
+        return MARGINAL_QUEST_REPLICATES
+    return QUEST_REPLICATES
 
 
 def protocol_quest_plus(protocol: ThresholdProtocol) -> QuestPlusSettings | None:
