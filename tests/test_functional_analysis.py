@@ -109,3 +109,24 @@ def test_a_ramp_posterior_refuses_bad_trials_cleanly():
         ramp_posterior(proc, [5.0, math.nan], [0.0, 1.0], [True, False])
     with pytest.raises(ProcedureError, match="one masker level"):
         ramp_posterior(proc, [], [], [])
+
+
+def test_ramp_intervals_of_a_stated_slope_and_lapse_carry_the_caveat(analysed):
+    """The test protocol states one slope and lapse: its ramp intervals assume them, and analyze
+    says so once, with the number of sets. Marginalised grids: no caveat."""
+    from masking_lab.analysis.functional import ramp_posteriors_from_logs
+    from masking_lab.procedures.model_note import STATED_MODEL
+
+    _, paths, _ = analysed
+    logs = [read_log(p) for p in paths]
+    posteriors, problems = ramp_posteriors_from_logs(logs)
+    caveats = [p for p in problems if STATED_MODEL in p]
+    assert len(posteriors) == 6
+    assert caveats == [caveats[0]] and caveats[0].startswith("ramp intervals of 6 set(s): ")
+    assert "scale 1.5 dB, lapse 0.02" in caveats[0]
+    for log in logs:
+        for rec in log.sets().values():
+            grids = {"scales_db": [0.75, 1.5, 3.0], "lapses": [0.0, 0.06, 0.12]}
+            rec.start["procedure"] = {**rec.start["procedure"], **grids}
+    posteriors, problems = ramp_posteriors_from_logs(logs)
+    assert len(posteriors) == 6 and not [p for p in problems if STATED_MODEL in p]

@@ -33,6 +33,7 @@ from masking_lab.core.errors import ProcedureError
 from masking_lab.core.masking import ramp
 from masking_lab.procedures.functional import FunctionalRampSettings, likelihood, ramp_tables
 from masking_lab.procedures.functional_kind import KIND as FUNCTIONAL
+from masking_lab.procedures.model_note import stated_model_note
 
 __all__ = [
     "GroupRamp",
@@ -172,6 +173,7 @@ def ramp_posteriors_from_logs(logs: Iterable[Any]) -> tuple[list[RampPosterior],
     """
     out: list[RampPosterior] = []
     problems: list[str] = []
+    caveats: dict[str, int] = {}
     for log in logs:
         participant = str(log.header.get("participant", ""))
         for set_id, rec in log.sets().items():
@@ -196,6 +198,12 @@ def ramp_posteriors_from_logs(logs: Iterable[Any]) -> tuple[list[RampPosterior],
                 )
             except (ProcedureError, TypeError, ValueError) as exc:
                 problems.append(f"{log.path.name}: set {set_id}: {str(exc)[:200]}")
+                continue
+            note = stated_model_note(procedure)
+            if note is not None:
+                caveats[note] = caveats.get(note, 0) + 1
+    # Said once per distinct model, with how many ramps it concerns, as the report does.
+    problems += [f"ramp intervals of {n} set(s): {note}" for note, n in sorted(caveats.items())]
     return out, problems
 
 
