@@ -169,7 +169,9 @@ def ramp_posteriors_from_logs(logs: Iterable[Any]) -> tuple[list[RampPosterior],
     -------
     posteriors : list of RampPosterior
     problems : list of str
-        One line per functional set that could not be estimated (never an exception).
+        One line per functional set that could not be estimated (never an exception), then
+        one per stated slope/lapse model whose ramp intervals assume it
+        (:func:`masking_lab.procedures.model_note.stated_model_note`), with its set count.
     """
     out: list[RampPosterior] = []
     problems: list[str] = []
