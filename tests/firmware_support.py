@@ -50,6 +50,9 @@ QEMU_ATT_OPTIONS = {
     "SERIAL_NUMBER": "T-42",
 }
 TARGETS = ("emulator", "host", "qemu")
+# How long a test waits for a frame before calling the device hung (wall clock): a hang guard,
+# not a timing check. QEMU starved of CPU by a busy suite took over 2 s to finish a frame.
+REPLY_WAIT_S = 10.0
 # -icount: the guest clock follows executed instructions, so device-reported times are
 # consistent even when the host is loaded; serial0 = host link, serial1 = interlock line.
 QEMU_CMD = ["qemu-system-arm", "-M", "netduinoplus2", "-icount", "shift=auto"]
@@ -284,7 +287,7 @@ class Link:
         self.ser.write(proto.encode_command(self.seq, name, fields))
         return self.seq
 
-    def frame(self, timeout: float = 2.0) -> proto.Frame:
+    def frame(self, timeout: float = REPLY_WAIT_S) -> proto.Frame:
         deadline = time.monotonic() + timeout
         while True:
             while b"\n" not in self.buf:
@@ -297,7 +300,7 @@ class Link:
             except proto.FrameError:
                 self.garbage.append(line)
 
-    def frames_until(self, predicate, timeout: float = 2.0) -> list[proto.Frame]:
+    def frames_until(self, predicate, timeout: float = REPLY_WAIT_S) -> list[proto.Frame]:
         """Frames up to and including the first for which ``predicate`` is true."""
         seen: list[proto.Frame] = []
         deadline = time.monotonic() + timeout
@@ -315,7 +318,7 @@ class Link:
             got += self.ser.read(max(1, self.ser.in_waiting))
         return got
 
-    def reply(self, seq: int, timeout: float = 2.0) -> proto.Frame:
+    def reply(self, seq: int, timeout: float = REPLY_WAIT_S) -> proto.Frame:
         """The reply to ``seq``; events seen on the way are kept in ``self.events``."""
         while True:
             f = self.frame(timeout)
@@ -327,7 +330,9 @@ class Link:
     def call(self, name: str, **fields) -> proto.Frame:
         return self.reply(self.send(name, **fields))
 
-    def event(self, name: str, timeout: float = 2.0, *, keepalive: bool = False) -> proto.Frame:
+    def event(
+        self, name: str, timeout: float = REPLY_WAIT_S, *, keepalive: bool = False
+    ) -> proto.Frame:
         """The next ``name`` event (including one already seen by ``reply``).
 
         With ``keepalive`` the link PINGs every 50 ms while it waits, as a host must while a
