@@ -302,20 +302,22 @@ def _functional_ramps(
     # Parsing every log again only to find no functional set is a third read of the study:
     # a log whose bytes never name the kind (nor escape a character, which could spell it)
     # holds none.
-    logs = [p for p in logs if _may_hold_functional(p)]
+    names = _masker_placing_names()
+    logs = [p for p in logs if _may_hold_functional(p, names)]
     return write_functional_outputs(
         out, logs, inputs=inputs, settings=settings.as_dict("analyze"), created_utc=created_utc
     )
 
 
-def _may_hold_functional(path: Path) -> bool:
+def _may_hold_functional(path: Path, names: list[bytes] | None = None) -> bool:
     """Whether the log at ``path`` can hold a set whose procedure places the masker level
     (the registry's ``places_masker`` kinds; unreadable: maybe)."""
     try:
         raw = path.read_bytes()
     except OSError:
         return True
-    return any(name in raw for name in _masker_placing_names()) or b"\\u" in raw
+    names = _masker_placing_names() if names is None else names
+    return any(name in raw for name in names) or b"\\u" in raw
 
 
 def _masker_placing_names() -> list[bytes]:

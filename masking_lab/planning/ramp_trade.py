@@ -144,14 +144,23 @@ def ramp_precision(
     >>> ramp_precision(np.array([-7.0, -8.0]), np.array([0.7, 0.72]), -7.5, 0.71, (5.0, 25.0))[0]
     0.5
     """
+    sd_a, sd_b, rms = np.sqrt(_squared_errors(a_hat, b_hat, a, b, levels_db_sl).mean(axis=0))
+    return float(sd_a), float(sd_b), float(rms)
+
+
+def _squared_errors(
+    a_hat: NDArray[np.float64],
+    b_hat: NDArray[np.float64],
+    a: float,
+    b: float,
+    levels_db_sl: tuple[float, ...],
+) -> NDArray[np.float64]:
+    """Per participant: squared intercept error, squared slope error, mean squared AL error
+    over the masker range (the predicted AL floored at 0 dB SL, as the ramp is)."""
     x = np.linspace(min(levels_db_sl), max(levels_db_sl), 41)
     pred = np.maximum(0.0, a_hat[:, None] + b_hat[:, None] * x[None, :])
-    err = pred - ramp(x, a, b)[None, :]
-    return (
-        float(np.sqrt(np.mean((a_hat - a) ** 2))),
-        float(np.sqrt(np.mean((b_hat - b) ** 2))),
-        float(np.sqrt(np.mean(err**2))),
-    )
+    err_al = pred - ramp(x, a, b)[None, :]
+    return np.stack([(a_hat - a) ** 2, (b_hat - b) ** 2, np.mean(err_al**2, axis=1)], axis=1)
 
 
 def cramer_rao_ramp(
@@ -350,18 +359,6 @@ def run_trade(
     return summarize_trade(s, trade_estimates(s, seed, scheduler=scheduler, chunk=chunk))
 
 
-def _squared_errors(
-    s: TradeSettings, a_hat: NDArray[np.float64], b_hat: NDArray[np.float64]
-) -> NDArray[np.float64]:
-    """Per participant: squared intercept error, squared slope error, mean squared AL error."""
-    x = np.linspace(min(s.levels_db_sl), max(s.levels_db_sl), 41)
-    pred = np.maximum(0.0, a_hat[:, None] + b_hat[:, None] * x[None, :])
-    err_al = pred - ramp(x, s.intercept_db, s.slope)[None, :]
-    return np.stack(
-        [(a_hat - s.intercept_db) ** 2, (b_hat - s.slope) ** 2, np.mean(err_al**2, axis=1)], axis=1
-    )
-
-
 def precision_ratios(
     s: TradeSettings, est: TradeEstimates, *, n_boot: int = 2000, seed: int = 0
 ) -> dict[str, NDArray[np.float64]]:
@@ -397,13 +394,19 @@ def precision_ratios(
         return whole, np.sqrt(sq0[idx].sum(axis=1) / counts)
 
     paper_whole, paper_boot = rms(
-        _squared_errors(s, est.intercepts_db["paper"], est.slopes["paper"])
+        _squared_errors(
+            est.intercepts_db["paper"], est.slopes["paper"], s.intercept_db, s.slope, s.levels_db_sl
+        )
     )
     out = {}
     for name in est.intercepts_db:
         if name == "paper":
             continue
-        whole, boot = rms(_squared_errors(s, est.intercepts_db[name], est.slopes[name]))
+        whole, boot = rms(
+            _squared_errors(
+                est.intercepts_db[name], est.slopes[name], s.intercept_db, s.slope, s.levels_db_sl
+            )
+        )
         ratios = boot / paper_boot
         lo, hi = np.percentile(ratios, [2.5, 97.5], axis=0)
         out[name] = np.stack([whole / paper_whole, lo, hi], axis=1)
