@@ -10,8 +10,10 @@ Watson's joint entropy (10 scales × 4 lapses) and the shipped functional (ramp)
 (experiment1_functional.yaml), each
 
 * idle, and with every other core saturated by busy processes this benchmark starts,
-* as the session runs it (one BLAS thread, ``session.blas_threads``), beside the library's
-  default thread pools (the session before BLAS was pinned),
+* as the session runs it (one BLAS thread, ``session.blas_threads``, and each update at the
+  lowest real-time priority, ``session.priority``, when the system permits it), beside the
+  same at normal priority and the library's default thread pools (the session before BLAS was
+  pinned),
 * for the joint grid also with L·ln L recomputed on every call (the placement before the
   entropy terms were cached),
 * beside questplus (Watson's QUEST+ reference implementation; GPL-3, a test oracle, used only
@@ -42,6 +44,7 @@ from masking_lab.formats.protocol import load_protocol
 from masking_lab.formats.resources import shipped
 from masking_lab.procedures.quest_plus import QuestPlusSettings, tables
 from masking_lab.session.blas_threads import one_blas_thread
+from masking_lab.session.priority import placement_priority, placement_priority_note
 
 BUDGET_MS = 10.0
 JOINT = QuestPlusSettings(
@@ -68,9 +71,11 @@ def saturated(busy: bool) -> Iterator[None]:
             p.wait()
 
 
-def time_updates(start: Callable[[], object], answer, samples: int, before=None) -> np.ndarray:
+def time_updates(
+    start: Callable[[], object], answer, samples: int, before=None, realtime: bool = False
+) -> np.ndarray:
     """Wall and CPU seconds (this thread's) per ``update``, shape (samples, 2), over fresh
-    tracks until ``samples`` updates are timed."""
+    tracks until ``samples`` updates are timed; ``realtime`` as the session's placement runs."""
     rng = np.random.default_rng(0)
     out: list[tuple[float, float]] = []
     while len(out) < samples:
@@ -80,7 +85,8 @@ def time_updates(start: Callable[[], object], answer, samples: int, before=None)
             if before is not None:
                 before()
             c0, t0 = time.thread_time(), time.perf_counter()
-            track = track.update(correct)  # type: ignore[attr-defined]
+            with placement_priority(realtime):
+                track = track.update(correct)  # type: ignore[attr-defined]
             out.append((time.perf_counter() - t0, time.thread_time() - c0))
     return np.array(out)
 
@@ -174,6 +180,7 @@ def main() -> None:
     ]
     load = ", ".join(f"{v:.1f}" for v in os.getloadavg())
     print(f"{os.cpu_count()} cores, load average {load} (before the benchmark's own load)")
+    print(f"session {placement_priority_note()}")
     print("  wall-clock p50/p95/p99 and CPU p99 (this thread) per update, ms; ratio of wall p99")
     print(f"  {'row':<32}{'p50':>8}{'p95':>8}{'p99':>8}{'cpu p99':>8} {'ratio':>10}")
     for key, title, settings, answer in grids:
@@ -184,9 +191,12 @@ def main() -> None:
             print(f"{title}, {'other cores saturated' if busy else 'idle'}")
             with saturated(busy):
                 with one_blas_thread():
-                    ours = time_updates(settings.start, answer, args.samples)
-                line, ref = _row("session (1 BLAS thread, cached)", ours, None)
+                    ours = time_updates(settings.start, answer, args.samples, realtime=True)
+                line, ref = _row("session (1 BLAS thread, RR)", ours, None)
                 print(line)
+                with one_blas_thread():
+                    sec = time_updates(settings.start, answer, args.samples)
+                print(_row("1 BLAS thread, normal priority", sec, ref)[0])
                 rows = [("library default threads", nullcontext(), None)]
                 if key == "joint":
                     t = tables(settings)

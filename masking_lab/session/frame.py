@@ -44,6 +44,7 @@ from masking_lab.session.opening import (
     sync_policy,
     use_virtual_clock,
 )
+from masking_lab.session.priority import placement_priority_note
 from masking_lab.session.progress import ProgressLine
 from masking_lab.session.resuming import (
     check_header,
@@ -505,6 +506,8 @@ def _resume_locked(
 def _run(plan: SessionPlan[ResultT], opening: Opening, opened: Opened, spec: str) -> ResultT:
     for note in opened.device.identity.details.get("notices", ()):  # e.g. no hardware watchdog
         opened.out.message(f"device: {note}")
+    if not opening.virtual:  # a participant waits for each placement (session/priority.py)
+        opened.out.message(placement_priority_note())
     session = plan.session(opening, opened)
     session.resume_command = resume_command(opened.writer.path, spec, opening.device_config)
     with one_blas_thread():  # a busy core must not stall a trial's placement (blas_threads)

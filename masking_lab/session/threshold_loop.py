@@ -33,6 +33,7 @@ from masking_lab.procedures.registry import kind_of
 from masking_lab.responders.base import Responder, SetInfo, TrialPresentation
 from masking_lab.session.interleave import next_set
 from masking_lab.session.pace import session_time_left_s, track_trials_left
+from masking_lab.session.priority import placement_priority
 from masking_lab.session.procedure_records import settings_from_record
 from masking_lab.session.progress import ProgressLine, format_progress
 from masking_lab.session.shell import SessionShell, drop_none, utc_now
@@ -316,7 +317,8 @@ class ThresholdSession(SessionShell[SessionResult]):
             # has already waited for a real one.
             self.clock.sleep_until(self.clock.now() + response.response_time_s)
         correct = response.interval == interval
-        after = state.update(correct)
+        with placement_priority(not self.clock.virtual):  # priority: a busy core must wait
+            after = state.update(correct)
         record = drop_none(
             {
                 "record": "trial",
