@@ -39,11 +39,11 @@ root_only = pytest.mark.skipif(not _has_cap_sys_nice(), reason="needs CAP_SYS_NI
 
 PROBE = """
 import json, os
-from masking_lab.session.priority import placement_priority, placement_priority_note, realtime_permitted
-with placement_priority():
+from masking_lab.session import priority as p
+with p.placement_priority():
     inside = os.sched_getscheduler(0)
-print(json.dumps({"permitted": realtime_permitted(), "inside": inside,
-                  "after": os.sched_getscheduler(0), "note": placement_priority_note()}))
+print(json.dumps({"permitted": p.realtime_permitted(), "inside": inside,
+                  "after": os.sched_getscheduler(0), "note": p.placement_priority_note()}))
 """
 NO_CAP = ["setpriv", "--inh-caps=-sys_nice", "--bounding-set=-sys_nice"]
 
