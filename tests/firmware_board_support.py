@@ -63,6 +63,7 @@ class QemuBoard:
         self._mon_path = self._dir / f"ml-qemu-mon-{os.getpid()}-{id(self)}.sock"
         self.proc = subprocess.Popen(
             [
+                *("nice", "-n", "-5"),  # as firmware_support.QEMU_CMD: a real-time device
                 *("qemu-system-arm", "-M", "netduinoplus2"),
                 *(("-icount", self.icount) if self.icount else ()),
                 *("-display", "none", "-monitor", f"unix:{self._mon_path},server,nowait"),
