@@ -1,0 +1,88 @@
+"""`plan`'s QUEST+ chunks split by sets into parts that run anywhere are the whole chunk, bit
+for bit (the same random numbers, the same placements, the same rows)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from masking_lab.core.errors import ProcedureError
+from masking_lab.planning.procedure_plan import (
+    QUEST_PART_SETS,
+    chunk_outcome,
+    quest_chunk,
+)
+from masking_lab.procedures.quest_plus import QuestPlusSettings
+from masking_lab.procedures.quest_plus_batch import simulate_quest_plus
+from masking_lab.procedures.staircase_batch import Observer
+
+# Small grids (a coarse level step, few nuisance points) keep this quick; the code paths are
+# the shipped ones: the joint entropy (slope known) and the psi-marginal (slope, lapse unknown).
+KNOWN = QuestPlusSettings(
+    -20.0, 45.0, level_step_db=1.0, scales_db=(1.5,), lapses=(0.02,), target_sd_db=1.6,
+    min_trials=10, max_trials=40,
+)  # fmt: skip
+MARGINAL = QuestPlusSettings(
+    -20.0, 45.0, level_step_db=1.0, scales_db=(0.75, 1.5, 3.0), lapses=(0.0, 0.08),
+    entropy_over="threshold", target_sd_db=1.6, min_trials=10, max_trials=40,
+)  # fmt: skip
+OBSERVER = Observer(scale_db=1.5, lapse=0.02)
+
+
+def thresholds(n_sets: int, n: int) -> np.ndarray:
+    return np.random.default_rng(7).normal(10.0, 6.0, (n_sets, n))
+
+
+@pytest.mark.parametrize("own", [KNOWN, MARGINAL], ids=["joint", "psi-marginal"])
+def test_parts_of_a_chunk_are_the_whole_chunk_bit_for_bit(own):
+    thr = thresholds(7, 4)
+    seed = np.random.SeedSequence([3, 0x9E57, 0])
+    targets = (0.8, 1.6)
+    whole = quest_chunk(own, targets, OBSERVER, thr, seed)
+    parts = [quest_chunk(own, targets, OBSERVER, thr, seed, (a, b)) for a, b in ((0, 3), (3, 7))]
+    joined = chunk_outcome(own, targets, parts)
+    alone = chunk_outcome(own, targets, [whole])
+    assert joined.keys() == alone.keys() and len(joined) == 2 * len(targets)
+    for key in alone:
+        (code, n, est), (code_w, n_w, est_w) = joined[key], alone[key]
+        np.testing.assert_array_equal(code, code_w)
+        np.testing.assert_array_equal(n, n_w)
+        # BLAS sums a row of a matrix-vector product in an order that can depend on how many
+        # rows the product has, so a posterior mean may move by an ulp (never a printed digit).
+        np.testing.assert_allclose(est, est_w, rtol=1e-13, atol=0)
+        np.testing.assert_array_equal(np.isnan(est), np.isnan(est_w))
+    # The traces themselves too, padded to the longest track of the chunk.
+    width = whole.sd_db.shape[1]
+    first = parts[0].sd_db
+    assert first.shape[1] <= width
+    np.testing.assert_allclose(first, whole.sd_db[: first.shape[0], : first.shape[1]], rtol=1e-13)
+
+
+def test_a_part_answers_as_in_the_whole_run():
+    thr = np.linspace(0.0, 20.0, 6)
+    whole = simulate_quest_plus(KNOWN, thr, rng=np.random.default_rng(5))
+    part = simulate_quest_plus(KNOWN, thr[2:5], rng=np.random.default_rng(5), part_of=(2, 6))
+    n = part.n_trials
+    np.testing.assert_array_equal(n, whole.n_trials[2:5])
+    np.testing.assert_array_equal(part.correct, whole.correct[2:5, : part.correct.shape[1]])
+    np.testing.assert_array_equal(part.levels_db, whole.levels_db[2:5, : part.levels_db.shape[1]])
+
+
+def test_a_part_that_does_not_fit_its_run_is_refused():
+    with pytest.raises(ProcedureError, match="part_of"):
+        simulate_quest_plus(KNOWN, [1.0, 2.0], rng=np.random.default_rng(0), part_of=(5, 6))
+
+
+def test_a_chunk_outcome_counts_an_unfinished_track_to_the_chunks_longest():
+    # A track that never reached the target is read at the whole chunk's last column (as an
+    # unsplit chunk reads it), whichever part it ran in.
+    own = QuestPlusSettings(0.0, 20.0, target_sd_db=1.0, max_trials=3)
+    short = np.array([[3.0, 2.0]])
+    long = np.array([[3.0, 2.0, 0.5]])
+    parts = [(np.full_like(short, 5.0), short), (np.full_like(long, 5.0), long)]
+    from masking_lab.planning.procedure_plan import QuestPart
+
+    out = chunk_outcome(own, [1.0], [QuestPart(*p) for p in parts])
+    _, n, _ = out[(1.0, False)]
+    assert n.tolist() == [3, 3]
+    assert QUEST_PART_SETS >= 1
