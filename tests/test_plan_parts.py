@@ -86,3 +86,49 @@ def test_a_chunk_outcome_counts_an_unfinished_track_to_the_chunks_longest():
     _, n, _ = out[(1.0, False)]
     assert n.tolist() == [3, 3]
     assert QUEST_PART_SETS >= 1
+
+
+def test_per_set_rows_are_the_summaries_of_each_sets_sessions():
+    # assemble_plan reads set j's sessions as a slice of the set-major rows; the same rows as
+    # picking them out one by one by their set (and the ML fits' by their replicate).
+    from masking_lab.formats.protocol import load_protocol
+    from masking_lab.formats.resources import shipped
+    from masking_lab.planning.parallel import run_tasks
+    from masking_lab.planning.plan import assemble_plan, plan_tasks, summarize, trial_duration_s
+    from masking_lab.planning.plan_chunks import ml_chunk, schedule_chunk
+    from masking_lab.planning.settings import PlanSettings, Schedule, StopRule
+
+    p = load_protocol(shipped("protocols", "baseline.yaml"))
+    s = PlanSettings((StopRule(7, 4), StopRule(9, 6)), (Schedule((4.0, 2.0)),), replicates=12,
+                     ml_replicates=5, max_reversals=10)  # fmt: skip
+    thr = np.random.default_rng(4).normal(-30.0, 4.0, (4, 12))
+    tasks = plan_tasks(p, s, thr)
+    plan = assemble_plan(p, s, thr, run_tasks(tasks))
+    (ml_fn, ml_args), (long_fn, long_args) = tasks
+    assert ml_fn is ml_chunk and long_fn is schedule_chunk
+    rules, _ = long_fn(*long_args)
+    ml_al = ml_fn(*ml_args)
+    n_sets, reps = thr.shape
+    set_of_row = np.repeat(np.arange(n_sets), reps)
+    replicate = np.tile(np.arange(reps), n_sets)
+    trial_s = trial_duration_s(p.timing, s.response_s)
+    rows = iter(plan.per_set)
+    for i, _rule in enumerate(s.stop_rules):
+        out = rules[i]
+        for est in ("reversal_mean", "ml"):
+            for j in range(n_sets):
+                row = next(rows)
+                assert row["estimator"] == est and row["set"] == p.sets[j].id
+                mine = set_of_row == j
+                if est == "ml":
+                    mine &= replicate < s.ml_replicates
+                    al = ml_al[i][set_of_row[replicate < s.ml_replicates] == j]
+                else:
+                    al = out.al_db[mine]
+                cost = summarize(out.n_trials[set_of_row == j], out.status_code[set_of_row == j],
+                                 None, thr.reshape(-1), trial_s)  # fmt: skip
+                err = summarize(out.n_trials[mine], out.status_code[mine], al,
+                                thr.reshape(-1)[mine], trial_s)  # fmt: skip
+                for key, value in {**cost, **{k: err[k] for k in ("n_al", "bias_db", "sd_db",
+                                                                  "rmse_db")}}.items():  # fmt: skip
+                    assert row[key] == value or (np.isnan(row[key]) and np.isnan(value)), key
