@@ -26,6 +26,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
+from itertools import pairwise
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -55,6 +56,7 @@ __all__ = [
     "PSI_SCALES_DB",
     "QUEST_CHUNK_REPLICATES",
     "QUEST_PART_SETS",
+    "QUEST_SPLIT_BELOW",
     "SD_LADDER_DB",
     "ProcedureComparison",
     "QuestChunk",
@@ -275,14 +277,13 @@ def compare_procedures(
     if len(outcomes) != len(tasks):
         raise ValueError(f"expected {len(tasks)} QUEST+ chunk results, got {len(outcomes)}")
     n_sets = len(protocol.sets)
-    n_parts = len(_set_parts(n_sets))
-    per_variant = len(outcomes) // len(variants)
+    # A chunk's parts are consecutive tasks; each chunk's first part starts at set 0.
+    starts = [i for i, (_fn, args) in enumerate(tasks) if args[-1][0] == 0] + [len(tasks)]
+    per_variant = (len(starts) - 1) // len(variants)
     for k, (name, own) in enumerate(variants):
         targets = _targets(own, sd_ladder_db)
-        mine = outcomes[k * per_variant : (k + 1) * per_variant]
-        chunks = [
-            chunk_outcome(own, targets, mine[i : i + n_parts]) for i in range(0, len(mine), n_parts)
-        ]
+        bounds = starts[k * per_variant : (k + 1) * per_variant + 1]
+        chunks = [chunk_outcome(own, targets, outcomes[a:b]) for a, b in pairwise(bounds)]
         for target in targets:
             for capped in (True, False):
                 status, n, est = (
@@ -334,7 +335,8 @@ def quest_tasks(
 ) -> list[Task]:
     """The chunks of QUEST+ tracks :func:`compare_procedures` reads its rows from: per variant
     (QUEST+, and with ``psi`` the psi-marginal), chunks of :data:`QUEST_CHUNK_REPLICATES` tracks
-    per set, each with its own seed; run them anywhere, in order
+    per set, each with its own seed, and a variant of fewer than :data:`QUEST_SPLIT_BELOW`
+    chunks split into parts of :data:`QUEST_PART_SETS` sets; run them anywhere, in order
     (:func:`masking_lab.planning.parallel.run_tasks`).
 
     Arguments as for :func:`compare_procedures`; a chunk's result depends on nothing else.
@@ -350,13 +352,17 @@ def quest_tasks(
     >>> fn, args = tasks[0]
     >>> len(tasks), fn(*args).sd_db.shape[0]  # one chunk in 5 parts of 3 sets × 5 tracks
     (5, 15)
+    >>> len(quest_tasks(p, s, np.full((15, 500), 5.0), quest_replicates=400))  # 4 chunks
+    4
     """
     reps = min(quest_replicates, thresholds_db.shape[1])
     tasks: list[Task] = []
-    parts = _set_parts(thresholds_db.shape[0])
+    n_sets = thresholds_db.shape[0]
     for k, (_name, own) in enumerate(_variants(protocol, settings.observer, psi, quest_max_trials)):
         targets = tuple(_targets(own, sd_ladder_db))
         plan = chunk_plan([settings.seed, 0x9E57, k], reps, QUEST_CHUNK_REPLICATES)
+        # Enough chunks already keep the cores busy; fewer are split into parts by sets.
+        parts = _set_parts(n_sets) if len(plan) < QUEST_SPLIT_BELOW else [(0, n_sets)]
         first = 0
         for n, seq in plan:
             thr = thresholds_db[:, first : first + n]
@@ -366,10 +372,12 @@ def quest_tasks(
     return tasks
 
 
-#: Sets per task of a QUEST+ chunk: a chunk's tracks are split by sets into parts that run
-#: anywhere (each draws the chunk's random numbers and keeps its own tracks', so the parts are
-#: the chunk, bit for bit), which spreads one long chunk over the cores.
+#: Sets per task of a QUEST+ chunk when a variant has fewer than :data:`QUEST_SPLIT_BELOW`
+#: chunks (the psi-marginal's 40 tracks per set are one chunk): its tracks are split by sets
+#: into parts that run anywhere (each draws the chunk's random numbers and keeps its own
+#: tracks', so the parts are the chunk's tracks), which spreads a long chunk over the cores.
 QUEST_PART_SETS = 3
+QUEST_SPLIT_BELOW = 4
 
 
 def _set_parts(n_sets: int) -> list[tuple[int, int]]:
