@@ -38,10 +38,16 @@ def test_parts_of_a_chunk_are_the_whole_chunk_bit_for_bit(own):
     thr = thresholds(7, 4)
     seed = np.random.SeedSequence([3, 0x9E57, 0])
     targets = (0.8, 1.6)
-    whole = quest_chunk(own, targets, OBSERVER, thr, seed)
+    whole = quest_chunk(own, targets, OBSERVER, thr, seed, (0, 7))
     parts = [quest_chunk(own, targets, OBSERVER, thr, seed, (a, b)) for a, b in ((0, 3), (3, 7))]
     joined = chunk_outcome(own, targets, parts)
     alone = chunk_outcome(own, targets, [whole])
+    # An unsplit chunk reads its outcomes in the worker: the same as its traces read here.
+    unsplit = quest_chunk(own, targets, OBSERVER, thr, seed)
+    assert unsplit.keys() == alone.keys()
+    for key in alone:
+        for mine, theirs in zip(unsplit[key], alone[key], strict=True):
+            np.testing.assert_array_equal(mine, theirs)
     assert joined.keys() == alone.keys() and len(joined) == 2 * len(targets)
     for key in alone:
         (code, n, est), (code_w, n_w, est_w) = joined[key], alone[key]

@@ -11,8 +11,8 @@ QUEST+ runs once per variant to the strictest posterior-SD target of a ladder; a
 do not depend on its stop rule until it stops, so every looser target is read off that run
 exactly (:meth:`~masking_lab.procedures.quest_plus_batch.SimulatedQuestPlus.trials_to_sd`).
 The tracks run in chunks, each with its own seed (:func:`quest_tasks`), anywhere
-(:mod:`masking_lab.planning.parallel`), a chunk split by sets into parts that are the chunk's
-tracks bit for bit; a part hands back its tracks' posterior mean and SD per trial, not the track.
+(:mod:`masking_lab.planning.parallel`), a lone chunk split by sets into parts that run the
+chunk's tracks; a part hands back its tracks' posterior mean and SD per trial, not the track.
 Each target is then summarised like a staircase rule: trials and minutes (median, p90, mean),
 bias, SD and RMSE of the AL against the true threshold, and how often a track ends at a bound
 or the trial cap. "Fewest trials for ±X dB" is answered across procedures from uncapped rows.
@@ -278,12 +278,18 @@ def compare_procedures(
         raise ValueError(f"expected {len(tasks)} QUEST+ chunk results, got {len(outcomes)}")
     n_sets = len(protocol.sets)
     # A chunk's parts are consecutive tasks; each chunk's first part starts at set 0.
-    starts = [i for i, (_fn, args) in enumerate(tasks) if args[-1][0] == 0] + [len(tasks)]
+    starts = [i for i, (_fn, a) in enumerate(tasks) if a[-1] is None or a[-1][0] == 0]
+    starts.append(len(tasks))
     per_variant = (len(starts) - 1) // len(variants)
     for k, (name, own) in enumerate(variants):
         targets = _targets(own, sd_ladder_db)
         bounds = starts[k * per_variant : (k + 1) * per_variant + 1]
-        chunks = [chunk_outcome(own, targets, outcomes[a:b]) for a, b in pairwise(bounds)]
+        chunks = [
+            out
+            if isinstance(out := outcomes[a], dict)
+            else chunk_outcome(own, targets, outcomes[a:b])
+            for a, b in pairwise(bounds)
+        ]
         for target in targets:
             for capped in (True, False):
                 status, n, est = (
@@ -362,7 +368,9 @@ def quest_tasks(
         targets = tuple(_targets(own, sd_ladder_db))
         plan = chunk_plan([settings.seed, 0x9E57, k], reps, QUEST_CHUNK_REPLICATES)
         # Enough chunks already keep the cores busy; fewer are split into parts by sets.
-        parts = _set_parts(n_sets) if len(plan) < QUEST_SPLIT_BELOW else [(0, n_sets)]
+        parts: list[tuple[int, int] | None] = [None]
+        if len(plan) < QUEST_SPLIT_BELOW:
+            parts = [*_set_parts(n_sets)]
         first = 0
         for n, seq in plan:
             thr = thresholds_db[:, first : first + n]
@@ -435,15 +443,15 @@ def quest_chunk(
     thresholds_db: NDArray[np.float64],
     seed: np.random.SeedSequence,
     sets: tuple[int, int] | None = None,
-) -> QuestPart:
+) -> QuestChunk | QuestPart:
     """One chunk of QUEST+ tracks (``thresholds_db``: sets × tracks), run to the strictest
-    posterior-SD target: each track's posterior mean and SD after every trial (the levels and
-    answers stay here). :func:`chunk_outcome` reads how each track would have ended under every
-    target from them.
+    posterior-SD target, and how each would have ended under every target, capped at
+    ``own.max_trials`` and uncapped (:func:`chunk_outcome`). The tracks themselves stay here.
 
     With ``sets`` = (first, stop), only those sets' tracks (rows) of the chunk, exactly as the
-    whole chunk runs them (the same random numbers, bit for bit): the parts' traces, joined by
-    :func:`chunk_outcome`, are the whole chunk's."""
+    whole chunk runs them (the same random numbers), and their posterior mean and SD after
+    every trial (:class:`QuestPart`): the parts' traces, joined by :func:`chunk_outcome`, are
+    the whole chunk's (to an ulp: tests/test_plan_parts.py)."""
     longest = replace(
         own, target_sd_db=min(targets), max_trials=max(QUEST_TRIAL_LIMIT, own.max_trials or 0)
     )
@@ -458,7 +466,9 @@ def quest_chunk(
         rng=np.random.default_rng(seed),
         part_of=(first * n, n_sets * n),
     )
-    return QuestPart(sim.mean_db, sim.sd_db)
+    if sets is not None:
+        return QuestPart(sim.mean_db, sim.sd_db)
+    return chunk_outcome(own, targets, [QuestPart(sim.mean_db, sim.sd_db)])
 
 
 def _head(

@@ -231,8 +231,9 @@ def simulate_quest_plus(
     part_of : (first, total), optional
         These observers are rows ``first``… of a run of ``total`` observers with the same
         ``rng``: each trial draws the ``total`` uniforms of that run and uses these rows'
-        ones, so the part's tracks are the whole run's, bit for bit (a run split across
-        processes). Default: the run is these observers alone.
+        ones, so the part's tracks answer as in the whole run (a run split across
+        processes; BLAS may sum a product's row in another order for fewer rows, which moves
+        a posterior mean by an ulp at most). Default: the run is these observers alone.
 
     Returns
     -------
