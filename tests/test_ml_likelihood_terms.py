@@ -43,3 +43,23 @@ def test_skipped_logarithms_leave_the_likelihood_unchanged():
         np.testing.assert_array_equal(ours, every_log)
         # and the textbook formula to rounding
         np.testing.assert_allclose(ours, _plain(model, counts, t, sc), rtol=1e-12, atol=1e-9)
+
+
+def test_the_in_place_likelihood_is_the_parts_formula_for_odd_rows_too():
+    # Rows without trials, all-right and all-wrong rows, and a threshold that is not finite:
+    # the in-place arithmetic still gives the numbers of the parts formula (0 for an empty row).
+    level = np.array([[0.0, 2.0, 4.0], [0.0, 0.0, 0.0], [1.0, 3.0, 3.0], [-2.0, 0.0, 2.0]])
+    n = np.array([[3.0, 2.0, 1.0], [0.0, 0.0, 0.0], [2.0, 2.0, 0.0], [1.0, 1.0, 1.0]])
+    k = np.array([[1.0, 2.0, 1.0], [0.0, 0.0, 0.0], [2.0, 2.0, 0.0], [0.0, 0.0, 0.0]])
+    counts = ml_counts.LevelCounts(level, n, k)
+    model = logistic_model(1 / 3, 0.02, 0.794)
+    t = np.array([1.0, np.nan, 2.0, 0.5])
+    s = np.array([1.5, 1.5, 0.01, 40.0])
+    ours = model.log_likelihood(counts, t, s)
+    _, f, g = ml_counts._logistic_parts(counts, t, s, model.c)
+    tiny = np.finfo(float).tiny
+    ln_p = np.log(np.maximum(model.guess + model.rise * f, tiny), out=np.zeros_like(f), where=k > 0)
+    ln_q = np.log(np.maximum(model.lapse + model.rise * g, tiny), out=np.zeros_like(g),
+                  where=n - k > 0)  # fmt: skip
+    np.testing.assert_array_equal(ours, (k * ln_p + (n - k) * ln_q).sum(axis=1))
+    assert ours[1] == 0.0 and np.all(np.isfinite(ours))

@@ -378,17 +378,23 @@ def _run(args: argparse.Namespace) -> int:
 
     progress = step_bar("plan", progress_wanted(args.progress))
 
-    # The staircase plan's chunks (its ML fits, the longest, first) and the QUEST+ tracks' run
-    # together, so both workers stay busy to the end; every chunk has its own seed, so the
-    # tables do not depend on where it ran.
+    # The staircase plan's chunks and the QUEST+ tracks' run together, longest first (the ML
+    # fits, the QUEST+ parts, the staircases' long runs), so both workers stay busy to the end;
+    # every chunk has its own seed, so the tables do not depend on where it ran.
     quest_kw = {"quest_replicates": args.quest_replicates, "psi": args.psi}
     quest_kw["quest_max_trials"] = args.quest_max_trials
     staircase = P.plan_tasks(protocol, settings, thresholds)
     quest = quest_tasks(protocol, settings, thresholds, **quest_kw) if args.quest_replicates else []
+    n_ml = len(settings.schedules) * len(P.chunk_layout(settings)[1])
     progress(f"simulating {len(staircase) + len(quest)} chunks ({args.scheduler})")
-    results = run_tasks([*staircase, *quest], scheduler=args.scheduler)
+    results = run_tasks([*staircase[:n_ml], *quest, *staircase[n_ml:]], scheduler=args.scheduler)
+    n_quest = len(quest)
     result = P.assemble_plan(
-        protocol, settings, thresholds, results[: len(staircase)], progress=progress
+        protocol,
+        settings,
+        thresholds,
+        [*results[:n_ml], *results[n_ml + n_quest :]],
+        progress=progress,
     )
     comparison = None
     if quest:
@@ -398,7 +404,7 @@ def _run(args: argparse.Namespace) -> int:
             settings,
             thresholds,
             progress=progress,
-            outcomes=results[len(staircase) :],
+            outcomes=results[n_ml : n_ml + n_quest],
             **quest_kw,
         )
     cap = P.protocol_staircase(protocol).max_trials

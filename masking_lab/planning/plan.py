@@ -388,9 +388,12 @@ def _schedule_part(
     trial_s = trial_duration_s(protocol.timing, settings.response_s)
     cap = protocol_staircase(protocol).max_trials
     thr = thresholds_db.reshape(-1)
-    set_of_row = np.repeat(np.arange(n_sets), reps)
     ml_reps = min(settings.ml_replicates, reps)
-    ml_rows = (np.arange(n_sets)[:, None] * reps + np.arange(ml_reps)[None, :]).reshape(-1)
+    # Rows are set-major: set j's sessions are the slice j·reps … (j+1)·reps, and its ML
+    # fits the first ml_reps of them (slices, not masks: the same numbers, in order, cheaper).
+    whole = [slice(j * reps, (j + 1) * reps) for j in range(n_sets)]
+    ml_part = [slice(j * reps, j * reps + ml_reps) for j in range(n_sets)]
+    ml_own = [slice(j * ml_reps, (j + 1) * ml_reps) for j in range(n_sets)]
     own_rule, own_sched = protocol_stop_rule(protocol), protocol_schedule(protocol)
     own_is_staircase = runs_staircase(protocol)
     rungs = ladder_rules(own_rule, settings.max_reversals)
@@ -401,23 +404,23 @@ def _schedule_part(
     per_set: list[dict] = []
     for i, rule in enumerate(settings.stop_rules):
         out = rule_outs[i]
-        estimates: dict[str, tuple[NDArray[np.float64], NDArray]] = {
-            "reversal_mean": (out.al_db, np.arange(thr.size)),
+        # (estimate per session, the sessions' slice of set j, that set's slice of the estimates)
+        estimates: dict[str, tuple[NDArray[np.float64], list[slice], list[slice]]] = {
+            "reversal_mean": (out.al_db, whole, whole),
         }
         if ml_als is not None:
-            estimates["ml"] = (ml_als[i], ml_rows)
-        for est, (al, rows) in estimates.items():
+            estimates["ml"] = (ml_als[i], ml_part, ml_own)
+        # Session cost comes from the full sample whatever the estimator.
+        costs = [summarize(out.n_trials[w], out.status_code[w], None, thr, trial_s) for w in whole]
+        for est, (al, rows, own) in estimates.items():
             sets_rows = []
             for j, spec in enumerate(protocol.sets):
-                mine = set_of_row[rows] == j
-                # Session cost comes from the full sample whatever the estimator.
-                cost = set_of_row == j
-                row = summarize(out.n_trials[cost], out.status_code[cost], None, thr, trial_s)
+                row = dict(costs[j])
                 err = summarize(
-                    out.n_trials[rows][mine],
-                    out.status_code[rows][mine],
-                    al[mine],
-                    thr[rows][mine],
+                    out.n_trials[rows[j]],
+                    out.status_code[rows[j]],
+                    al[own[j]],
+                    thr[rows[j]],
                     trial_s,
                 )
                 row.update({key: err[key] for key in ("n_al", "bias_db", "sd_db", "rmse_db")})
@@ -436,14 +439,8 @@ def _schedule_part(
     ladder = []
     for rung, out in zip(rungs, rung_outs, strict=True):
         sets_rows = [
-            summarize(
-                out.n_trials[set_of_row == j],
-                out.status_code[set_of_row == j],
-                out.al_db[set_of_row == j],
-                thr[set_of_row == j],
-                trial_s,
-            )
-            for j in range(n_sets)
+            summarize(out.n_trials[w], out.status_code[w], out.al_db[w], thr[w], trial_s)
+            for w in whole
         ]
         row = _label(pool(sets_rows, out.n_trials, trial_s), sched, rung, "reversal_mean")
         row["half_width_db"] = settings.z * row["worst_sd_db"]

@@ -11,7 +11,8 @@ QUEST+ runs once per variant to the strictest posterior-SD target of a ladder; a
 do not depend on its stop rule until it stops, so every looser target is read off that run
 exactly (:meth:`~masking_lab.procedures.quest_plus_batch.SimulatedQuestPlus.trials_to_sd`).
 The tracks run in chunks, each with its own seed (:func:`quest_tasks`), anywhere
-(:mod:`masking_lab.planning.parallel`); a chunk hands back how each track ends, not the track.
+(:mod:`masking_lab.planning.parallel`), a lone chunk split by sets into parts that run the
+chunk's tracks; a part hands back its tracks' posterior mean and SD per trial, not the track.
 Each target is then summarised like a staircase rule: trials and minutes (median, p90, mean),
 bias, SD and RMSE of the AL against the true threshold, and how often a track ends at a bound
 or the trial cap. "Fewest trials for ±X dB" is answered across procedures from uncapped rows.
@@ -25,7 +26,8 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
-from typing import Any
+from itertools import pairwise
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -36,7 +38,11 @@ from masking_lab.planning.plan import PlanResult, efficiency_fields, pool, summa
 from masking_lab.planning.settings import PlanSettings, trial_duration_s
 from masking_lab.procedures.fisher import max_information
 from masking_lab.procedures.quest_plus import QuestPlusSettings, stop_status
-from masking_lab.procedures.quest_plus_batch import SimulatedQuestPlus, simulate_quest_plus
+from masking_lab.procedures.quest_plus_batch import (
+    SimulatedQuestPlus,
+    simulate_quest_plus,
+    trials_to_sd,
+)
 from masking_lab.procedures.staircase_batch import (
     CEILING,
     COMPLETED,
@@ -49,9 +55,13 @@ from masking_lab.procedures.staircase_batch import (
 __all__ = [
     "PSI_SCALES_DB",
     "QUEST_CHUNK_REPLICATES",
+    "QUEST_PART_SETS",
+    "QUEST_SPLIT_BELOW",
     "SD_LADDER_DB",
     "ProcedureComparison",
     "QuestChunk",
+    "QuestPart",
+    "chunk_outcome",
     "compare_procedures",
     "default_quest_replicates",
     "protocol_quest_plus",
@@ -178,7 +188,7 @@ def compare_procedures(
     psi: bool = False,
     progress: Progress | None = None,
     quest_max_trials: int | None = None,
-    outcomes: Sequence[QuestChunk] | None = None,
+    outcomes: Sequence[QuestPart] | None = None,
     scheduler: str | None = "synchronous",
 ) -> ProcedureComparison:
     """Simulate QUEST+ beside the staircase plan and rate every setting against the bound.
@@ -205,7 +215,7 @@ def compare_procedures(
     quest_max_trials : int, optional
         Trial cap of the capped QUEST+ rows (default: the protocol's QUEST+ ``max_trials``, or
         for a staircase protocol its staircase's cap).
-    outcomes : sequence of QuestChunk, optional
+    outcomes : sequence of QuestPart, optional
         The results of :func:`quest_tasks` of the same arguments, in order, run elsewhere
         (``plan`` runs them beside the staircase plan's chunks); simulated here when None.
     scheduler : str or None
@@ -266,11 +276,20 @@ def compare_procedures(
         outcomes = run_tasks(tasks, scheduler=scheduler)
     if len(outcomes) != len(tasks):
         raise ValueError(f"expected {len(tasks)} QUEST+ chunk results, got {len(outcomes)}")
-    per_variant = len(tasks) // len(variants)
     n_sets = len(protocol.sets)
+    # A chunk's parts are consecutive tasks; each chunk's first part starts at set 0.
+    starts = [i for i, (_fn, a) in enumerate(tasks) if a[-1] is None or a[-1][0] == 0]
+    starts.append(len(tasks))
+    per_variant = (len(starts) - 1) // len(variants)
     for k, (name, own) in enumerate(variants):
-        chunks = outcomes[k * per_variant : (k + 1) * per_variant]
         targets = _targets(own, sd_ladder_db)
+        bounds = starts[k * per_variant : (k + 1) * per_variant + 1]
+        chunks = [
+            out
+            if isinstance(out := outcomes[a], dict)
+            else chunk_outcome(own, targets, outcomes[a:b])
+            for a, b in pairwise(bounds)
+        ]
         for target in targets:
             for capped in (True, False):
                 status, n, est = (
@@ -322,7 +341,8 @@ def quest_tasks(
 ) -> list[Task]:
     """The chunks of QUEST+ tracks :func:`compare_procedures` reads its rows from: per variant
     (QUEST+, and with ``psi`` the psi-marginal), chunks of :data:`QUEST_CHUNK_REPLICATES` tracks
-    per set, each with its own seed; run them anywhere, in order
+    per set, each with its own seed, and a variant of fewer than :data:`QUEST_SPLIT_BELOW`
+    chunks split into parts of :data:`QUEST_PART_SETS` sets; run them anywhere, in order
     (:func:`masking_lab.planning.parallel.run_tasks`).
 
     Arguments as for :func:`compare_procedures`; a chunk's result depends on nothing else.
@@ -336,21 +356,84 @@ def quest_tasks(
     >>> s = PlanSettings((StopRule(11, 8),), (Schedule((4.0, 2.0)),), replicates=5)
     >>> tasks = quest_tasks(p, s, np.full((15, 5), 5.0), quest_replicates=5)
     >>> fn, args = tasks[0]
-    >>> out = fn(*args)
-    >>> len(tasks), out[(1.08, True)][1].shape
-    (1, (75,))
+    >>> len(tasks), fn(*args).sd_db.shape[0]  # one chunk in 5 parts of 3 sets × 5 tracks
+    (5, 15)
+    >>> len(quest_tasks(p, s, np.full((15, 500), 5.0), quest_replicates=400))  # 4 chunks
+    4
     """
     reps = min(quest_replicates, thresholds_db.shape[1])
     tasks: list[Task] = []
+    n_sets = thresholds_db.shape[0]
     for k, (_name, own) in enumerate(_variants(protocol, settings.observer, psi, quest_max_trials)):
         targets = tuple(_targets(own, sd_ladder_db))
         plan = chunk_plan([settings.seed, 0x9E57, k], reps, QUEST_CHUNK_REPLICATES)
+        # Enough chunks already keep the cores busy; fewer are split into parts by sets.
+        parts: list[tuple[int, int] | None] = [None]
+        if len(plan) < QUEST_SPLIT_BELOW:
+            parts = [*_set_parts(n_sets)]
         first = 0
         for n, seq in plan:
             thr = thresholds_db[:, first : first + n]
-            tasks.append((quest_chunk, (own, targets, settings.observer, thr, seq)))
+            for part in parts:
+                tasks.append((quest_chunk, (own, targets, settings.observer, thr, seq, part)))
             first += n
     return tasks
+
+
+#: Sets per task of a QUEST+ chunk when a variant has fewer than :data:`QUEST_SPLIT_BELOW`
+#: chunks (the psi-marginal's 40 tracks per set are one chunk): its tracks are split by sets
+#: into parts that run anywhere (each draws the chunk's random numbers and keeps its own
+#: tracks', so the parts are the chunk's tracks), which spreads a long chunk over the cores.
+QUEST_PART_SETS = 3
+QUEST_SPLIT_BELOW = 4
+
+
+def _set_parts(n_sets: int) -> list[tuple[int, int]]:
+    """(first set, stop) of each part of a QUEST+ chunk: :data:`QUEST_PART_SETS` sets each."""
+    return [(a, min(a + QUEST_PART_SETS, n_sets)) for a in range(0, n_sets, QUEST_PART_SETS)]
+
+
+class QuestPart(NamedTuple):
+    """A part of a QUEST+ chunk (:func:`quest_chunk`): its tracks' posterior mean and SD after
+    each trial, dB, shape (tracks, trials), NaN past a track's end; rows set-major."""
+
+    mean_db: NDArray[np.float64]
+    sd_db: NDArray[np.float64]
+
+
+def chunk_outcome(
+    own: QuestPlusSettings, targets: Sequence[float], parts: Sequence[QuestPart]
+) -> QuestChunk:
+    """How each track of a chunk (its parts, in order) ends under every posterior-SD target,
+    capped at ``own.max_trials`` and uncapped: status codes, trials, estimates (dB).
+
+    The parts' traces are joined (padded with NaN to the longest track) into the whole chunk's
+    before reading them, so every part's tracks are read as the whole chunk's are.
+
+    Examples
+    --------
+    >>> own = QuestPlusSettings(0.0, 20.0, target_sd_db=1.0, max_trials=3)
+    >>> a = QuestPart(np.array([[9.0, 9.5]]), np.array([[2.0, 0.9]]))
+    >>> b = QuestPart(np.array([[8.0, 8.2, 8.1]]), np.array([[3.0, 1.8, 1.2]]))
+    >>> status, n, est = chunk_outcome(own, [1.0], [a, b])[(1.0, False)]
+    >>> n.tolist(), est[:1].tolist()
+    ([2, 3], [9.5])
+    """
+    width = max(p.sd_db.shape[1] for p in parts)
+
+    def joined(name: str) -> NDArray[np.float64]:
+        arrays = [getattr(p, name) for p in parts]
+        pad = [np.pad(a, ((0, 0), (0, width - a.shape[1])), constant_values=np.nan) for a in arrays]
+        return np.concatenate(pad)
+
+    mean, sd = joined("mean_db"), joined("sd_db")
+    return {
+        (target, capped): _outcome_of(
+            mean, sd, replace(own, target_sd_db=target), own.max_trials if capped else None
+        )
+        for target in targets
+        for capped in (True, False)
+    }
 
 
 def quest_chunk(
@@ -359,28 +442,33 @@ def quest_chunk(
     observer: Observer,
     thresholds_db: NDArray[np.float64],
     seed: np.random.SeedSequence,
-) -> QuestChunk:
+    sets: tuple[int, int] | None = None,
+) -> QuestChunk | QuestPart:
     """One chunk of QUEST+ tracks (``thresholds_db``: sets × tracks), run to the strictest
     posterior-SD target, and how each would have ended under every target, capped at
-    ``own.max_trials`` and uncapped. The tracks themselves stay here."""
+    ``own.max_trials`` and uncapped (:func:`chunk_outcome`). The tracks themselves stay here.
+
+    With ``sets`` = (first, stop), only those sets' tracks (rows) of the chunk, exactly as the
+    whole chunk runs them (the same random numbers), and their posterior mean and SD after
+    every trial (:class:`QuestPart`): the parts' traces, joined by :func:`chunk_outcome`, are
+    the whole chunk's (to an ulp: tests/test_plan_parts.py)."""
     longest = replace(
         own, target_sd_db=min(targets), max_trials=max(QUEST_TRIAL_LIMIT, own.max_trials or 0)
     )
+    n_sets, n = thresholds_db.shape
+    first, stop = (0, n_sets) if sets is None else sets
     sim = simulate_quest_plus(
         longest,
-        thresholds_db.reshape(-1),
+        thresholds_db[first:stop].reshape(-1),
         scale_db=observer.scale_db,
         lapse=observer.lapse,
         guess=observer.guess,
         rng=np.random.default_rng(seed),
+        part_of=(first * n, n_sets * n),
     )
-    return {
-        (target, capped): _outcome(
-            sim, replace(own, target_sd_db=target), own.max_trials if capped else None
-        )
-        for target in targets
-        for capped in (True, False)
-    }
+    if sets is not None:
+        return QuestPart(sim.mean_db, sim.sd_db)
+    return chunk_outcome(own, targets, [QuestPart(sim.mean_db, sim.sd_db)])
 
 
 def _head(
@@ -416,8 +504,18 @@ def _outcome(
     sim: SimulatedQuestPlus, rule: QuestPlusSettings, cap: int | None
 ) -> tuple[NDArray[np.int8], NDArray[np.int64], NDArray[np.float64]]:
     """Status codes, trials and estimates had every track stopped under ``rule`` and ``cap``."""
-    limit = sim.levels_db.shape[1]
-    n = sim.trials_to_sd(rule.target_sd_db or 0.0, rule.min_trials)
+    return _outcome_of(sim.mean_db, sim.sd_db, rule, cap)
+
+
+def _outcome_of(
+    mean_db: NDArray[np.float64],
+    sd_db: NDArray[np.float64],
+    rule: QuestPlusSettings,
+    cap: int | None,
+) -> tuple[NDArray[np.int8], NDArray[np.int64], NDArray[np.float64]]:
+    """:func:`_outcome` from the tracks' posterior traces (tracks × trials, NaN past the end)."""
+    limit = sd_db.shape[1]
+    n = trials_to_sd(sd_db, rule.target_sd_db or 0.0, rule.min_trials)
     reached = np.isfinite(n)
     stop = np.where(reached, n, limit)
     if cap is not None:
@@ -425,7 +523,7 @@ def _outcome(
     stop_i = stop.astype(np.int64)
     col = np.maximum(stop_i - 1, 0)
     rows = np.arange(stop_i.size)
-    mean, sd = sim.mean_db[rows, col], sim.sd_db[rows, col]
+    mean, sd = mean_db[rows, col], sd_db[rows, col]
     capped_rule = replace(rule, max_trials=int(cap) if cap is not None else limit)
     names = stop_status(capped_rule, stop_i, mean, sd)
     # A track that never reached the target within the simulation counts as trial_cap.

@@ -64,6 +64,16 @@ class LevelCounts:
         """Levels with at least one wrong answer (where ln p(wrong) is weighed)."""
         return self.n_wrong > 0
 
+    @functools.cached_property
+    def no_correct(self) -> NDArray[np.bool_]:
+        """Levels without a correct answer (the complement of :attr:`any_correct`)."""
+        return ~self.any_correct
+
+    @functools.cached_property
+    def no_wrong(self) -> NDArray[np.bool_]:
+        """Levels without a wrong answer (the complement of :attr:`any_wrong`)."""
+        return ~self.any_wrong
+
 
 @dataclass(frozen=True)
 class LevelIndex:
@@ -222,18 +232,40 @@ class LogisticModel:
     ) -> NDArray[np.float64]:
         """Log-likelihood (natural log) per track at threshold ``threshold_db`` and scale
         ``scale_db`` (both dB, shape (R,))."""
-        _, f, g = _logistic_parts(counts, threshold_db, scale_db, self.c)
+        # The arithmetic of _logistic_parts, then p and q, in four work arrays updated in
+        # place (the fits call this ~10⁴ times: fresh temporaries cost more than the maths).
+        # Every operation and its order are those of _logistic_parts and derivatives, so the
+        # sums are the same numbers bit for bit (tests/test_ml_likelihood_terms.py).
+        z = counts.level_db - threshold_db[:, None]
+        z /= scale_db[:, None]
+        z += self.c
+        pos = z >= 0
+        e = np.abs(z)
+        np.negative(e, out=e)
+        np.exp(e, out=e)
+        d = e + 1.0
+        p = np.divide(1.0, d)  # 1/(1 + e): F(z) where z ≥ 0
+        np.divide(e, d, out=e)  # e/(1 + e): F(z) where z < 0
+        q = np.where(pos, e, p)  # 1 − F(z) without cancellation
+        np.copyto(p, e, where=~pos)  # F(z)
         tiny = np.finfo(float).tiny
-        p = np.maximum(self.guess + self.rise * f, tiny)
-        q = np.maximum(self.lapse + self.rise * g, tiny)  # 1 − p without cancellation
+        p *= self.rise
+        p += self.guess
+        np.maximum(p, tiny, out=p)
+        q *= self.rise
+        q += self.lapse  # 1 − p without cancellation
+        np.maximum(q, tiny, out=q)
         # k·ln p + (n − k)·ln q, skipping the logarithms whose weight is 0: a staircase answers
         # most of its levels all right or all wrong, and rows are padded, so this halves the
         # logarithms; the sums are the same numbers (a zero term adds nothing).
-        k, m = counts.n_correct, counts.n_wrong
-        ln_p = np.log(p, out=np.zeros_like(p), where=counts.any_correct)
-        ln_q = np.log(q, out=np.zeros_like(q), where=counts.any_wrong)
-        ll = k * ln_p + m * ln_q
-        return ll.sum(axis=1)
+        np.log(p, out=p, where=counts.any_correct)
+        np.log(q, out=q, where=counts.any_wrong)
+        np.copyto(p, 0.0, where=counts.no_correct)
+        np.copyto(q, 0.0, where=counts.no_wrong)
+        p *= counts.n_correct
+        q *= counts.n_wrong
+        p += q
+        return p.sum(axis=1)
 
     def derivatives(
         self, counts: LevelCounts, threshold_db: NDArray[np.float64], scale_db: NDArray[np.float64]

@@ -81,10 +81,7 @@ class SimulatedQuestPlus(TrackBatch[QuestPlusSettings]):
         >>> bool(np.all(sim.trials_to_sd(2.0) <= sim.n_trials))
         True
         """
-        n = np.arange(1, self.sd_db.shape[1] + 1)
-        ok = (self.sd_db <= target_sd_db) & (n[None, :] >= min_trials)
-        first = np.argmax(ok, axis=1) + 1.0
-        return np.where(ok.any(axis=1), first, np.nan)
+        return trials_to_sd(self.sd_db, target_sd_db, min_trials)
 
     def mean_at(self, n_trials: ArrayLike) -> NDArray[np.float64]:
         """Posterior mean of each track after ``n_trials[i]`` trials (NaN if never run), dB."""
@@ -92,6 +89,23 @@ class SimulatedQuestPlus(TrackBatch[QuestPlusSettings]):
         ok = np.isfinite(n) & (n >= 1) & (n <= self.n_trials)
         col = np.where(ok, n, 1).astype(np.intp) - 1
         return np.where(ok, self.mean_db[np.arange(n.size), col], np.nan)
+
+
+def trials_to_sd(
+    sd_db: NDArray[np.float64], target_sd_db: float, min_trials: int = 0
+) -> NDArray[np.float64]:
+    """Trials each track needs before its posterior SD is ≤ ``target_sd_db`` (dB), from the
+    (tracks × trials) posterior SDs (dB; NaN past a track's end); NaN where it never got there.
+
+    Examples
+    --------
+    >>> trials_to_sd(np.array([[3.0, 1.5, 0.9], [3.0, 2.5, np.nan]]), 2.0).tolist()
+    [2.0, nan]
+    """
+    n = np.arange(1, sd_db.shape[1] + 1)
+    ok = (sd_db <= target_sd_db) & (n[None, :] >= min_trials)
+    first = np.argmax(ok, axis=1) + 1.0
+    return np.where(ok.any(axis=1), first, np.nan)
 
 
 def run_quest_plus(
@@ -195,6 +209,7 @@ def simulate_quest_plus(
     guess: float | None = None,
     rng: np.random.Generator,
     n_trials: int | None = None,
+    part_of: tuple[int, int] | None = None,
 ) -> SimulatedQuestPlus:
     """Run one track per simulated observer.
 
@@ -213,10 +228,21 @@ def simulate_quest_plus(
         Source of the answers; one uniform per replicate per trial.
     n_trials : int, optional
         Trial limit of the simulation (default ``settings.max_trials``).
+    part_of : (first, total), optional
+        These observers are rows ``first``… of a run of ``total`` observers with the same
+        ``rng``: each trial draws the ``total`` uniforms of that run and uses these rows'
+        ones, so the part's tracks answer as in the whole run (a run split across
+        processes; BLAS may sum a product's row in another order for fewer rows, which moves
+        a posterior mean by an ulp at most). Default: the run is these observers alone.
 
     Returns
     -------
     SimulatedQuestPlus
+
+    Raises
+    ------
+    ProcedureError
+        If a threshold is not finite or ``part_of`` does not hold these observers.
 
     Examples
     --------
@@ -231,13 +257,18 @@ def simulate_quest_plus(
         raise ProcedureError("true_threshold_db must be finite dB values (no NaN or ±inf)")
     g = settings.guess if guess is None else float(guess)
     psy = Psychometric(0.0, scale_db, g, lapse, settings.p_at_threshold)
-    size = thr.size
+    first, size = (0, thr.size) if part_of is None else (int(part_of[0]), int(part_of[1]))
+    if first < 0 or first + thr.size > size:
+        raise ProcedureError(
+            f"part_of={part_of}: {thr.size} observers from row {first} do not fit in a run "
+            f"of {size}"
+        )
 
     def respond(_t: int, rows: NDArray[np.intp], lv: NDArray[np.float64]) -> NDArray[np.bool_]:
         u = rng.random(size)  # one draw per replicate per trial keeps streams aligned
-        return u[rows] < psy.p_correct(lv - thr[rows])
+        return u[first + rows] < psy.p_correct(lv - thr[rows])
 
-    return run_quest_plus(settings, respond, size, trial_limit=n_trials, true_threshold_db=thr)
+    return run_quest_plus(settings, respond, thr.size, trial_limit=n_trials, true_threshold_db=thr)
 
 
 def replay_many(settings: QuestPlusSettings, correct: ArrayLike) -> SimulatedQuestPlus:
