@@ -294,15 +294,22 @@ def _collect(settings: DemoSettings, err: TextIO, say: Callable[[str], None]) ->
     return sorted(done, key=lambda s: (s.participant, PROTOCOLS.index(s.protocol)))
 
 
-def _run_in_pool(out: str, settings: DemoSettings, jobs: int) -> Iterator[SessionDone]:
+def _run_in_pool(
+    out: str,
+    settings: DemoSettings,
+    jobs: int,
+    run: Callable[[str, str, int, int, int], SessionDone] | None = None,
+) -> Iterator[SessionDone]:
     """Every session in ``jobs`` worker processes, yielded as each finishes.
 
     A session is one task, so the two masked experiments of a participant run side by side
     once that participant's baseline (their calibration) is done. The queue is kept here, not
     in the pool, so the next free worker takes the most useful ready session: baselines first
     (each unlocks two), then the longer experiment I before experiment II. The logs do not
-    depend on the order: every session has its own seed (:func:`session_seed`).
+    depend on the order: every session has its own seed (:func:`session_seed`). A participant
+    whose baseline fails runs no experiment. ``run`` replaces :func:`_run_one` (tests).
     """
+    run = run or _run_one
     # Imported before the workers fork, so each starts with them loaded (fork start method).
     import masking_lab.session.runner  # noqa: F401
 
@@ -315,7 +322,7 @@ def _run_in_pool(out: str, settings: DemoSettings, jobs: int) -> Iterator[Sessio
             ready.sort()
             while ready and len(running) < jobs:
                 k, i = ready.pop(0)
-                fut = pool.submit(_run_one, out, settings.device, settings.seed, i, k)
+                fut = pool.submit(run, out, settings.device, settings.seed, i, k)
                 running[fut] = (k, i)
             if warm is None:
                 # The workers exist now (forked at the first submit): load what the analysis
