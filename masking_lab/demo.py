@@ -6,13 +6,17 @@ pseudo-terminal on a virtual clock; the logs are analysed (ALs, statistics, pool
 the masking parameters exported, and the paper's bump-with-rough-texture scene rendered with and
 without compensation. The summary puts the fitted parameters beside the ground truth.
 
-Participants run in parallel worker processes (one emulator each); a participant's three
-sessions run in order because the masked experiments need the baseline's calibration.
+Sessions run in parallel worker processes (one emulator each). A participant's two masked
+experiments need the baseline's calibration, so they start when that baseline has finished,
+and then run side by side. Every session has its own seed, so the logs do not depend on the
+order or the number of workers. While the workers run, this process imports what the analysis
+and the scene need.
 """
 
 from __future__ import annotations
 
 import contextlib
+import importlib
 import io
 import os
 import sys
@@ -310,9 +314,7 @@ def _run_in_pool(
     whose baseline fails runs no experiment. ``run`` replaces :func:`_run_one` (tests).
     """
     run = run or _run_one
-    # Imported before the workers fork, so each starts with them loaded (fork start method).
-    import masking_lab.session.runner  # noqa: F401
-
+    _session_imports()
     n = settings.participants
     ready = [(0, i) for i in range(1, n + 1)]  # (protocol index, participant index)
     running: dict[Future[SessionDone], tuple[int, int]] = {}
@@ -341,11 +343,35 @@ def _run_in_pool(
         warm.join()
 
 
+# What a session loads (the device, responder and procedure modules, numpy's generators),
+# imported before the workers fork so that each starts with them: ~0.5 s of CPU per worker
+# otherwise (with the fork start method; spawned workers import them themselves).
+_SESSION_MODULES = (
+    "masking_lab.session.runner",
+    "masking_lab.session.participant_info",
+    "masking_lab.device.emulator",
+    "masking_lab.device.serial_device",
+    "masking_lab.responders.sim",
+    "numpy.random",
+    "threadpoolctl",
+)
+# What the analysis and the scene load, imported while the sessions run.
+_LATER_MODULES = ("masking_lab.analysis.batch", "masking_lab.rendering.render")
+
+
+def _session_imports() -> None:
+    for name in _SESSION_MODULES:
+        importlib.import_module(name)
+    from masking_lab.procedures.registry import kinds
+
+    kinds()
+
+
 def _warm_imports() -> None:
     """Import the analysis, figure and rendering modules (errors surface where they are used)."""
     with contextlib.suppress(Exception):
-        import masking_lab.analysis.batch
-        import masking_lab.rendering.render  # noqa: F401
+        for name in _LATER_MODULES:
+            importlib.import_module(name)
         from masking_lab.formats.png_figure import pyplot
 
         pyplot()
