@@ -409,7 +409,8 @@ def _render(out: Path) -> dict[str, Any]:
         scene, pair, max_mv_db_sl=max_mv, max_ev_db_sl=max_ev, gamut_map="clip"
     )
     trade = compare_strategies(scene, pair, max_mv, max_ev)
-    written = write_rendering(rendering, out / "render", strategies=trade)
+    # figure4.png (most of this step) is drawn in a worker while gamut.png is drawn here.
+    written = write_rendering(rendering, out / "render", strategies=trade, figure_worker=True)
     summary = summarize(rendering)
     summary["gamut_mapping"]["strategies"] = trade
     summary["files"] = [str(p) for p in written]
