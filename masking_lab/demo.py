@@ -6,18 +6,24 @@ pseudo-terminal on a virtual clock; the logs are analysed (ALs, statistics, pool
 the masking parameters exported, and the paper's bump-with-rough-texture scene rendered with and
 without compensation. The summary puts the fitted parameters beside the ground truth.
 
-Participants run in parallel worker processes (one emulator each); a participant's three
-sessions run in order because the masked experiments need the baseline's calibration.
+Sessions run in parallel worker processes (one emulator each). A participant's two masked
+experiments need the baseline's calibration, so they start when that baseline has finished,
+and then run side by side. Every session has its own seed, so the logs do not depend on the
+order or the number of workers. While the workers run, this process imports what the analysis
+and the scene need.
 """
 
 from __future__ import annotations
 
+import contextlib
+import importlib
 import io
 import os
 import sys
+import threading
 import time
-from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from collections.abc import Callable, Iterator
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TextIO
@@ -126,40 +132,44 @@ def session_seed(master: int, participant_index: int, protocol_index: int) -> in
     )
 
 
-def _run_participant(out: str, device: str, master_seed: int, index: int) -> list[SessionDone]:
-    """Worker: one participant's three sessions, in order. Runs in a child process."""
+def _run_one(out: str, device: str, master_seed: int, index: int, k: int) -> SessionDone:
+    """Worker: one session (participant ``index``, ``PROTOCOLS[k]``). Runs in a child process."""
     from masking_lab.session.runner import RunOptions, run_session
 
     participant = f"S{index:02d}"
+    name = PROTOCOLS[k]
+    t0 = time.perf_counter()
+    result = run_session(
+        RunOptions(
+            protocol=Path(str(shipped("protocols", f"{name}.yaml"))),
+            participant=participant,
+            device=device,
+            responder="sim",
+            data_dir=Path(out) / "data",
+            seed=session_seed(master_seed, index, k),
+            progress=False,
+        ),
+        stream=io.StringIO(),
+    )
+    return SessionDone(
+        participant=participant,
+        protocol=name,
+        log_path=str(result.log_path),
+        exit_code=result.exit_code,
+        n_sets=len(result.outcomes),
+        n_completed=sum(o.status == "completed" for o in result.outcomes),
+        n_trials=sum(o.n_trials for o in result.outcomes),
+        seconds=time.perf_counter() - t0,
+        message=result.message,
+    )
+
+
+def _run_participant(out: str, device: str, master_seed: int, index: int) -> list[SessionDone]:
+    """One participant's three sessions in order, stopping at the first that fails."""
     done: list[SessionDone] = []
-    for k, name in enumerate(PROTOCOLS):
-        t0 = time.perf_counter()
-        result = run_session(
-            RunOptions(
-                protocol=Path(str(shipped("protocols", f"{name}.yaml"))),
-                participant=participant,
-                device=device,
-                responder="sim",
-                data_dir=Path(out) / "data",
-                seed=session_seed(master_seed, index, k),
-                progress=False,
-            ),
-            stream=io.StringIO(),
-        )
-        done.append(
-            SessionDone(
-                participant=participant,
-                protocol=name,
-                log_path=str(result.log_path),
-                exit_code=result.exit_code,
-                n_sets=len(result.outcomes),
-                n_completed=sum(o.status == "completed" for o in result.outcomes),
-                n_trials=sum(o.n_trials for o in result.outcomes),
-                seconds=time.perf_counter() - t0,
-                message=result.message,
-            )
-        )
-        if result.exit_code != 0:
+    for k in range(len(PROTOCOLS)):
+        done.append(_run_one(out, device, master_seed, index, k))
+        if done[-1].exit_code != 0:
             break
     return done
 
@@ -274,21 +284,97 @@ def _collect(settings: DemoSettings, err: TextIO, say: Callable[[str], None]) ->
         flush=True,
     )
     done: list[SessionDone] = []
-    jobs = max(1, min(settings.jobs, n))
-    args = [(str(settings.out), settings.device, settings.seed, i) for i in range(1, n + 1)]
+    jobs = max(1, min(settings.jobs, n * len(PROTOCOLS)))
+    out = str(settings.out)
     if jobs == 1:
-        for a in args:
-            for s in _run_participant(*a):
+        for i in range(1, n + 1):
+            for s in _run_participant(out, settings.device, settings.seed, i):
                 done.append(s)
                 say(_progress(len(done), total, s))
     else:
-        with ProcessPoolExecutor(max_workers=jobs) as pool:
-            futures = [pool.submit(_run_participant, *a) for a in args]
-            for fut in as_completed(futures):
-                for s in fut.result():
-                    done.append(s)
-                    say(_progress(len(done), total, s))
+        for s in _run_in_pool(out, settings, jobs):
+            done.append(s)
+            say(_progress(len(done), total, s))
     return sorted(done, key=lambda s: (s.participant, PROTOCOLS.index(s.protocol)))
+
+
+def _run_in_pool(
+    out: str,
+    settings: DemoSettings,
+    jobs: int,
+    run: Callable[[str, str, int, int, int], SessionDone] | None = None,
+) -> Iterator[SessionDone]:
+    """Every session in ``jobs`` worker processes, yielded as each finishes.
+
+    A session is one task, so the two masked experiments of a participant run side by side
+    once that participant's baseline (their calibration) is done. The queue is kept here, not
+    in the pool, so the next free worker takes the most useful ready session: baselines first
+    (each unlocks two), then the longer experiment I before experiment II. The logs do not
+    depend on the order: every session has its own seed (:func:`session_seed`). A participant
+    whose baseline fails runs no experiment. ``run`` replaces :func:`_run_one` (tests).
+    """
+    run = run or _run_one
+    _session_imports()
+    n = settings.participants
+    ready = [(0, i) for i in range(1, n + 1)]  # (protocol index, participant index)
+    running: dict[Future[SessionDone], tuple[int, int]] = {}
+    warm: threading.Thread | None = None
+    with ProcessPoolExecutor(max_workers=jobs) as pool:
+        while ready or running:
+            ready.sort()
+            while ready and len(running) < jobs:
+                k, i = ready.pop(0)
+                fut = pool.submit(run, out, settings.device, settings.seed, i, k)
+                running[fut] = (k, i)
+            if warm is None:
+                # The workers exist now (forked at the first submit): load what the analysis
+                # and the scene need while they run, on the CPU time their pty round trips
+                # leave idle.
+                warm = threading.Thread(target=_warm_imports, name="demo-warm", daemon=True)
+                warm.start()
+            finished, _ = wait(running, return_when=FIRST_COMPLETED)
+            for fut in finished:
+                k, i = running.pop(fut)
+                s = fut.result()
+                if s.exit_code == 0 and k == 0:
+                    ready += [(j, i) for j in range(1, len(PROTOCOLS))]
+                yield s
+    if warm is not None:
+        warm.join()
+
+
+# What a session loads (the device, responder and procedure modules, numpy's generators),
+# imported before the workers fork so that each starts with them: ~0.5 s of CPU per worker
+# otherwise (with the fork start method; spawned workers import them themselves).
+_SESSION_MODULES = (
+    "masking_lab.session.runner",
+    "masking_lab.session.participant_info",
+    "masking_lab.device.emulator",
+    "masking_lab.device.serial_device",
+    "masking_lab.responders.sim",
+    "numpy.random",
+    "threadpoolctl",
+)
+# What the analysis and the scene load, imported while the sessions run.
+_LATER_MODULES = ("masking_lab.analysis.batch", "masking_lab.rendering.render")
+
+
+def _session_imports() -> None:
+    for name in _SESSION_MODULES:
+        importlib.import_module(name)
+    from masking_lab.procedures.registry import kinds
+
+    kinds()
+
+
+def _warm_imports() -> None:
+    """Import the analysis, figure and rendering modules (errors surface where they are used)."""
+    with contextlib.suppress(Exception):
+        for name in _LATER_MODULES:
+            importlib.import_module(name)
+        from masking_lab.formats.png_figure import pyplot
+
+        pyplot()
 
 
 def _progress(k: int, total: int, s: SessionDone) -> str:
@@ -323,7 +409,8 @@ def _render(out: Path) -> dict[str, Any]:
         scene, pair, max_mv_db_sl=max_mv, max_ev_db_sl=max_ev, gamut_map="clip"
     )
     trade = compare_strategies(scene, pair, max_mv, max_ev)
-    written = write_rendering(rendering, out / "render", strategies=trade)
+    # figure4.png (most of this step) is drawn in a worker while gamut.png is drawn here.
+    written = write_rendering(rendering, out / "render", strategies=trade, figure_worker=True)
     summary = summarize(rendering)
     summary["gamut_mapping"]["strategies"] = trade
     summary["files"] = [str(p) for p in written]

@@ -6,6 +6,7 @@ own (limits, faults, watchdog, timing), whatever the host sends.
 
 from __future__ import annotations
 
+import os
 import signal
 import subprocess
 import sys
@@ -238,6 +239,37 @@ def test_virtual_time_play_reports_planned_onsets_plus_small_seeded_lateness(rig
     assert (done.number("tamp"), done.number("mamp")) == (played(102), played(61))
     assert done.numbers("on") == _done_line(1, rig).numbers("on")  # same seed, same lateness
     assert done.numbers("on") != _done_line(2, rig).numbers("on")
+
+
+def test_virtual_time_play_answers_ok_and_done_in_one_write(rig, monkeypatch):
+    # The host then gets both from one read: one wake-up per simulated trial, not two.
+    import masking_lab.device.emulator as emulator_module
+
+    writes: list[bytes] = []
+
+    class CountingOs:
+        def __getattr__(self, name):
+            return getattr(os, name)
+
+        @staticmethod
+        def write(fd: int, data: bytes) -> int:
+            writes.append(bytes(data))
+            return os.write(fd, data)
+
+    monkeypatch.setattr(emulator_module, "os", CountingOs())
+    emu = FirmwareEmulator(rig, virtual_time=True, seed=1).start()
+    try:
+        link = Link(emu.port)
+        try:
+            seq = link.send("PLAY", at=5.0, **PLAY)
+            frames = link.frames_until(lambda f: f.kind == "event" and f.name == "DONE")
+        finally:
+            link.ser.close()
+    finally:
+        emu.close()
+    replies = [w for w in writes if f"{seq} OK".encode() in w]
+    assert len(replies) == 1 and b" DONE seq=" in replies[0]
+    assert [f.kind for f in frames[-2:]] == ["reply", "event"]  # OK first, then DONE
 
 
 def test_real_time_play_is_hardware_timed_and_ends_on_zero(emulator_factory):

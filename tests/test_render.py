@@ -283,6 +283,17 @@ def test_write_rendering_is_complete_and_json_is_strict(tmp_path):
     assert "inf" not in text.lower() and "nan" not in text.lower() and ",," in text
 
 
+def test_figure4_drawn_in_a_worker_is_the_same_file(tmp_path):
+    pair = MutualMasking(a_db=-2.0, b=0.5, c_db=-1.0, d=0.4, mv="MV180", ev="EV270")
+    r = render_scene(_tiny_scene(), pair, max_mv_db_sl=30.0, max_ev_db_sl=30.0, gamut_map="clip")
+    here = write_rendering(r, tmp_path / "here")
+    worker = write_rendering(r, tmp_path / "worker", figure_worker=True)
+    assert [p.name for p in here] == [p.name for p in worker]
+    assert [p.name for p in here] == ["points.csv", "summary.json", "figure4.png", "gamut.png"]
+    for a, b in zip(here, worker, strict=True):
+        assert a.read_bytes() == b.read_bytes(), a.name
+
+
 def test_runs_mm():
     x = np.arange(8.0)
     mask = np.array([1, 1, 0, 0, 1, 0, 1, 1], dtype=bool)

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import hashlib
 import itertools
 import math
 from collections import Counter
 
+import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -204,6 +206,28 @@ def test_random_streams_are_independent():
     assert list(a) != list(b)
     with pytest.raises(ValueError):
         trial_rng(-1, "s", 0, STREAM_RESPONDER)
+
+
+def test_trial_streams_are_numpys_seed_sequence_of_the_documented_key():
+    # The logged sessions' draws are fixed by this definition: a generator seeded with
+    # SeedSequence([seed, key(set_id), trial_index, key(stream)]), key = the first 8 bytes of
+    # sha256, little-endian. Seeds and indices of one and of several 32-bit words.
+    def key(text: str) -> int:
+        return int.from_bytes(hashlib.sha256(text.encode()).digest()[:8], "little")
+
+    for seed, set_id, index in [
+        (0, "MV120_05", 0),
+        (2020, "EV270", 17),
+        (2**32 - 1, "", 2**32),
+        (2**63 + 5, "ü", 123456),
+        (4052283373, "MV270_EV270_25", 149),
+    ]:
+        for stream in (STREAM_TARGET_INTERVAL, STREAM_RESPONDER):
+            entropy = [seed, key(set_id), index, key(stream)]
+            want = np.random.default_rng(np.random.SeedSequence(entropy))
+            got = trial_rng(seed, set_id, index, stream)
+            assert list(got.integers(0, 2**62, 3)) == list(want.integers(0, 2**62, 3))
+            assert got.random() == want.random()
 
 
 def test_time_left_from_the_pace_of_this_set_and_finished_sets():

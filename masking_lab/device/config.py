@@ -8,6 +8,7 @@ the file, the key path and its line.
 
 from __future__ import annotations
 
+import functools
 import itertools
 import math
 from collections.abc import Iterator, Mapping
@@ -298,6 +299,15 @@ def load_device_config(path: str | Path | None = None) -> DeviceConfig:
 
 def parse_device_config(text: str, source: str) -> DeviceConfig:
     """:func:`load_device_config` on text already read; ``source`` names it in messages."""
+    return _parse_device_config(text, source)
+
+
+# Pure in (text, source) and the result is frozen, so one parse serves every caller: a session
+# reads its config four times (open, header, level checks, rig limits) and a demo worker runs
+# many sessions. A file that changes is new text, so it is parsed (and checked) again; a refused
+# text raises every time (exceptions are not cached).
+@functools.lru_cache(maxsize=16)
+def _parse_device_config(text: str, source: str) -> DeviceConfig:
     try:
         data, lines = _safe_yaml(text, source)
     except ProtocolError as exc:

@@ -168,6 +168,9 @@ class FirmwareEmulator(EmulatorCommands):
             ) from None
         self._rx = bytearray()
         self._rx_discard = False  # skipping the tail of an over-long line
+        # While the lines of one read are handled, replies queue and go out in one write at
+        # the end: in virtual time a PLAY's OK and DONE reach the host in one read.
+        self._holding_out = False
         self._out = bytearray()
         self._last_rx = time.perf_counter()
         self._booting_until: float | None = None
@@ -359,27 +362,36 @@ class FirmwareEmulator(EmulatorCommands):
             if self._booting_until is not None:
                 return  # a resetting board hears nothing
             self._rx += data
-            while True:
-                i = self._rx.find(b"\n")
-                if self._rx_discard:  # the rest of a line already reported as too long
-                    if i < 0:
-                        self._rx.clear()
-                        break
-                    del self._rx[: i + 1]
-                    self._rx_discard = False
-                    continue
+            self._holding_out = True
+            try:
+                self._handle_lines()
+            finally:
+                self._holding_out = False
+                self._flush_locked()
+
+    def _handle_lines(self) -> None:
+        """Handle every complete line received so far (lock held)."""
+        while True:
+            i = self._rx.find(b"\n")
+            if self._rx_discard:  # the rest of a line already reported as too long
                 if i < 0:
-                    # like the firmware: the 256th byte without a newline is garbage, once
-                    if len(self._rx) >= proto.MAX_FRAME_BYTES:
-                        self._rx.clear()
-                        self._rx_discard = True
-                        self._fault("FRAME", "line too long without a newline")
+                    self._rx.clear()
                     break
-                line = bytes(self._rx[: i + 1])
                 del self._rx[: i + 1]
-                self._handle_line(line)
-                if not self._connected:
-                    break
+                self._rx_discard = False
+                continue
+            if i < 0:
+                # like the firmware: the 256th byte without a newline is garbage, once
+                if len(self._rx) >= proto.MAX_FRAME_BYTES:
+                    self._rx.clear()
+                    self._rx_discard = True
+                    self._fault("FRAME", "line too long without a newline")
+                break
+            line = bytes(self._rx[: i + 1])
+            del self._rx[: i + 1]
+            self._handle_line(line)
+            if not self._connected:
+                break
 
     def _tick(self) -> None:
         now = time.perf_counter()
@@ -474,6 +486,8 @@ class FirmwareEmulator(EmulatorCommands):
     def _unplug_locked(self, why: str) -> None:
         self._zero(why)
         self._note(f"UNPLUG {why}: port closed, outputs zeroed")
+        if self._holding_out:  # what was sent before the cable went reaches the host, as before
+            self._flush_locked()
         self._close_fds()
 
     def _close_fds(self, *, wake: bool = False) -> None:
@@ -521,7 +535,8 @@ class FirmwareEmulator(EmulatorCommands):
         if len(self._out) + len(frame) > _OUT_CAP:
             return  # nobody is reading: drop rather than block the firmware loop
         self._out += frame
-        self._flush_locked()
+        if not self._holding_out:
+            self._flush_locked()
 
     def _flush(self) -> None:
         with self._lock:

@@ -14,6 +14,7 @@ amplitude is that in whole LSBs (rounded half up) and the amplitude actually pla
 
 from __future__ import annotations
 
+import functools
 import math
 import re
 from collections.abc import Mapping, Sequence
@@ -42,6 +43,9 @@ class LimitError(ValueError):
     """An amplitude the firmware answers with ``ERR LIMIT``."""
 
 
+# Pure in ``text``; a PLAY carries ~14 numbers and most repeat from trial to trial (carriers,
+# timing, attenuation), so the emulator parses each distinct text once.
+@functools.lru_cache(maxsize=4096)
 def parse_micro(text: str | None) -> int | None:
     """A wire number as integer micro-units, exactly like the firmware; None if refused.
 

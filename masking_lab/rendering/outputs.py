@@ -17,6 +17,7 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Mapping, Sequence
+from concurrent.futures import Future
 from pathlib import Path
 from typing import Any
 
@@ -159,16 +160,40 @@ def write_rendering(
     figure: bool = True,
     uncertainty: RenderingUncertainty | None = None,
     strategies: Mapping[str, Any] | None = None,
+    figure_worker: bool = False,
 ) -> list[Path]:
     """Write ``points.csv``, ``summary.json`` and (optionally) ``figure4.png`` and ``gamut.png``
     into ``out_dir``; with ``uncertainty``, its intervals as columns, bands and a summary entry;
     with ``strategies`` (:func:`~masking_lab.rendering.render.compare_strategies`), every gamut
-    mapping's metrics under ``gamut_mapping.strategies`` in the summary.
+    mapping's metrics under ``gamut_mapping.strategies`` in the summary; with
+    ``figure_worker``, ``figure4.png`` (the longest part) is drawn in a worker process while
+    this one writes the rest (the same bytes).
 
     Each file is written atomically and fsynced. Returns the paths written.
     """
     check_outputs_finite(r)
     out = Path(out_dir)
+    pool = pending = None
+    if figure and figure_worker:
+        from concurrent.futures import ProcessPoolExecutor
+
+        pool = ProcessPoolExecutor(max_workers=1)
+        pending = pool.submit(figure4_png, r, bands=uncertainty)
+    try:
+        return _write_rendering(r, out, figure, uncertainty, strategies, pending)
+    finally:
+        if pool is not None:
+            pool.shutdown(cancel_futures=True)
+
+
+def _write_rendering(
+    r: Rendering,
+    out: Path,
+    figure: bool,
+    uncertainty: RenderingUncertainty | None,
+    strategies: Mapping[str, Any] | None,
+    pending: Future[bytes] | None,
+) -> list[Path]:
     summary = summarize(r)
     summary["uncertainty"] = None if uncertainty is None else uncertainty.summary()
     if strategies is not None:
@@ -180,14 +205,19 @@ def write_rendering(
         ),
     ]
     if figure:
-        written.append(write_bytes_atomic(out / "figure4.png", figure4_png(r, bands=uncertainty)))
+        gamut = None
         if r.gamut is not None and r.pair is not None:
             from masking_lab.rendering.gamut_figure import gamut_png
 
             want_m, want_e = intended(r)
             mapped = None if r.gamut_map == "none" else (r.mv_target_db_sl, r.ev_target_db_sl)
-            png = gamut_png(r.gamut, mv_target_db_sl=want_m, ev_target_db_sl=want_e, mapped=mapped)
-            written.append(write_bytes_atomic(out / "gamut.png", png))
+            gamut = gamut_png(
+                r.gamut, mv_target_db_sl=want_m, ev_target_db_sl=want_e, mapped=mapped
+            )
+        fig4 = pending.result() if pending is not None else figure4_png(r, bands=uncertainty)
+        written.append(write_bytes_atomic(out / "figure4.png", fig4))
+        if gamut is not None:
+            written.append(write_bytes_atomic(out / "gamut.png", gamut))
     return written
 
 
