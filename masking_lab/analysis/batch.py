@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING, Any, TextIO
 
 from masking_lab.analysis.experiment import analyze_shifts, result_warnings
 from masking_lab.analysis.export import write_outputs
+from masking_lab.analysis.figure_pool import FigurePool
 from masking_lab.analysis.log_checks import duplicate_sessions, refused_sets, repeated_sessions
 from masking_lab.analysis.log_reading import read_logs
 from masking_lab.analysis.report import LogsInput, ShiftsTableInput, build_report
@@ -94,6 +95,7 @@ def run_analyze(
     *,
     progress: Callable[[int, int], None] | None = None,
     fit_progress: Callable[[int, int], None] | None = None,
+    figure_pool: FigurePool | None = None,
 ) -> RunSummary:
     """Analyse every session log under ``data_dir`` and write every output into ``out_dir``.
 
@@ -113,6 +115,10 @@ def run_analyze(
         Called with (logs read, logs found).
     fit_progress : callable or None
         Called with (sets fitted, sets to fit) for ``psychometric.csv``.
+    figure_pool : FigurePool, optional
+        The worker drawing the summary figures, started early by the caller so that it loads
+        matplotlib while this process loads the analysis (default: started here); closed
+        when the run ends.
 
     Returns
     -------
@@ -132,8 +138,15 @@ def run_analyze(
     data, out = Path(data_dir), Path(out_dir)
     if not data.is_dir():
         raise AnalysisError(f"{data}: no such folder; give the folder holding session logs")
-    with staged_output(out, protect=[data]) as staging:
-        summary = _analyze_into(data, staging, settings, progress, fit_progress)
+    if figure_pool is None:
+        figure_pool = FigurePool(settings.figures != "none")
+    try:
+        with staged_output(out, protect=[data]) as staging:
+            summary = _analyze_into(data, staging, settings, progress, fit_progress, figure_pool)
+    except BaseException:  # a failed run does not wait for its figures
+        figure_pool.close(cancel=True)
+        raise
+    figure_pool.close()
     return _moved(summary, staging, out)
 
 
@@ -149,6 +162,7 @@ def _analyze_into(
     settings: AnalysisSettings,
     progress: Callable[[int, int], None] | None,
     fit_progress: Callable[[int, int], None] | None = None,
+    figure_pool: FigurePool | None = None,
 ) -> RunSummary:
     """The analysis of :func:`run_analyze`, writing into ``out`` (the staging folder)."""
     from masking_lab.formats.session_log import read_log
@@ -246,6 +260,7 @@ def _analyze_into(
         track_files,
         fit_progress,
         sessions,
+        figure_pool,
     )
     files += lab.files
     warnings += lab.warnings
@@ -282,6 +297,7 @@ def _analyze_into(
         report_inputs=report_inputs,
         thresholds=thresholds,
         lab=lab.section,
+        figure_pool=figure_pool,
     )
     warnings += result_warnings(experiments)
     ramp_files, ramp_problems = _functional_ramps(out, analysed_logs, inputs, settings, created_utc)
@@ -335,6 +351,7 @@ def _lab_outputs(
     drawn: list[Path],
     fit_progress: Callable[[int, int], None] | None = None,
     sessions: list[Any] | None = None,
+    figure_pool: FigurePool | None = None,
 ) -> LabOutputs:
     """trials.csv, psychometric.csv, participants.tsv, the study status and their figures."""
     from dataclasses import replace
@@ -351,6 +368,7 @@ def _lab_outputs(
         trial_tables=settings.trial_tables,
         progress=fit_progress,
         sessions=sessions,
+        figure_pool=figure_pool,
     )
     tracks = tuple(
         (p.relative_to(out).as_posix(), "staircase tracks of one session") for p in drawn
