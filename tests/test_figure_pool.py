@@ -4,6 +4,7 @@ in-process, and a worker that dies leaves its figures to the main process."""
 from __future__ import annotations
 
 import os
+import time
 
 from masking_lab.analysis.figure_pool import FigurePool
 from masking_lab.analysis.figures import masking_function_png
@@ -80,3 +81,25 @@ def test_a_cancelled_pool_does_not_draw_what_is_queued() -> None:
     pool.submit(masking_function_png, title="t", cells=CELLS, fits=FITS)
     pool.close(cancel=True)
     pool.close()  # closing twice is harmless
+
+
+def _pid_once_file_exists(path: str) -> int:
+    while not os.path.exists(path):  # held until the test lets it go (no timing involved)
+        time.sleep(0.01)
+    return os.getpid()
+
+
+def test_a_widened_pool_spreads_figures_over_its_workers_with_the_same_bytes(tmp_path) -> None:
+    here = masking_function_png(title="t", cells=CELLS, fits=FITS)
+    gate = tmp_path / "go"
+    pool = FigurePool()
+    pool.widen(2)
+    try:
+        first = pool.submit(_pid_once_file_exists, str(gate))  # busy until the gate opens
+        second = pool.submit(_pid_once_file_exists, str(gate))  # so this goes to the other
+        figure = pool.submit(masking_function_png, title="t", cells=CELLS, fits=FITS)
+        gate.touch()
+        assert first() != second() and PARENT not in (first(), second())
+        assert figure() == here
+    finally:
+        pool.close()

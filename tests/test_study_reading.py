@@ -61,6 +61,7 @@ def test_only_logs_that_can_name_a_functional_set_are_parsed_again(tmp_path):
 
 
 def test_shift_figures_drawn_in_their_own_process_are_the_ones_drawn_in_process(logs):
+    from masking_lab.analysis.figure_pool import FigurePool
     from masking_lab.analysis.lab_outputs import _ShiftFigures
     from masking_lab.analysis.log_reading import read_logs
     from masking_lab.analysis.study_status import outliers
@@ -71,8 +72,13 @@ def test_shift_figures_drawn_in_their_own_process_are_the_ones_drawn_in_process(
     rows = [row for res in read_logs(paths, root, EstimatorSettings()) for row in res.rows]
     thresholds = thresholds_table(rows)
     flags = outliers(thresholds)
-    here = _ShiftFigures(thresholds, flags, True, early=False).result()
-    there = _ShiftFigures(thresholds, flags, True, early=True).result()
+    pool = FigurePool()
+    pool.widen(2)
+    try:
+        here = _ShiftFigures(thresholds, flags, True, FigurePool(enabled=False)).result()
+        there = _ShiftFigures(thresholds, flags, True, pool).result()
+        assert _ShiftFigures(thresholds, flags, False, pool).result() == []
+    finally:
+        pool.close()
     assert [e for e, _ in here] == ["experiment1", "experiment2"]
     assert there == here and all(png.startswith(b"\x89PNG") for _, png in there)
-    assert _ShiftFigures(thresholds, flags, False, early=True).result() == []

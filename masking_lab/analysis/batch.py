@@ -38,7 +38,7 @@ from masking_lab.analysis.thresholds import (
     unpacked,
 )
 from masking_lab.core.errors import AnalysisError
-from masking_lab.formats.csv_table import csv_text, csv_text_rows
+from masking_lab.formats.csv_table import csv_text, csv_text_columns
 from masking_lab.formats.fileio import write_text_atomic
 from masking_lab.formats.output_dir import staged_output
 from masking_lab.formats.shifts_csv import levels_told_apart, read_shifts_csv
@@ -239,11 +239,9 @@ def _analyze_into(
         ),
         rig_warnings=tuple(rig_changes(rigs)),
     )
+    columns = [thresholds[c].tolist() for c in THRESHOLD_COLUMNS]  # formatted column-wise
     files.append(
-        write_text_atomic(
-            out / "thresholds.csv",
-            csv_text_rows(THRESHOLD_COLUMNS, thresholds[THRESHOLD_COLUMNS].to_numpy().tolist()),
-        )
+        write_text_atomic(out / "thresholds.csv", csv_text_columns(THRESHOLD_COLUMNS, columns))
     )
     files.append(
         write_text_atomic(out / "problems.csv", csv_text(["log", "problem", "action"], problems))

@@ -1,4 +1,4 @@
-"""One worker process that draws a run's summary figures (*shell*).
+"""Worker processes that draw a run's summary figures (*shell*).
 
 Importing matplotlib and drawing the summary PNGs (the AL-shift and masking-function figures
 of each experiment) is most of the fixed cost of ``analyze``. :class:`FigurePool` starts one
@@ -35,7 +35,7 @@ def _warm() -> None:
 
 
 class FigurePool:
-    """Figures drawn in one worker process (or in-process, see the module docstring).
+    """Figures drawn in worker processes (or in-process, see the module docstring).
 
     Parameters
     ----------
@@ -52,28 +52,40 @@ class FigurePool:
     """
 
     def __init__(self, enabled: bool = True) -> None:
-        self._pool: ProcessPoolExecutor | None = None
-        if not enabled:
-            return
+        self._lanes: list[tuple[ProcessPoolExecutor, list[Future[Any]]]] = []
+        self._enabled = enabled
+        if enabled:
+            self._add_lane()
+
+    def _add_lane(self) -> bool:
         try:
             pool = ProcessPoolExecutor(max_workers=1)
             pool.submit(_warm)  # the worker starts now, not at the first figure
         except (OSError, NotImplementedError, RuntimeError):  # no processes here: in-process
-            return
-        self._pool = pool
+            return False
+        self._lanes.append((pool, []))
         # a run that fails before collecting its figures does not wait for them
         weakref.finalize(self, pool.shutdown, False, cancel_futures=True)
+        return True
+
+    def widen(self, workers: int) -> None:
+        """Use up to ``workers`` worker processes (a large study's figures take seconds each;
+        each is still drawn whole by one worker, so the bytes do not change)."""
+        while self._enabled and len(self._lanes) < workers and self._add_lane():
+            pass
 
     def submit(self, fn: Callable[..., T], /, *args: Any, **kwargs: Any) -> Callable[[], T]:
         """Start ``fn(*args, **kwargs)`` (a module-level ``fn``, picklable arguments; plain
-        data keeps pandas out of the worker); returns a function giving its result (waiting
-        for the worker, or drawing in-process)."""
-        if self._pool is None:
+        data keeps pandas out of the worker) in the least busy worker; returns a function
+        giving its result (waiting for the worker, or drawing in-process)."""
+        if not self._lanes:
             return lambda: fn(*args, **kwargs)
+        pool, queued = min(self._lanes, key=lambda lane: sum(not f.done() for f in lane[1]))
         try:
-            future: Future[T] = self._pool.submit(fn, *args, **kwargs)
+            future: Future[T] = pool.submit(fn, *args, **kwargs)
         except (BrokenProcessPool, RuntimeError):
             return lambda: fn(*args, **kwargs)
+        queued.append(future)
 
         def result() -> T:
             try:
@@ -84,7 +96,7 @@ class FigurePool:
         return result
 
     def close(self, *, cancel: bool = False) -> None:
-        """Stop the worker: after its figures, or at once with ``cancel`` (a failed run)."""
-        if self._pool is not None:
-            self._pool.shutdown(wait=not cancel, cancel_futures=cancel)
-            self._pool = None
+        """Stop the workers: after their figures, or at once with ``cancel`` (a failed run)."""
+        for pool, _ in self._lanes:
+            pool.shutdown(wait=not cancel, cancel_futures=cancel)
+        self._lanes = []

@@ -162,6 +162,8 @@ def write_lab_outputs(
     own_pool = figure_pool is None
     if figure_pool is None:
         figure_pool = FigurePool(figures != "none" and len(logs) >= PARALLEL_FROM)
+    if len(logs) >= PARALLEL_FROM:  # a shift figure of hundreds of participants takes seconds
+        figure_pool.widen(2)
     early = _ShiftFigures(thresholds, flags, figures != "none", figure_pool)
     if trial_tables:
         trials_path = out / "trials.csv"
@@ -312,12 +314,12 @@ class _ShiftFigures:
             if "(AL shift)" in o.what:
                 head, _, rest = o.what.partition(" @ ")
                 flagged.add((o.participant, head.split(" ", 1)[1], float(rest.split(" ")[0])))
+        names = ["participant", "mv_stimulus", "target", "masker", "masker_level_db_sl", "shift_db"]
         for e, g in done.groupby("experiment", sort=True):
             shifts = [
-                {"participant": r.participant, "mv_stimulus": r.mv_stimulus,
-                 "pair": f"{r.target}|{r.masker}", "masker_level_db_sl": r.masker_level_db_sl,
-                 "shift_db": r.shift_db}
-                for r in g.itertuples(index=False)
+                {"participant": p, "mv_stimulus": mv, "pair": f"{t}|{m}",
+                 "masker_level_db_sl": lv, "shift_db": sh}
+                for p, mv, t, m, lv, sh in zip(*(g[c].tolist() for c in names), strict=True)
             ]  # fmt: skip
             self.jobs.append((str(e), f"Individual AL shifts: {e}", shifts, flagged))
         if self.jobs:
