@@ -72,7 +72,7 @@ def csv_text_columns(columns: Sequence[str], data: Sequence[Sequence[Any]]) -> s
     Examples
     --------
     >>> csv_text_columns(["a", "b"], [[1.0 / 3, True], [None, "x"]])
-    'a,b\n0.333333,\ntrue,x\n'
+    'a,b\\n0.333333,\\ntrue,x\\n'
     """
     if len(columns) != len(data):
         raise ValueError(f"{len(columns)} column names for {len(data)} columns")
@@ -89,7 +89,7 @@ def csv_text_columns(columns: Sequence[str], data: Sequence[Sequence[Any]]) -> s
 
 
 def _needs_quotes() -> str:
-    """The characters that make the csv module quote a field (``QUOTE_MINIMAL``, ``\n`` line
+    """The characters that make the csv module quote a field (``QUOTE_MINIMAL``, ``\\n`` line
     ends), asked of the csv module itself so the two writers cannot disagree."""
     out = []
     for ch in ',"\n\r\t ;':
