@@ -180,7 +180,7 @@ def _analyze_into(
     tracks: list[TrackJob] = []
     rigs: list[RigUse] = []
     analysed: set[str] = set()  # rel paths, for the cross-log checks
-    analysed_logs: list[Path] = []  # paths, for the functional-procedure outputs
+    analysed_logs: list[Path] = []  # paths that may hold functional-procedure sets
     sessions: list[Any] = []  # each analysed log's session, for the study matrix
     # One read per log (hashed and parsed from the same bytes), in parallel for many logs.
     results = list(read_logs(paths, data, est, progress=progress))
@@ -210,7 +210,8 @@ def _analyze_into(
             if isinstance(h.get("created_utc"), str) and is_utc_stamp(h["created_utc"]):
                 created.append(h["created_utc"])
             rows.extend(res.rows)
-            analysed_logs.append(res.path)
+            if res.may_hold_functional:  # asked of the bytes in the one read
+                analysed_logs.append(res.path)
             sessions.append(res.session)
             if settings.figures == "all":
                 tracks.append(_track_job(out, read_log(res.path), unpacked(res.rows)))
@@ -313,31 +314,11 @@ def _functional_ramps(
     hook: analysis/functional_outputs.py)."""
     from masking_lab.analysis.functional_outputs import write_functional_outputs
 
-    # Parsing every log again only to find no functional set is a third read of the study:
-    # a log whose bytes never name the kind (nor escape a character, which could spell it)
-    # holds none.
-    names = _masker_placing_names()
-    logs = [p for p in logs if _may_hold_functional(p, names)]
+    # ``logs``: only those whose bytes may name a functional kind (LogResult.may_hold_functional):
+    # parsing every log again only to find no functional set would be a third read of the study.
     return write_functional_outputs(
         out, logs, inputs=inputs, settings=settings.as_dict("analyze"), created_utc=created_utc
     )
-
-
-def _may_hold_functional(path: Path, names: list[bytes] | None = None) -> bool:
-    """Whether the log at ``path`` can hold a set whose procedure places the masker level
-    (the registry's ``places_masker`` kinds; unreadable: maybe)."""
-    try:
-        raw = path.read_bytes()
-    except OSError:
-        return True
-    names = _masker_placing_names() if names is None else names
-    return any(name in raw for name in names) or b"\\u" in raw
-
-
-def _masker_placing_names() -> list[bytes]:
-    from masking_lab.procedures.registry import kinds
-
-    return [k.name.encode() for k in kinds() if k.places_masker]
 
 
 def _lab_outputs(
