@@ -154,9 +154,11 @@ def _tree_rss_kb(root: int) -> int:
 
 def run_analyze(
     data: Path, out: Path, extra: list[str], src: str | None = None
-) -> tuple[float, float, float]:
+) -> tuple[float, float, float, float]:
     """Wall time (s) of ``masking-lab analyze`` as a whole command, the largest process's peak
-    (MB, RSS from ``wait4``) and the sampled process-tree peak (MB, PSS).
+    (MB, RSS from ``wait4``), the sampled process-tree peak (MB, PSS) and the CPU time (s,
+    user + system of the process and the workers it waited for: on a shared machine the
+    steadier figure).
 
     ``src``: a folder holding another ``masking_lab`` package (e.g. ``git archive main
     masking_lab | tar -x -C DIR``), imported instead of the installed one (an editable
@@ -187,7 +189,8 @@ def run_analyze(
     sampler.join()
     if os.waitstatus_to_exitcode(status) != 0:
         raise SystemExit(f"analyze failed: {err.decode(errors='replace')[-2000:]}")
-    return seconds, usage.ru_maxrss / 1024, peak["kb"] / 1024
+    cpu = usage.ru_utime + usage.ru_stime
+    return seconds, usage.ru_maxrss / 1024, peak["kb"] / 1024, cpu
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -219,13 +222,13 @@ def main(argv: list[str] | None = None) -> int:
         simulate_study(pool, n_participants=10, seed=0)
         print(f"simulated the pool of 30 sessions in {time.perf_counter() - t0:.1f} s", flush=True)
         results = []
-        baselines: list[tuple[int, float, float, float]] = []
+        baselines: list[tuple[int, float, float, float, float]] = []
         for n in sizes:
             data = work / f"data_{n}"
             size = build_folder(pool, data, n)
             floors = {kind: run_floor(kind, data) for kind in FLOORS}
-            t_an, rss_main, rss_tree = run_analyze(data, work / f"out_{n}", extra)
-            results.append((n, size, floors, t_an, rss_main, rss_tree))
+            t_an, rss_main, rss_tree, cpu = run_analyze(data, work / f"out_{n}", extra)
+            results.append((n, size, floors, t_an, rss_main, rss_tree, cpu))
             if args.baseline_src:
                 base = run_analyze(data, work / f"base_{n}", extra, args.baseline_src)
                 baselines.append((n, *base))
@@ -244,27 +247,29 @@ def main(argv: list[str] | None = None) -> int:
         print(
             f"{'sessions':>9} {'MB':>7} {'read s':>7} {'+sha s':>7} {'typed s':>8} {'json s':>7} "
             f"{'analyze s':>10} {'an/typed':>9} {'an/json':>8} {'ms/sess':>8} {'peak MB':>8} "
-            f"{'tree MB':>8}"
+            f"{'tree MB':>8} {'CPU s':>7}"
         )
-        for n, size, f, t_an, rss_main, rss_tree in results:
+        for n, size, f, t_an, rss_main, rss_tree, cpu in results:
             print(
                 f"{n:>9} {size / 1e6:>7.1f} {f['read']:>7.2f} {f['read+sha']:>7.2f} "
                 f"{f['typed']:>8.2f} {f['json']:>7.2f} {t_an:>10.2f} {t_an / f['typed']:>9.2f} "
                 f"{t_an / f['json']:>8.2f} {1000 * t_an / n:>8.2f} {rss_main:>8.0f} "
-                f"{rss_tree:>8.0f}"
+                f"{rss_tree:>8.0f} {cpu:>7.1f}"
             )
         print(
             "Every time is a whole command (a fresh process). an/typed: analyze over the typed "
             "msgspec decode + SHA-256 in as many processes as analyze uses (target <= 2 at "
             "10,000); an/json: over stdlib json.loads of every line in one process (target <= 1 "
             "at 1,000). peak MB: largest process (wait4, RSS; target <= 300 at 10,000); tree "
-            "MB: PSS summed over the process tree, sampled every 50 ms."
+            "MB: PSS summed over the process tree, sampled every 50 ms; CPU s: user + system "
+            "of analyze and its workers."
         )
-        for n, t_base, rss_main, rss_tree in baselines:
-            t_an = next(r[3] for r in results if r[0] == n)
+        for n, t_base, rss_main, rss_tree, cpu_base in baselines:
+            t_an, cpu = next((r[3], r[6]) for r in results if r[0] == n)
             print(
                 f"baseline ({args.baseline_src}) at {n} sessions: {t_base:.2f} s, peak "
-                f"{rss_main:.0f} MB, tree {rss_tree:.0f} MB; analyze / baseline {t_an / t_base:.2f}"
+                f"{rss_main:.0f} MB, tree {rss_tree:.0f} MB, CPU {cpu_base:.1f} s; analyze / "
+                f"baseline: wall {t_an / t_base:.2f}, CPU {cpu / cpu_base:.2f}"
             )
     finally:
         if not args.workdir:
