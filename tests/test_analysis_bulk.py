@@ -38,7 +38,7 @@ def _awkward_columns(rng: random.Random, n: int) -> list[list]:
 
 def test_column_wise_csv_is_the_row_wise_bytes() -> None:
     rng = random.Random(22)
-    for n in (0, 1, 7, 300):
+    for n in (0, 1, 7, 300, 9000):
         data = _awkward_columns(rng, n)
         names = [f"c{i}" for i in range(len(data))]
         rows = [list(r) for r in zip(*data, strict=True)]

@@ -152,10 +152,11 @@ def write_lab_outputs(
     LabOutputs
     """
     files: list[Path] = []
-    status = {
-        (str(r[0]), str(r[1])): str(r[2])
-        for r in thresholds[["log", "set_id", "status"]].itertuples(index=False)
-    }
+    # each trial row's set status (trials.csv only): a key per set of the study
+    status: dict[tuple[str, str], str] = {}
+    if trial_tables:
+        keys = [thresholds[c].tolist() for c in ("log", "set_id", "status")]
+        status = {(str(log), str(sid)): str(st) for log, sid, st in zip(*keys, strict=True)}
     flags = outliers(thresholds)
     # The shift figures need only the thresholds: they are drawn in a worker process while
     # the logs are read and fitted.

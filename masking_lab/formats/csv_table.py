@@ -76,16 +76,23 @@ def csv_text_columns(columns: Sequence[str], data: Sequence[Sequence[Any]]) -> s
     """
     if len(columns) != len(data):
         raise ValueError(f"{len(columns)} column names for {len(data)} columns")
-    cells = [_column_cells(values) for values in data]
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(columns)
-    if len(columns) < 2:  # csv quotes a lone empty field: leave such tables to it
-        w.writerows(zip(*cells, strict=True))
-        return buf.getvalue()
-    cells = [_quoted(col) for col in cells]
-    rows = list(map(",".join, zip(*cells, strict=True)))
-    return buf.getvalue() + "".join(line + "\n" for line in rows)
+    n = len(data[0]) if data else 0
+    # A block of rows at a time: the formatted cells of a whole large table at once would
+    # hold millions of small strings.
+    for start in range(0, n, _BLOCK_ROWS):
+        cells = [_column_cells(values[start : start + _BLOCK_ROWS]) for values in data]
+        if len(columns) < 2:  # csv quotes a lone empty field: leave such tables to it
+            w.writerows(zip(*cells, strict=True))
+            continue
+        cells = [_quoted(col) for col in cells]
+        buf.write("".join(line + "\n" for line in map(",".join, zip(*cells, strict=True))))
+    return buf.getvalue()
+
+
+_BLOCK_ROWS = 4096
 
 
 def _needs_quotes() -> str:
