@@ -28,6 +28,7 @@ Usage::
     python benchmarks/bench_analysis.py --with-10000       # and 10000 (~2 GB of logs)
     python benchmarks/bench_analysis.py --sizes 100 --analyze-args=--no-trial-tables
     python benchmarks/bench_analysis.py --baseline-src DIR   # and analyze from DIR/masking_lab
+    python benchmarks/bench_analysis.py --sizes 3 --repeat 5 --baseline-src DIR  # fixed cost
 """
 
 from __future__ import annotations
@@ -38,6 +39,7 @@ import json
 import os
 import shlex
 import shutil
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -193,6 +195,11 @@ def run_analyze(
     return seconds, usage.ru_maxrss / 1024, peak["kb"] / 1024, cpu
 
 
+def _medians(runs: list[tuple[float, ...]]) -> tuple[float, ...]:
+    """Each column's median over repeated runs (wall, peak, tree peak, CPU)."""
+    return tuple(statistics.median(col) for col in zip(*runs, strict=True))
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("--sizes", default="100,1000", help="session counts, comma-separated")
@@ -203,6 +210,13 @@ def main(argv: list[str] | None = None) -> int:
         "--baseline-src",
         metavar="DIR",
         help="also time analyze from the masking_lab package in DIR (before/after in one run)",
+    )
+    ap.add_argument(
+        "--repeat",
+        type=int,
+        default=1,
+        metavar="N",
+        help="time analyze (and the baseline, interleaved) N times; print medians",
     )
     ap.add_argument("--floor", nargs=2, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
@@ -227,12 +241,17 @@ def main(argv: list[str] | None = None) -> int:
             data = work / f"data_{n}"
             size = build_folder(pool, data, n)
             floors = {kind: run_floor(kind, data) for kind in FLOORS}
-            t_an, rss_main, rss_tree, cpu = run_analyze(data, work / f"out_{n}", extra)
+            runs, base_runs = [], []
+            for _ in range(args.repeat):  # interleaved with the baseline: the same load for both
+                runs.append(run_analyze(data, work / f"out_{n}", extra))
+                if args.baseline_src:
+                    base = run_analyze(data, work / f"base_{n}", extra, args.baseline_src)
+                    base_runs.append(base)
+                    shutil.rmtree(work / f"base_{n}", ignore_errors=True)
+            t_an, rss_main, rss_tree, cpu = _medians(runs)
             results.append((n, size, floors, t_an, rss_main, rss_tree, cpu))
             if args.baseline_src:
-                base = run_analyze(data, work / f"base_{n}", extra, args.baseline_src)
-                baselines.append((n, *base))
-                shutil.rmtree(work / f"base_{n}", ignore_errors=True)
+                baselines.append((n, *_medians(base_runs)))
             print(
                 f"  {n:>6} sessions ({size / 1e6:7.1f} MB): "
                 + ", ".join(f"{k} {v:.2f} s" for k, v in floors.items())
