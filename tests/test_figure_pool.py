@@ -4,7 +4,12 @@ in-process, and a worker that dies leaves its figures to the main process."""
 from __future__ import annotations
 
 import os
+import signal
+import subprocess
+import sys
 import time
+
+import pytest
 
 from masking_lab.analysis.figure_pool import FigurePool
 from masking_lab.analysis.figures import masking_function_png
@@ -103,3 +108,36 @@ def test_a_widened_pool_spreads_figures_over_its_workers_with_the_same_bytes(tmp
         assert figure() == here
     finally:
         pool.close()
+
+
+_KILLED_RUN = """
+import os, signal
+from masking_lab.analysis.figure_pool import FigurePool
+pool = FigurePool()
+print(pool.submit(os.getpid)(), flush=True)
+os.kill(os.getpid(), signal.SIGKILL)  # no shutdown runs
+"""
+
+
+def _alive(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat", encoding="ascii") as fh:
+            return fh.read().rsplit(")", 1)[1].split()[0] != "Z"  # a zombie has ended
+    except FileNotFoundError:
+        return False
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc"), reason="reads /proc")
+def test_a_killed_run_takes_its_figure_worker_with_it() -> None:
+    # An orphaned worker would hold the run's stdout open: run() would wait for it forever
+    # (the timeout only guards against that hang).
+    done = subprocess.run(
+        [sys.executable, "-c", _KILLED_RUN], capture_output=True, text=True, timeout=300
+    )
+    assert done.returncode == -signal.SIGKILL, done.stderr
+    worker = int(done.stdout.split()[0])
+    for _ in range(600):  # the kernel delivers the parent-death signal at once; a hang guard
+        if not _alive(worker):
+            break
+        time.sleep(0.05)
+    assert not _alive(worker)
