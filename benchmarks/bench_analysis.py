@@ -28,6 +28,7 @@ Usage::
     python benchmarks/bench_analysis.py --with-10000       # and 10000 (~2 GB of logs)
     python benchmarks/bench_analysis.py --sizes 100 --analyze-args=--no-trial-tables
     python benchmarks/bench_analysis.py --baseline-src DIR   # and analyze from DIR/masking_lab
+    python benchmarks/bench_analysis.py --sizes 3 --repeat 5 --baseline-src DIR  # fixed cost
 """
 
 from __future__ import annotations
@@ -38,6 +39,7 @@ import json
 import os
 import shlex
 import shutil
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -154,9 +156,11 @@ def _tree_rss_kb(root: int) -> int:
 
 def run_analyze(
     data: Path, out: Path, extra: list[str], src: str | None = None
-) -> tuple[float, float, float]:
+) -> tuple[float, float, float, float]:
     """Wall time (s) of ``masking-lab analyze`` as a whole command, the largest process's peak
-    (MB, RSS from ``wait4``) and the sampled process-tree peak (MB, PSS).
+    (MB, RSS from ``wait4``), the sampled process-tree peak (MB, PSS) and the CPU time (s,
+    user + system of the process and the workers it waited for: on a shared machine the
+    steadier figure).
 
     ``src``: a folder holding another ``masking_lab`` package (e.g. ``git archive main
     masking_lab | tar -x -C DIR``), imported instead of the installed one (an editable
@@ -187,7 +191,13 @@ def run_analyze(
     sampler.join()
     if os.waitstatus_to_exitcode(status) != 0:
         raise SystemExit(f"analyze failed: {err.decode(errors='replace')[-2000:]}")
-    return seconds, usage.ru_maxrss / 1024, peak["kb"] / 1024
+    cpu = usage.ru_utime + usage.ru_stime
+    return seconds, usage.ru_maxrss / 1024, peak["kb"] / 1024, cpu
+
+
+def _medians(runs: list[tuple[float, ...]]) -> tuple[float, ...]:
+    """Each column's median over repeated runs (wall, peak, tree peak, CPU)."""
+    return tuple(statistics.median(col) for col in zip(*runs, strict=True))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -200,6 +210,13 @@ def main(argv: list[str] | None = None) -> int:
         "--baseline-src",
         metavar="DIR",
         help="also time analyze from the masking_lab package in DIR (before/after in one run)",
+    )
+    ap.add_argument(
+        "--repeat",
+        type=int,
+        default=1,
+        metavar="N",
+        help="time analyze (and the baseline, interleaved) N times; print medians",
     )
     ap.add_argument("--floor", nargs=2, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
@@ -219,17 +236,22 @@ def main(argv: list[str] | None = None) -> int:
         simulate_study(pool, n_participants=10, seed=0)
         print(f"simulated the pool of 30 sessions in {time.perf_counter() - t0:.1f} s", flush=True)
         results = []
-        baselines: list[tuple[int, float, float, float]] = []
+        baselines: list[tuple[int, float, float, float, float]] = []
         for n in sizes:
             data = work / f"data_{n}"
             size = build_folder(pool, data, n)
             floors = {kind: run_floor(kind, data) for kind in FLOORS}
-            t_an, rss_main, rss_tree = run_analyze(data, work / f"out_{n}", extra)
-            results.append((n, size, floors, t_an, rss_main, rss_tree))
+            runs, base_runs = [], []
+            for _ in range(args.repeat):  # interleaved with the baseline: the same load for both
+                runs.append(run_analyze(data, work / f"out_{n}", extra))
+                if args.baseline_src:
+                    base = run_analyze(data, work / f"base_{n}", extra, args.baseline_src)
+                    base_runs.append(base)
+                    shutil.rmtree(work / f"base_{n}", ignore_errors=True)
+            t_an, rss_main, rss_tree, cpu = _medians(runs)
+            results.append((n, size, floors, t_an, rss_main, rss_tree, cpu))
             if args.baseline_src:
-                base = run_analyze(data, work / f"base_{n}", extra, args.baseline_src)
-                baselines.append((n, *base))
-                shutil.rmtree(work / f"base_{n}", ignore_errors=True)
+                baselines.append((n, *_medians(base_runs)))
             print(
                 f"  {n:>6} sessions ({size / 1e6:7.1f} MB): "
                 + ", ".join(f"{k} {v:.2f} s" for k, v in floors.items())
@@ -244,27 +266,29 @@ def main(argv: list[str] | None = None) -> int:
         print(
             f"{'sessions':>9} {'MB':>7} {'read s':>7} {'+sha s':>7} {'typed s':>8} {'json s':>7} "
             f"{'analyze s':>10} {'an/typed':>9} {'an/json':>8} {'ms/sess':>8} {'peak MB':>8} "
-            f"{'tree MB':>8}"
+            f"{'tree MB':>8} {'CPU s':>7}"
         )
-        for n, size, f, t_an, rss_main, rss_tree in results:
+        for n, size, f, t_an, rss_main, rss_tree, cpu in results:
             print(
                 f"{n:>9} {size / 1e6:>7.1f} {f['read']:>7.2f} {f['read+sha']:>7.2f} "
                 f"{f['typed']:>8.2f} {f['json']:>7.2f} {t_an:>10.2f} {t_an / f['typed']:>9.2f} "
                 f"{t_an / f['json']:>8.2f} {1000 * t_an / n:>8.2f} {rss_main:>8.0f} "
-                f"{rss_tree:>8.0f}"
+                f"{rss_tree:>8.0f} {cpu:>7.1f}"
             )
         print(
             "Every time is a whole command (a fresh process). an/typed: analyze over the typed "
             "msgspec decode + SHA-256 in as many processes as analyze uses (target <= 2 at "
             "10,000); an/json: over stdlib json.loads of every line in one process (target <= 1 "
             "at 1,000). peak MB: largest process (wait4, RSS; target <= 300 at 10,000); tree "
-            "MB: PSS summed over the process tree, sampled every 50 ms."
+            "MB: PSS summed over the process tree, sampled every 50 ms; CPU s: user + system "
+            "of analyze and its workers."
         )
-        for n, t_base, rss_main, rss_tree in baselines:
-            t_an = next(r[3] for r in results if r[0] == n)
+        for n, t_base, rss_main, rss_tree, cpu_base in baselines:
+            t_an, cpu = next((r[3], r[6]) for r in results if r[0] == n)
             print(
                 f"baseline ({args.baseline_src}) at {n} sessions: {t_base:.2f} s, peak "
-                f"{rss_main:.0f} MB, tree {rss_tree:.0f} MB; analyze / baseline {t_an / t_base:.2f}"
+                f"{rss_main:.0f} MB, tree {rss_tree:.0f} MB, CPU {cpu_base:.1f} s; analyze / "
+                f"baseline: wall {t_an / t_base:.2f}, CPU {cpu / cpu_base:.2f}"
             )
     finally:
         if not args.workdir:

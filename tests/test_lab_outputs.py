@@ -302,3 +302,19 @@ def test_a_slope_at_its_limit_is_noted_as_a_lower_bound():
     gradual = np.random.default_rng(3).random(x.size) < pf_curve(x, 0.0, 0.5, 0.02, 1 / 3)
     fit = fit_pf(x, gradual, n_boot=0)
     assert fit.ok and fit.slope_per_db < 9.0 and fit.message is None
+
+
+def test_outputs_with_figures_drawn_in_a_worker_are_the_in_process_bytes(study, analyzed, tmp_path):
+    """`analyze` draws its figures in a worker process (FigurePool); drawn in-process, every
+    output file, figures and the reports embedding them included, is the same bytes."""
+    from masking_lab.analysis.batch import run_analyze
+    from masking_lab.analysis.figure_pool import FigurePool
+    from masking_lab.analysis.settings import AnalysisSettings
+
+    here = tmp_path / "here"
+    run_analyze(study, here, AnalysisSettings(), figure_pool=FigurePool(enabled=False))
+    names = sorted(p.relative_to(analyzed).as_posix() for p in analyzed.rglob("*") if p.is_file())
+    assert names == sorted(p.relative_to(here).as_posix() for p in here.rglob("*") if p.is_file())
+    assert "figures/shifts_experiment1.png" in names and "figures/masking_experiment1.png" in names
+    for name in names:
+        assert (here / name).read_bytes() == (analyzed / name).read_bytes(), name

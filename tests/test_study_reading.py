@@ -47,20 +47,24 @@ def test_a_study_gathers_sessions_sets_and_info_in_log_order(logs):
 
 
 def test_only_logs_that_can_name_a_functional_set_are_parsed_again(tmp_path):
-    from masking_lab.analysis.batch import _may_hold_functional
+    from masking_lab.analysis.log_reading import may_hold_functional, read_one
+    from masking_lab.analysis.thresholds import EstimatorSettings
 
-    plain = tmp_path / "a.jsonl"
-    plain.write_bytes(b'{"record":"set_start","procedure":{"kind":"quest_plus"}}\n')
-    named = tmp_path / "b.jsonl"
-    named.write_bytes(b'{"record":"set_start","procedure":{"kind":"functional_ramp"}}\n')
-    escaped = tmp_path / "c.jsonl"  # JSON may spell the kind with an escape
-    escaped.write_bytes(b'{"record":"set_start","procedure":{"kind":"\\u0066unctional_ramp"}}\n')
-    assert not _may_hold_functional(plain)
-    assert _may_hold_functional(named) and _may_hold_functional(escaped)
-    assert _may_hold_functional(tmp_path / "gone.jsonl")  # unreadable: the reader says why
+    plain = b'{"record":"set_start","procedure":{"kind":"quest_plus"}}\n'
+    named = b'{"record":"set_start","procedure":{"kind":"functional_ramp"}}\n'
+    escaped = b'{"record":"set_start","procedure":{"kind":"\\u0066unctional_ramp"}}\n'
+    assert not may_hold_functional(plain)
+    assert may_hold_functional(named) and may_hold_functional(escaped)
+    # asked in the one read of each log, and so of a whole log
+    header = b'{"record":"header","participant":"P1","protocol":{"experiment":"e"}}\n'
+    for name, body, expected in (("a", plain, False), ("b", named, True), ("c", escaped, True)):
+        (tmp_path / f"{name}.jsonl").write_bytes(header + body)
+        res = read_one(tmp_path / f"{name}.jsonl", f"{name}.jsonl", EstimatorSettings())
+        assert res.error is None and res.may_hold_functional is expected
 
 
 def test_shift_figures_drawn_in_their_own_process_are_the_ones_drawn_in_process(logs):
+    from masking_lab.analysis.figure_pool import FigurePool
     from masking_lab.analysis.lab_outputs import _ShiftFigures
     from masking_lab.analysis.log_reading import read_logs
     from masking_lab.analysis.study_status import outliers
@@ -71,8 +75,13 @@ def test_shift_figures_drawn_in_their_own_process_are_the_ones_drawn_in_process(
     rows = [row for res in read_logs(paths, root, EstimatorSettings()) for row in res.rows]
     thresholds = thresholds_table(rows)
     flags = outliers(thresholds)
-    here = _ShiftFigures(thresholds, flags, True, early=False).result()
-    there = _ShiftFigures(thresholds, flags, True, early=True).result()
+    pool = FigurePool()
+    pool.widen(2)
+    try:
+        here = _ShiftFigures(thresholds, flags, True, FigurePool(enabled=False)).result()
+        there = _ShiftFigures(thresholds, flags, True, pool).result()
+        assert _ShiftFigures(thresholds, flags, False, pool).result() == []
+    finally:
+        pool.close()
     assert [e for e, _ in here] == ["experiment1", "experiment2"]
     assert there == here and all(png.startswith(b"\x89PNG") for _, png in there)
-    assert _ShiftFigures(thresholds, flags, False, early=True).result() == []

@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING, Any, TextIO
 
 from masking_lab.analysis.experiment import analyze_shifts, result_warnings
 from masking_lab.analysis.export import write_outputs
+from masking_lab.analysis.figure_pool import FigurePool
 from masking_lab.analysis.log_checks import duplicate_sessions, refused_sets, repeated_sessions
 from masking_lab.analysis.log_reading import read_logs
 from masking_lab.analysis.report import LogsInput, ShiftsTableInput, build_report
@@ -37,7 +38,7 @@ from masking_lab.analysis.thresholds import (
     unpacked,
 )
 from masking_lab.core.errors import AnalysisError
-from masking_lab.formats.csv_table import csv_text, csv_text_rows
+from masking_lab.formats.csv_table import csv_text, csv_text_columns
 from masking_lab.formats.fileio import write_text_atomic
 from masking_lab.formats.output_dir import staged_output
 from masking_lab.formats.shifts_csv import levels_told_apart, read_shifts_csv
@@ -94,6 +95,7 @@ def run_analyze(
     *,
     progress: Callable[[int, int], None] | None = None,
     fit_progress: Callable[[int, int], None] | None = None,
+    figure_pool: FigurePool | None = None,
 ) -> RunSummary:
     """Analyse every session log under ``data_dir`` and write every output into ``out_dir``.
 
@@ -113,6 +115,10 @@ def run_analyze(
         Called with (logs read, logs found).
     fit_progress : callable or None
         Called with (sets fitted, sets to fit) for ``psychometric.csv``.
+    figure_pool : FigurePool, optional
+        The worker drawing the summary figures, started early by the caller so that it loads
+        matplotlib while this process loads the analysis (default: started here); closed
+        when the run ends.
 
     Returns
     -------
@@ -132,8 +138,15 @@ def run_analyze(
     data, out = Path(data_dir), Path(out_dir)
     if not data.is_dir():
         raise AnalysisError(f"{data}: no such folder; give the folder holding session logs")
-    with staged_output(out, protect=[data]) as staging:
-        summary = _analyze_into(data, staging, settings, progress, fit_progress)
+    if figure_pool is None:
+        figure_pool = FigurePool(settings.figures != "none")
+    try:
+        with staged_output(out, protect=[data]) as staging:
+            summary = _analyze_into(data, staging, settings, progress, fit_progress, figure_pool)
+    except BaseException:  # a failed run does not wait for its figures
+        figure_pool.close(cancel=True)
+        raise
+    figure_pool.close()
     return _moved(summary, staging, out)
 
 
@@ -149,6 +162,7 @@ def _analyze_into(
     settings: AnalysisSettings,
     progress: Callable[[int, int], None] | None,
     fit_progress: Callable[[int, int], None] | None = None,
+    figure_pool: FigurePool | None = None,
 ) -> RunSummary:
     """The analysis of :func:`run_analyze`, writing into ``out`` (the staging folder)."""
     from masking_lab.formats.session_log import read_log
@@ -166,7 +180,7 @@ def _analyze_into(
     tracks: list[TrackJob] = []
     rigs: list[RigUse] = []
     analysed: set[str] = set()  # rel paths, for the cross-log checks
-    analysed_logs: list[Path] = []  # paths, for the functional-procedure outputs
+    analysed_logs: list[Path] = []  # paths that may hold functional-procedure sets
     sessions: list[Any] = []  # each analysed log's session, for the study matrix
     # One read per log (hashed and parsed from the same bytes), in parallel for many logs.
     results = list(read_logs(paths, data, est, progress=progress))
@@ -196,10 +210,14 @@ def _analyze_into(
             if isinstance(h.get("created_utc"), str) and is_utc_stamp(h["created_utc"]):
                 created.append(h["created_utc"])
             rows.extend(res.rows)
-            analysed_logs.append(res.path)
+            if res.may_hold_functional:  # asked of the bytes in the one read
+                analysed_logs.append(res.path)
             sessions.append(res.session)
             if settings.figures == "all":
                 tracks.append(_track_job(out, read_log(res.path), unpacked(res.rows)))
+        # The rows live on in ``rows`` only, so thresholds_table(consume=True) can free them
+        # (at 10,000 sessions the result kept them: ~50 MB held to the end of the run).
+        res.rows = []
     problems += repeated_sessions([r for r in results if r.rel in analysed])
     if not inputs:
         raise AnalysisError(
@@ -225,11 +243,9 @@ def _analyze_into(
         ),
         rig_warnings=tuple(rig_changes(rigs)),
     )
+    columns = [thresholds[c].tolist() for c in THRESHOLD_COLUMNS]  # formatted column-wise
     files.append(
-        write_text_atomic(
-            out / "thresholds.csv",
-            csv_text_rows(THRESHOLD_COLUMNS, thresholds[THRESHOLD_COLUMNS].to_numpy().tolist()),
-        )
+        write_text_atomic(out / "thresholds.csv", csv_text_columns(THRESHOLD_COLUMNS, columns))
     )
     files.append(
         write_text_atomic(out / "problems.csv", csv_text(["log", "problem", "action"], problems))
@@ -246,6 +262,7 @@ def _analyze_into(
         track_files,
         fit_progress,
         sessions,
+        figure_pool,
     )
     files += lab.files
     warnings += lab.warnings
@@ -282,6 +299,7 @@ def _analyze_into(
         report_inputs=report_inputs,
         thresholds=thresholds,
         lab=lab.section,
+        figure_pool=figure_pool,
     )
     warnings += result_warnings(experiments)
     ramp_files, ramp_problems = _functional_ramps(out, analysed_logs, inputs, settings, created_utc)
@@ -299,31 +317,11 @@ def _functional_ramps(
     hook: analysis/functional_outputs.py)."""
     from masking_lab.analysis.functional_outputs import write_functional_outputs
 
-    # Parsing every log again only to find no functional set is a third read of the study:
-    # a log whose bytes never name the kind (nor escape a character, which could spell it)
-    # holds none.
-    names = _masker_placing_names()
-    logs = [p for p in logs if _may_hold_functional(p, names)]
+    # ``logs``: only those whose bytes may name a functional kind (LogResult.may_hold_functional):
+    # parsing every log again only to find no functional set would be a third read of the study.
     return write_functional_outputs(
         out, logs, inputs=inputs, settings=settings.as_dict("analyze"), created_utc=created_utc
     )
-
-
-def _may_hold_functional(path: Path, names: list[bytes] | None = None) -> bool:
-    """Whether the log at ``path`` can hold a set whose procedure places the masker level
-    (the registry's ``places_masker`` kinds; unreadable: maybe)."""
-    try:
-        raw = path.read_bytes()
-    except OSError:
-        return True
-    names = _masker_placing_names() if names is None else names
-    return any(name in raw for name in names) or b"\\u" in raw
-
-
-def _masker_placing_names() -> list[bytes]:
-    from masking_lab.procedures.registry import kinds
-
-    return [k.name.encode() for k in kinds() if k.places_masker]
 
 
 def _lab_outputs(
@@ -335,6 +333,7 @@ def _lab_outputs(
     drawn: list[Path],
     fit_progress: Callable[[int, int], None] | None = None,
     sessions: list[Any] | None = None,
+    figure_pool: FigurePool | None = None,
 ) -> LabOutputs:
     """trials.csv, psychometric.csv, participants.tsv, the study status and their figures."""
     from dataclasses import replace
@@ -351,6 +350,7 @@ def _lab_outputs(
         trial_tables=settings.trial_tables,
         progress=fit_progress,
         sessions=sessions,
+        figure_pool=figure_pool,
     )
     tracks = tuple(
         (p.relative_to(out).as_posix(), "staircase tracks of one session") for p in drawn

@@ -8,7 +8,7 @@ masking-function figures through :mod:`masking_lab.formats` (atomic, byte-stable
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -17,6 +17,7 @@ import pandas as pd
 
 from masking_lab import __version__
 from masking_lab.analysis.experiment import ExperimentResult
+from masking_lab.analysis.figure_pool import FigurePool
 from masking_lab.analysis.report import LogsInput, ShiftsTableInput, build_report
 from masking_lab.analysis.report_html import render_html
 from masking_lab.analysis.report_lab import LabSection
@@ -210,6 +211,7 @@ def write_outputs(
     report_inputs: LogsInput | ShiftsTableInput,
     thresholds: pd.DataFrame | None,
     lab: LabSection | None = None,
+    figure_pool: FigurePool | None = None,
 ) -> list[Path]:
     """Write the statistics tables, ``masking_params.json``, the reports and the figures.
 
@@ -236,6 +238,9 @@ def write_outputs(
         The thresholds table (``analyze``), for the report.
     lab : LabSection, optional
         The per-participant sections of ``analyze`` (the masking figures join its figure list).
+    figure_pool : FigurePool, optional
+        Where the masking-function figures are drawn, while the tables and reports are
+        written (default: in-process).
 
     Returns
     -------
@@ -249,6 +254,15 @@ def write_outputs(
     ...     created_utc="1970-01-01T00:00:00Z", report_inputs=table, thresholds=None,
     ... )
     """
+    drawing: dict[str, Callable[[], bytes]] = {}
+    if settings.figures != "none":
+        from masking_lab.analysis.figures import experiment_figure_data, masking_function_png
+
+        pool = figure_pool or FigurePool(enabled=False)
+        drawing = {
+            r.experiment: pool.submit(masking_function_png, **experiment_figure_data(r))
+            for r in results
+        }
     doc, export_notes = masking_params_document(
         results, settings, source=source, inputs=inputs, skipped=skipped, created_utc=created_utc
     )
@@ -286,10 +300,10 @@ def write_outputs(
     files.append(write_text_atomic(out / "report.txt", render_text(report)))
     figures: dict[str, bytes] = {}
     if settings.figures != "none":
-        from masking_lab.analysis.figures import experiment_figure_png, safe_stem
+        from masking_lab.analysis.figures import safe_stem
 
         for r in results:
-            figures[r.experiment] = experiment_figure_png(r)
+            figures[r.experiment] = drawing[r.experiment]()
             path = out / "figures" / f"masking_{safe_stem(r.experiment)}.png"
             files.append(write_bytes_atomic(path, figures[r.experiment]))
     files.append(write_text_atomic(out / "report.html", render_html(report, figures)))

@@ -12,15 +12,18 @@ from __future__ import annotations
 import math
 import re
 from collections.abc import Mapping, Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from masking_lab.analysis.experiment import ExperimentResult
 from masking_lab.analysis.pooling import level_sort_key
 from masking_lab.formats.png_figure import legible, png_bytes
 
+if TYPE_CHECKING:  # the figure worker draws without loading pandas
+    from masking_lab.analysis.experiment import ExperimentResult
+
 __all__ = [
+    "experiment_figure_data",
     "experiment_figure_png",
     "experiment_title",
     "masking_function_png",
@@ -159,6 +162,18 @@ def experiment_figure_png(result: ExperimentResult) -> bytes:
     --------
     >>> png = experiment_figure_png(results[0])  # doctest: +SKIP
     """
+    return masking_function_png(**experiment_figure_data(result))
+
+
+def experiment_figure_data(result: ExperimentResult) -> dict[str, Any]:
+    """The arguments of :func:`masking_function_png` for one experiment's results: plain
+    data (str, float, lists, dicts), so a worker process draws it without loading pandas.
+
+    Examples
+    --------
+    >>> sorted(experiment_figure_data(results[0]))  # doctest: +SKIP
+    ['cells', 'fits', 'title']
+    """
     cells = [
         {
             "mv_stimulus": c.mv_stimulus,
@@ -180,7 +195,7 @@ def experiment_figure_png(result: ExperimentResult) -> bytes:
         }
         for g in result.fits
     ]
-    return masking_function_png(title=experiment_title(result), cells=cells, fits=fits)
+    return {"title": experiment_title(result), "cells": cells, "fits": fits}
 
 
 def safe_stem(name: str) -> str:

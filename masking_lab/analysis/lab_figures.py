@@ -165,11 +165,14 @@ def shift_figure_png(
         for ax, lv in zip(axes.ravel(), levels, strict=False):
             mine = [s for s in shifts if s["mv_stimulus"] == lv]
             pair = str(mine[0]["pair"])
+            # grouped once, in order (a scan of the panel per participant is quadratic)
+            by_person: dict[Any, list[Mapping[str, Any]]] = {}
+            for s in mine:
+                by_person.setdefault(s["participant"], []).append(s)
             for i, p in enumerate(people):
                 pts = sorted(
                     (float(s["masker_level_db_sl"]), float(s["shift_db"]))
-                    for s in mine
-                    if s["participant"] == p
+                    for s in by_person.get(p, ())
                 )
                 if pts:
                     xs, ys = zip(*pts, strict=True)
@@ -180,11 +183,12 @@ def shift_figure_png(
                         ax.scatter([x], [y], s=140, facecolors="none", edgecolors="red",
                                    linewidths=1.5, zorder=4, label="outlier")  # fmt: skip
             xs_all = sorted({float(s["masker_level_db_sl"]) for s in mine})
-            means = [
-                float(np.mean([float(s["shift_db"]) for s in mine
-                               if float(s["masker_level_db_sl"]) == x]))
-                for x in xs_all
-            ]  # fmt: skip
+            at_level: dict[float, list[float]] = {}
+            for s in mine:
+                x = float(s["masker_level_db_sl"])
+                if x == x:  # NaN matches no level
+                    at_level.setdefault(x, []).append(float(s["shift_db"]))
+            means = [float(np.mean(at_level.get(x, []) if x == x else [])) for x in xs_all]
             ax.plot(xs_all, means, "k-", lw=2.6, label="mean")
             ax.axhline(0.0, color="0.6", lw=0.8)
             ax.set_title(pair)

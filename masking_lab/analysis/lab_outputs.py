@@ -25,16 +25,15 @@ It returns the :class:`~masking_lab.analysis.report_lab.LabSection` the reports 
 from __future__ import annotations
 
 import json
-import weakref
 import zlib
 from collections.abc import Callable, Mapping, Sequence
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TextIO
 
 import pandas as pd
 
+from masking_lab.analysis.figure_pool import FigurePool
 from masking_lab.analysis.log_reading import PARALLEL_FROM
 from masking_lab.analysis.pf_table import (
     PF_BOOTSTRAP,
@@ -118,6 +117,7 @@ def write_lab_outputs(
     progress: Callable[[int, int], None] | None = None,
     trial_tables: bool = True,
     sessions: Sequence[tuple[SessionInfo, Mapping[str, Any] | None, list[dict]]] | None = None,
+    figure_pool: FigurePool | None = None,
 ) -> LabOutputs:
     """Write the per-trial and per-participant outputs of ``analyze`` into ``out``.
 
@@ -143,20 +143,29 @@ def write_lab_outputs(
     sessions : sequence, optional
         Each log's :attr:`~masking_lab.analysis.log_reading.LogResult.session`, in the order
         of ``logs``, from the analysis' own read: without trial tables nothing is read again.
+    figure_pool : FigurePool, optional
+        Where the shift figures are drawn (default: a worker of their own for a large study,
+        else in-process).
 
     Returns
     -------
     LabOutputs
     """
     files: list[Path] = []
-    status = {
-        (str(r[0]), str(r[1])): str(r[2])
-        for r in thresholds[["log", "set_id", "status"]].itertuples(index=False)
-    }
+    # each trial row's set status (trials.csv only): a key per set of the study
+    status: dict[tuple[str, str], str] = {}
+    if trial_tables:
+        keys = [thresholds[c].tolist() for c in ("log", "set_id", "status")]
+        status = {(str(log), str(sid)): str(st) for log, sid, st in zip(*keys, strict=True)}
     flags = outliers(thresholds)
-    # The shift figures need only the thresholds: for a large study they are drawn in a
-    # process of their own while the logs are read and fitted (the main process is idle then).
-    early = _ShiftFigures(thresholds, flags, figures != "none", len(logs) >= PARALLEL_FROM)
+    # The shift figures need only the thresholds: they are drawn in a worker process while
+    # the logs are read and fitted.
+    own_pool = figure_pool is None
+    if figure_pool is None:
+        figure_pool = FigurePool(figures != "none" and len(logs) >= PARALLEL_FROM)
+    if len(logs) >= PARALLEL_FROM:  # a shift figure of hundreds of participants takes seconds
+        figure_pool.widen(2)
+    early = _ShiftFigures(thresholds, flags, figures != "none", figure_pool)
     if trial_tables:
         trials_path = out / "trials.csv"
         parquet = ParquetSink(out / "trials.parquet")
@@ -211,6 +220,8 @@ def write_lab_outputs(
         drawn = _draw(out, study, pf_rows, early, figures)
         files += [p for p, _ in drawn]
         figure_links = [(p.relative_to(out).as_posix(), c) for p, c in drawn]
+    if own_pool:
+        figure_pool.close()
     section = LabSection(
         experiments=tuple(sorted({s.experiment for s in study.sessions})),
         matrix=tuple(matrix),
@@ -289,13 +300,13 @@ def _draw(
 
 
 class _ShiftFigures:
-    """``figures/shifts_<experiment>.png`` of the thresholds: drawn in a process of its own
-    from the start (``early``), or in-process when asked for the result."""
+    """``figures/shifts_<experiment>.png`` of the thresholds, started in ``pool`` at once."""
 
-    def __init__(self, thresholds: pd.DataFrame, flags: Sequence[Any], wanted: bool, early: bool):
+    def __init__(
+        self, thresholds: pd.DataFrame, flags: Sequence[Any], wanted: bool, pool: FigurePool
+    ):
         self.jobs: list[tuple[str, str, list[dict], set]] = []
-        self.pool: ProcessPoolExecutor | None = None
-        self.futures: list[Any] = []
+        self.results: list[Callable[[], bytes]] = []
         if not wanted:
             return
         done = thresholds[(thresholds["status"] == "completed") & thresholds["shift_db"].notna()]
@@ -304,34 +315,22 @@ class _ShiftFigures:
             if "(AL shift)" in o.what:
                 head, _, rest = o.what.partition(" @ ")
                 flagged.add((o.participant, head.split(" ", 1)[1], float(rest.split(" ")[0])))
+        names = ["participant", "mv_stimulus", "target", "masker", "masker_level_db_sl", "shift_db"]
         for e, g in done.groupby("experiment", sort=True):
             shifts = [
-                {"participant": r.participant, "mv_stimulus": r.mv_stimulus,
-                 "pair": f"{r.target}|{r.masker}", "masker_level_db_sl": r.masker_level_db_sl,
-                 "shift_db": r.shift_db}
-                for r in g.itertuples(index=False)
+                {"participant": p, "mv_stimulus": mv, "pair": f"{t}|{m}",
+                 "masker_level_db_sl": lv, "shift_db": sh}
+                for p, mv, t, m, lv, sh in zip(*(g[c].tolist() for c in names), strict=True)
             ]  # fmt: skip
             self.jobs.append((str(e), f"Individual AL shifts: {e}", shifts, flagged))
-        if early and self.jobs:
-            self.pool = ProcessPoolExecutor(max_workers=1)
-            self.futures = [self.pool.submit(_shift_png, *job[1:]) for job in self.jobs]
-            # a run that fails before the figures are collected does not wait for them
-            weakref.finalize(self, self.pool.shutdown, False, cancel_futures=True)
+        if self.jobs:
+            from masking_lab.analysis.lab_figures import shift_figure_png
+
+            self.results = [pool.submit(shift_figure_png, *job[1:]) for job in self.jobs]
 
     def result(self) -> list[tuple[str, bytes]]:
         """(experiment, PNG bytes) per experiment, sorted by experiment."""
-        if self.pool is None:
-            return [(job[0], _shift_png(*job[1:])) for job in self.jobs]
-        try:
-            return [(job[0], f.result()) for job, f in zip(self.jobs, self.futures, strict=True)]
-        finally:
-            self.pool.shutdown()
-
-
-def _shift_png(title: str, shifts: list[dict], flagged: set) -> bytes:
-    from masking_lab.analysis.lab_figures import shift_figure_png
-
-    return shift_figure_png(title, shifts, flagged)
+        return [(job[0], get()) for job, get in zip(self.jobs, self.results, strict=True)]
 
 
 def _write_participants(out: Path, study: StudyLogs) -> list[Path]:

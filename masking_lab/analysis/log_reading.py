@@ -13,6 +13,7 @@ record-continuity problems (:mod:`masking_lab.formats.log_integrity`), or why it
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import os
 from collections.abc import Callable, Iterator, Mapping, Sequence
@@ -31,7 +32,7 @@ from masking_lab.formats.log_bytes import check_schema_version, read_log_bytes, 
 from masking_lab.formats.log_records import ANALYSIS_DECODER, AHeader
 from masking_lab.formats.session_log import SessionLog, parse_log
 
-__all__ = ["LogResult", "fast_parse", "read_logs"]
+__all__ = ["LogResult", "fast_parse", "may_hold_functional", "read_logs"]
 
 PARALLEL_FROM = 64  # fewer logs than this are read in-process (workers cost ~0.3 s to start)
 _CHUNK = 32
@@ -72,6 +73,10 @@ class LogResult:
         Its session, the participant's ``info`` and the protocol's ``info`` fields
         (:func:`~masking_lab.analysis.study_status.session_of`), so the study matrix and
         ``participants.tsv`` need no second read of the log.
+    may_hold_functional : bool
+        Its bytes name a procedure that places the masker level, or escape a character
+        (which could spell one): only such logs are read again for the functional outputs
+        (:func:`may_hold_functional`).
     """
 
     path: Path
@@ -86,6 +91,7 @@ class LogResult:
     n_bytes: int = 0
     completed: bool = False
     session: tuple[SessionInfo, Mapping[str, Any] | None, list[dict[str, Any]]] | None = None
+    may_hold_functional: bool = True
 
 
 def fast_parse(raw: bytes, path: str | Path) -> SessionLog | None:
@@ -156,7 +162,31 @@ def read_one(path: Path, rel: str, settings: EstimatorSettings) -> LogResult:
         n_bytes=len(raw),
         completed=_completed(log),
         session=session_of(header, rel, log.ended),
+        may_hold_functional=may_hold_functional(raw),
     )
+
+
+@functools.cache
+def _masker_placing_names() -> tuple[bytes, ...]:
+    from masking_lab.procedures.registry import kinds
+
+    return tuple(k.name.encode() for k in kinds() if k.places_masker)
+
+
+def may_hold_functional(raw: bytes) -> bool:
+    """Whether a log's bytes can hold a set whose procedure places the masker level (the
+    registry's ``places_masker`` kinds): they name one, or escape a character, which could
+    spell one. Asked during the one read of each log, so that finding no functional set is
+    not a third read of the study.
+
+    Examples
+    --------
+    >>> may_hold_functional(b'{"record":"set_start","procedure":{"kind":"quest_plus"}}\\n')
+    False
+    >>> may_hold_functional(b'{"kind":"\\\\u0066unctional_ramp"}\\n')
+    True
+    """
+    return any(name in raw for name in _masker_placing_names()) or b"\\u" in raw
 
 
 def _completed(log: SessionLog) -> bool:

@@ -24,11 +24,13 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
-from masking_lab.analysis.t_tests import PairedTest
 from masking_lab.core.errors import AnalysisError
 from masking_lab.core.stimulus import is_stimulus_name, parse_stimulus
+
+if TYPE_CHECKING:  # the figure worker imports this module for level_sort_key alone
+    from masking_lab.analysis.t_tests import PairedTest
 
 PoolingRule = Literal["paired", "none", "all", "explicit"]
 RULES: tuple[str, ...] = ("paired", "none", "all")

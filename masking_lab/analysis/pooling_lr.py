@@ -28,8 +28,8 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike
-from scipy import stats
 
+from masking_lab.analysis.distributions import chi2_sf, f_sf
 from masking_lab.analysis.ramp_fit import ramp_least_squares
 
 __all__ = ["PoolComparison", "compare_pooling", "comparison_lines", "pooled_vs_separate"]
@@ -122,9 +122,9 @@ def pooled_vs_separate(points: Mapping[str, tuple[ArrayLike, ArrayLike]]) -> Poo
         lr = f_stat = p_lr = p_f = math.nan
     else:
         lr = n * math.log(max(rss_pool, rss_sep) / rss_sep)
-        p_lr = float(stats.chi2.sf(lr, df))
+        p_lr = float(chi2_sf(lr, df))
         f_stat = ((rss_pool - rss_sep) / df) / (rss_sep / (n - 2 * k))
-        p_f = float(stats.f.sf(f_stat, df, n - 2 * k))
+        p_f = float(f_sf(f_stat, df, n - 2 * k))
     d_aic = lr - 2 * df if math.isfinite(lr) else math.nan
     d_bic = lr - df * math.log(n) if math.isfinite(lr) else math.nan
     return PoolComparison(levels, n, rss_pool, rss_sep, lr, df, p_lr, f_stat, p_f, d_aic, d_bic)

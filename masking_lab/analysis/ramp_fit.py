@@ -26,8 +26,8 @@ from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy import stats
 
+from masking_lab.analysis.distributions import t_ppf
 from masking_lab.core.errors import AnalysisError
 
 FitStatus = Literal["fitted", "no_masking", "insufficient_data"]
@@ -345,7 +345,7 @@ def _with_asymptotic(fit: RampFit, x_active: NDArray[np.float64], sse: float, n:
     J = np.column_stack([np.ones_like(x_active), x_active])
     cov = (sse / dof) * np.linalg.inv(J.T @ J)
     se_a, se_b = math.sqrt(max(cov[0, 0], 0.0)), math.sqrt(max(cov[1, 1], 0.0))
-    t = float(stats.t.ppf(0.5 + fit.ci_level / 2.0, dof))
+    t = float(t_ppf(0.5 + fit.ci_level / 2.0, dof))
     a, b = float(fit.intercept_db), float(fit.slope)  # type: ignore[arg-type]  # fitted: set
     return replace(
         fit,

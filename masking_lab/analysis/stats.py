@@ -28,8 +28,8 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 from numpy.typing import ArrayLike, NDArray
-from scipy import stats
 
+from masking_lab.analysis.distributions import chi2_sf, f_sf
 from masking_lab.core.errors import AnalysisError
 
 EFFECT_NAMES = ("frequency", "level", "frequency:level")
@@ -273,10 +273,10 @@ def rm_anova(data: ArrayLike, names: Sequence[str] = EFFECT_NAMES) -> list[Effec
             )
         df1, df2 = d, d * (n - 1)
         F = (ss_eff / df1) / (ss_err / df2)
-        p = float(stats.f.sf(F, df1, df2))
+        p = float(f_sf(F, df1, df2))
         cov = resid.T @ resid / (n - 1)
         eps = gg_epsilon(cov)
-        p_gg = float(stats.f.sf(F, df1 * eps, df2 * eps))
+        p_gg = float(f_sf(F, df1 * eps, df2 * eps))
         # k = all a·b conditions in the second-order term, as car/afex in R and pingouin do.
         w, chi2, mdf, mp, note = mauchly(cov, n - 1, a * b)
         out.append(
@@ -394,8 +394,8 @@ def mauchly(
         * (2 * d**3 + 6 * d * d + 3 * k + 2)
         / (288.0 * (df_resid * d * rho) ** 2)
     )
-    p1 = float(stats.chi2.sf(chi2, mdf))
-    p2 = float(stats.chi2.sf(chi2, mdf + 4))
+    p1 = float(chi2_sf(chi2, mdf))
+    p2 = float(chi2_sf(chi2, mdf + 4))
     p = min(1.0, max(0.0, p1 + w2 * (p2 - p1)))
     return math.exp(log_w), float(chi2), mdf, p, None
 

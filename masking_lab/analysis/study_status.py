@@ -174,6 +174,12 @@ def status_matrix(sessions: Sequence[SessionInfo], thresholds: pd.DataFrame) -> 
     by_cell: dict[tuple[str, str], list[SessionInfo]] = {}
     for s in sessions:
         by_cell.setdefault((s.participant, s.experiment), []).append(s)
+    # Each log's (set_id, status, trials) rows, grouped once: a table filter per cell costs
+    # cells x rows (minutes at 10,000 sessions).
+    by_log: dict[Any, list[tuple[Any, Any, Any]]] = {}
+    columns = [thresholds[c].tolist() for c in ("log", "set_id", "status", "trials")]
+    for log, sid, status, n in zip(*columns, strict=True):
+        by_log.setdefault(log, []).append((sid, status, n))
     out = []
     for p in participants:
         for e in experiments:
@@ -181,11 +187,11 @@ def status_matrix(sessions: Sequence[SessionInfo], thresholds: pd.DataFrame) -> 
             if not logs:
                 out.append(CellStatus(p, e, "missing", 0, 0, 0, 0))
                 continue
-            rows = thresholds[thresholds["log"].isin([s.log for s in logs])]
-            planned = set().union(*(set(s.set_order) for s in logs)) or set(rows["set_id"])
-            done = set(rows.loc[rows["status"].isin(["completed", "superseded"]), "set_id"])
-            trials = int(sum(int(t or 0) for t in rows["trials"]))
-            refused = rows["status"].eq("aborted").any()
+            rows = [r for log in dict.fromkeys(s.log for s in logs) for r in by_log.get(log, ())]
+            planned = set().union(*(set(s.set_order) for s in logs)) or {r[0] for r in rows}
+            done = {r[0] for r in rows if r[1] in ("completed", "superseded")}
+            trials = int(sum(int(r[2] or 0) for r in rows))
+            refused = any(r[1] == "aborted" for r in rows)
             if planned and planned <= done:
                 status = "complete"
             elif refused:
@@ -210,9 +216,10 @@ def unmasked_als(thresholds: pd.DataFrame) -> dict[str, dict[str, float]]:
     """
     rows = thresholds[(thresholds["status"] == "completed") & thresholds["masker"].isna()]
     out: dict[str, dict[str, float]] = {}
-    for _, r in rows.iterrows():
-        if r["al_db_v"] is not None:
-            out.setdefault(str(r["participant"]), {})[str(r["target"])] = float(r["al_db_v"])
+    columns = [rows[c].tolist() for c in ("participant", "target", "al_db_v")]
+    for participant, target, al in zip(*columns, strict=True):
+        if al is not None:
+            out.setdefault(str(participant), {})[str(target)] = float(al)
     return out
 
 
@@ -243,8 +250,9 @@ class Outlier:
 
 def _flag(values: Mapping[str, float], what: str) -> list[Outlier]:
     out = []
-    for p, v in values.items():
-        others = np.array([x for q, x in values.items() if q != p], dtype=float)
+    every = np.array(list(values.values()), dtype=float)
+    for i, (p, v) in enumerate(values.items()):
+        others = np.delete(every, i)  # the others, in order: the same sums as a new array
         if others.size < _MIN_OTHERS:
             continue
         med = float(np.mean(others))

@@ -19,8 +19,8 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike
-from scipy import stats
 
+from masking_lab.analysis.distributions import t_sf
 from masking_lab.core.errors import AnalysisError
 
 
@@ -242,5 +242,5 @@ def one_sample_t(values: ArrayLike, popmean: float = 0.0) -> OneSampleT:
             f"all {n} values equal ({mean:.4g}): zero variance, t undefined",
         )
     t = (mean - popmean) / se
-    p = float(2.0 * stats.t.sf(abs(t), n - 1))
+    p = float(2.0 * t_sf(abs(t), n - 1))
     return OneSampleT(n, mean, sd, se, float(t), n - 1, p)

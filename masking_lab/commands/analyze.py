@@ -191,6 +191,21 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from masking_lab.analysis.figure_pool import FigurePool
+
+    # Started before the analysis is imported: the worker loads matplotlib meanwhile.
+    figure_pool = FigurePool(args.figures != "none")
+    try:
+        summary = _run(args, figure_pool)
+    except BaseException:  # options or data refused: no waiting for figures
+        figure_pool.close(cancel=True)
+        raise
+    figure_pool.close()
+    print_summary("analyze", summary)
+    return 0
+
+
+def _run(args: argparse.Namespace, figure_pool: Any) -> RunSummary:
     from masking_lab.analysis.batch import run_analyze
     from masking_lab.analysis.settings import parse_lapse
 
@@ -207,12 +222,11 @@ def run(args: argparse.Namespace) -> int:
     from masking_lab.commands.progress_bars import count_bar, progress_wanted
 
     show = not args.quiet and progress_wanted(True if args.progress else None)
-    summary = run_analyze(
+    return run_analyze(
         args.data_dir,
         args.out,
         settings,
         progress=count_bar("logs read", show) if show else None,
         fit_progress=count_bar("psychometric fits", show) if show else None,
+        figure_pool=figure_pool,
     )
-    print_summary("analyze", summary)
-    return 0

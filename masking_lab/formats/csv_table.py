@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["csv_text", "csv_text_rows"]
+__all__ = ["csv_text", "csv_text_columns", "csv_text_rows"]
 
 
 def csv_text(columns: Sequence[str], rows: Iterable[Mapping[str, Any]]) -> str:
@@ -59,6 +59,83 @@ def csv_text_rows(columns: Sequence[str], rows: Iterable[Sequence[Any]]) -> str:
     w.writerow(columns)
     w.writerows([_cell(v) for v in row] for row in rows)
     return buf.getvalue()
+
+
+def csv_text_columns(columns: Sequence[str], data: Sequence[Sequence[Any]]) -> str:
+    """:func:`csv_text` for a table given column by column (``data[i]``: the values of
+    ``columns[i]``, all of one length), formatted a column at a time.
+
+    The same bytes as :func:`csv_text_rows` on the rows; a column of only floats or only
+    strings is formatted without a call per cell (the thresholds table of a large study has
+    millions of cells).
+
+    Examples
+    --------
+    >>> csv_text_columns(["a", "b"], [[1.0 / 3, True], [None, "x"]])
+    'a,b\\n0.333333,\\ntrue,x\\n'
+    """
+    if len(columns) != len(data):
+        raise ValueError(f"{len(columns)} column names for {len(data)} columns")
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(columns)
+    n = len(data[0]) if data else 0
+    # A block of rows at a time: the formatted cells of a whole large table at once would
+    # hold millions of small strings.
+    for start in range(0, n, _BLOCK_ROWS):
+        cells = [_column_cells(values[start : start + _BLOCK_ROWS]) for values in data]
+        if len(columns) < 2:  # csv quotes a lone empty field: leave such tables to it
+            w.writerows(zip(*cells, strict=True))
+            continue
+        cells = [_quoted(col) for col in cells]
+        buf.write("".join(line + "\n" for line in map(",".join, zip(*cells, strict=True))))
+    return buf.getvalue()
+
+
+_BLOCK_ROWS = 4096
+
+
+def _needs_quotes() -> str:
+    """The characters that make the csv module quote a field (``QUOTE_MINIMAL``, ``\\n`` line
+    ends), asked of the csv module itself so the two writers cannot disagree."""
+    out = []
+    for ch in ',"\n\r\t ;':
+        buf = io.StringIO()
+        csv.writer(buf, lineterminator="\n").writerow([f"a{ch}b", "c"])
+        if buf.getvalue().startswith('"'):
+            out.append(ch)
+    return "".join(out)
+
+
+_NEEDS_QUOTES = _needs_quotes()
+
+
+def _quoted(col: Sequence[str]) -> Sequence[str]:
+    """A column's cells as the csv module writes them: quoted (inner quotes doubled) where a
+    cell holds a delimiter, quote or line break."""
+    joined = "".join(col)
+    if not any(ch in joined for ch in _NEEDS_QUOTES):
+        return col
+    return [
+        '"' + v.replace('"', '""') + '"' if any(ch in v for ch in _NEEDS_QUOTES) else v for v in col
+    ]
+
+
+def _column_cells(values: Sequence[Any]) -> Sequence[str]:
+    """The cells of one column as :func:`_cell` writes them, the common column types without
+    a call per cell."""
+    kinds = set(map(type, values))
+    if kinds <= {str}:
+        return values
+    if kinds <= {str, type(None)}:
+        return ["" if v is None else v for v in values]
+    if kinds <= {float, type(None)}:
+        return ["" if v is None or v != v else f"{v:.6g}" for v in values]  # v != v: NaN
+    if kinds <= {int}:  # bool is a type of its own here
+        return list(map(str, values))
+    if kinds <= {bool}:
+        return ["true" if v else "false" for v in values]
+    return [_cell(v) for v in values]
 
 
 def _cell(v: Any) -> str:
