@@ -35,6 +35,7 @@ from msgspec import UNSET
 
 from masking_lab.analysis.procedure_estimates import places_masker, procedure_estimate
 from masking_lab.analysis.psychometric import fit_pf
+from masking_lab.analysis.settings import UNMASKED_SOURCES
 from masking_lab.core.errors import AnalysisError, LevelError
 from masking_lab.core.psychometric import GUESS_3IFC
 from masking_lab.core.stimulus import Stimulus, parse_stimulus
@@ -43,7 +44,6 @@ from masking_lab.formats.session_log import SessionLog, SetRecords
 from masking_lab.procedures.estimators import ESTIMATORS, ml_threshold, reversal_mean_al
 from masking_lab.procedures.staircase import implied_target_p_for
 
-UNMASKED_SOURCES = ("auto", "baseline", "calibration")
 ML_BOOTSTRAP = 200  # parametric-bootstrap refits behind an ML AL's SD and interval
 
 COLUMNS = [
