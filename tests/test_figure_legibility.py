@@ -15,6 +15,7 @@ from matplotlib.figure import Figure
 from test_render import write_params
 from test_usertest_analysis import header, trial_records, write_log
 
+from masking_lab.analysis.figure_pool import FigurePool
 from masking_lab.commands.cli import main
 from masking_lab.formats.png_figure import MIN_FONT_PT, small_texts
 from masking_lab.simulation.synthetic_logs import simulate_study
@@ -24,7 +25,11 @@ ROOT = Path(__file__).resolve().parents[1]
 
 @pytest.fixture()
 def saved(monkeypatch):
-    """Record every figure as it is saved (in this process), with what it shows."""
+    """Record every figure as it is saved (in this process), with what it shows.
+
+    analyze's summary figures are drawn in this process, not in its figure worker, so that they
+    are seen here; the worker draws the same bytes (tests/test_lab_outputs.py)."""
+    monkeypatch.setattr(FigurePool, "_add_lane", lambda self: False)
     seen: list[dict] = []
     original = Figure.savefig
 

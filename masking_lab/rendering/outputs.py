@@ -205,6 +205,8 @@ def _write_rendering(
         ),
     ]
     if figure:
+        # in-process, figure 4 is drawn first, as before the worker existed
+        fig4 = pending if pending is not None else figure4_png(r, bands=uncertainty)
         gamut = None
         if r.gamut is not None and r.pair is not None:
             from masking_lab.rendering.gamut_figure import gamut_png
@@ -214,8 +216,8 @@ def _write_rendering(
             gamut = gamut_png(
                 r.gamut, mv_target_db_sl=want_m, ev_target_db_sl=want_e, mapped=mapped
             )
-        fig4 = pending.result() if pending is not None else figure4_png(r, bands=uncertainty)
-        written.append(write_bytes_atomic(out / "figure4.png", fig4))
+        png4 = fig4.result() if isinstance(fig4, Future) else fig4
+        written.append(write_bytes_atomic(out / "figure4.png", png4))
         if gamut is not None:
             written.append(write_bytes_atomic(out / "gamut.png", gamut))
     return written
