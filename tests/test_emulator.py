@@ -214,17 +214,22 @@ def test_reset_zeroes_and_reboots(emulator_factory):
     assert any("RESET" in line for line in emu.log_lines())
 
 
-def _done_line(seed: int, rig) -> proto.Frame:
+def _play(seed: int, rig) -> tuple[int, list[proto.Frame]]:
+    """One virtual-time PLAY on a fresh emulator: its seq and the frames up to its DONE."""
     emu = FirmwareEmulator(rig, virtual_time=True, seed=seed).start()
     try:
         link = Link(emu.port)
         try:
             seq = link.send("PLAY", at=5.0, **PLAY)
-            frames = link.frames_until(lambda f: f.kind == "event" and f.name == "DONE")
+            return seq, link.frames_until(lambda f: f.kind == "event" and f.name == "DONE")
         finally:
             link.ser.close()
     finally:
         emu.close()
+
+
+def _done_line(seed: int, rig) -> proto.Frame:
+    seq, frames = _play(seed, rig)
     assert any(f.kind == "reply" and f.seq == seq and f.number("start") == 5.0 for f in frames)
     return frames[-1]
 
@@ -257,16 +262,7 @@ def test_virtual_time_play_answers_ok_and_done_in_one_write(rig, monkeypatch):
             return os.write(fd, data)
 
     monkeypatch.setattr(emulator_module, "os", CountingOs())
-    emu = FirmwareEmulator(rig, virtual_time=True, seed=1).start()
-    try:
-        link = Link(emu.port)
-        try:
-            seq = link.send("PLAY", at=5.0, **PLAY)
-            frames = link.frames_until(lambda f: f.kind == "event" and f.name == "DONE")
-        finally:
-            link.ser.close()
-    finally:
-        emu.close()
+    seq, frames = _play(1, rig)
     replies = [w for w in writes if f"{seq} OK".encode() in w]
     assert len(replies) == 1 and b" DONE seq=" in replies[0]
     assert [f.kind for f in frames[-2:]] == ["reply", "event"]  # OK first, then DONE
