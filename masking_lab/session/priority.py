@@ -75,7 +75,8 @@ def placement_priority(enabled: bool = True) -> Iterator[None]:
     -----
     Applies to the calling thread only (Linux ``sched_setscheduler(0, …)``), which is the thread
     that computes the placement: BLAS runs on that thread alone during a session. A refusal
-    (no permission) leaves the block at normal priority; any other error is raised.
+    (no permission, or a kernel or container without real-time scheduling) leaves the block at
+    normal priority: the priority shortens a pause, it never stops a session.
 
     Examples
     --------
@@ -89,7 +90,7 @@ def placement_priority(enabled: bool = True) -> Iterator[None]:
         return
     try:
         previous = _enter_realtime()
-    except PermissionError:
+    except OSError:
         yield
         return
     try:
