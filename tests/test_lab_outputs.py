@@ -318,3 +318,35 @@ def test_outputs_with_figures_drawn_in_a_worker_are_the_in_process_bytes(study, 
     assert "figures/shifts_experiment1.png" in names and "figures/masking_experiment1.png" in names
     for name in names:
         assert (here / name).read_bytes() == (analyzed / name).read_bytes(), name
+
+
+def test_shift_figures_are_collected_when_the_report_asks_for_them(study, analyzed, tmp_path):
+    """With the run's figure pool, write_lab_outputs returns while the AL-shift figures are
+    still drawn (the statistics overlap them); finished() writes them and embeds the same
+    bytes, the files the analysis lists and the in-process run wrote."""
+    from masking_lab.analysis.figure_pool import FigurePool
+    from masking_lab.analysis.lab_outputs import write_lab_outputs
+    from masking_lab.analysis.log_reading import read_logs
+    from masking_lab.analysis.thresholds import EstimatorSettings, thresholds_table
+    from masking_lab.formats.html_report import data_uri
+
+    paths = sorted(study.rglob("*.jsonl"))
+    results = list(read_logs(paths, study, EstimatorSettings()))
+    thresholds = thresholds_table([row for res in results for row in res.rows])
+    logs = [res.rel for res in results]
+    pool = FigurePool(enabled=True)
+    try:
+        lab = write_lab_outputs(
+            study, tmp_path, logs, thresholds, trial_tables=False, figure_pool=pool
+        )
+        shifts = [p for p in lab.files if p.name.startswith("shifts_")]
+        assert [p.name for p in shifts] == ["shifts_experiment1.png", "shifts_experiment2.png"]
+        assert not any(p.exists() for p in shifts) and lab.section.embedded == ()
+        section = lab.finished()
+    finally:
+        pool.close()
+    assert lab.embed_shifts is None and lab.finished() is section  # collected once
+    assert [rel for rel, _ in section.embedded] == [f"figures/{p.name}" for p in shifts]
+    for (_, uri), path in zip(section.embedded, shifts, strict=True):
+        assert path.read_bytes() == (analyzed / "figures" / path.name).read_bytes()
+        assert uri == data_uri(path.read_bytes())

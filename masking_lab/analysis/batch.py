@@ -24,7 +24,7 @@ from masking_lab.analysis.experiment import analyze_shifts, result_warnings
 from masking_lab.analysis.export import write_outputs
 from masking_lab.analysis.figure_pool import FigurePool
 from masking_lab.analysis.log_checks import duplicate_sessions, refused_sets, repeated_sessions
-from masking_lab.analysis.log_reading import read_logs
+from masking_lab.analysis.log_reading import PARALLEL_FROM, read_logs
 from masking_lab.analysis.report import LogsInput, ShiftsTableInput, build_report
 from masking_lab.analysis.report_html import render_html
 from masking_lab.analysis.report_text import render_text
@@ -182,6 +182,10 @@ def _analyze_into(
     analysed: set[str] = set()  # rel paths, for the cross-log checks
     analysed_logs: list[Path] = []  # paths that may hold functional-procedure sets
     sessions: list[Any] = []  # each analysed log's session, for the study matrix
+    if figure_pool is not None and len(paths) >= PARALLEL_FROM and settings.figures != "none":
+        # A large study's shift figures take seconds each and are drawn by two workers: the
+        # second loads matplotlib while the logs are read, not after.
+        figure_pool.widen(2)
     # One read per log (hashed and parsed from the same bytes), in parallel for many logs.
     results = list(read_logs(paths, data, est, progress=progress))
     copies = duplicate_sessions(results)
@@ -210,7 +214,7 @@ def _analyze_into(
             if isinstance(h.get("created_utc"), str) and is_utc_stamp(h["created_utc"]):
                 created.append(h["created_utc"])
             rows.extend(res.rows)
-            if res.may_hold_functional:  # asked of the bytes in the one read
+            if res.may_hold_functional:  # read off the records of the one read
                 analysed_logs.append(res.path)
             sessions.append(res.session)
             if settings.figures == "all":
@@ -276,7 +280,7 @@ def _analyze_into(
             source="analyze",
             inputs=report_inputs,
             thresholds=thresholds,
-            lab=lab.section,
+            lab=lab.finished(),
         )
         files.append(write_text_atomic(out / "report.txt", render_text(report)))
         files.append(write_text_atomic(out / "report.html", render_html(report)))
@@ -300,6 +304,7 @@ def _analyze_into(
         thresholds=thresholds,
         lab=lab.section,
         figure_pool=figure_pool,
+        lab_embedded=lambda: lab.finished().embedded,
     )
     warnings += result_warnings(experiments)
     ramp_files, ramp_problems = _functional_ramps(out, analysed_logs, inputs, settings, created_utc)
@@ -317,7 +322,7 @@ def _functional_ramps(
     hook: analysis/functional_outputs.py)."""
     from masking_lab.analysis.functional_outputs import write_functional_outputs
 
-    # ``logs``: only those whose bytes may name a functional kind (LogResult.may_hold_functional):
+    # ``logs``: only those with a functional set (LogResult.may_hold_functional, from the one read):
     # parsing every log again only to find no functional set would be a third read of the study.
     return write_functional_outputs(
         out, logs, inputs=inputs, settings=settings.as_dict("analyze"), created_utc=created_utc

@@ -212,6 +212,7 @@ def write_outputs(
     thresholds: pd.DataFrame | None,
     lab: LabSection | None = None,
     figure_pool: FigurePool | None = None,
+    lab_embedded: Callable[[], tuple[tuple[str, str], ...]] | None = None,
 ) -> list[Path]:
     """Write the statistics tables, ``masking_params.json``, the reports and the figures.
 
@@ -241,6 +242,10 @@ def write_outputs(
     figure_pool : FigurePool, optional
         Where the masking-function figures are drawn, while the tables and reports are
         written (default: in-process).
+    lab_embedded : callable, optional
+        Gives the ``lab`` section's embedded figures, (path, data URI) pairs, when
+        ``report.html`` is rendered (:meth:`~masking_lab.analysis.lab_outputs.LabOutputs.finished`:
+        the AL-shift figures are still being drawn while the statistics are written).
 
     Returns
     -------
@@ -306,5 +311,7 @@ def write_outputs(
             figures[r.experiment] = drawing[r.experiment]()
             path = out / "figures" / f"masking_{safe_stem(r.experiment)}.png"
             files.append(write_bytes_atomic(path, figures[r.experiment]))
+    if lab_embedded is not None and report.lab is not None:
+        report = replace(report, lab=replace(report.lab, embedded=lab_embedded()))
     files.append(write_text_atomic(out / "report.html", render_html(report, figures)))
     return files

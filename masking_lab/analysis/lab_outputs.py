@@ -27,7 +27,7 @@ from __future__ import annotations
 import json
 import zlib
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, TextIO
 
@@ -77,6 +77,20 @@ class LabOutputs:
     files: list[Path]
     section: LabSection
     warnings: list[str]
+    #: Writes the AL-shift figures that the figure pool is still drawing and gives their
+    #: (path, data URI) pairs; None once they are in ``section.embedded``.
+    embed_shifts: Callable[[], tuple[tuple[str, str], ...]] | None = None
+
+    def finished(self) -> LabSection:
+        """The section with the shift figures written and embedded (waits for their worker).
+
+        The run asks for them as late as it can, just before the HTML report that embeds them,
+        so their drawing overlaps the statistics and the other outputs.
+        """
+        if self.embed_shifts is not None:
+            self.section = replace(self.section, embedded=self.embed_shifts())
+            self.embed_shifts = None
+        return self.section
 
 
 def read_study(
@@ -217,11 +231,9 @@ def write_lab_outputs(
     files.append(write_text_atomic(out / "study_status.csv", status_csv))
     figure_links: list[tuple[str, str]] = []
     if figures != "none":
-        drawn = _draw(out, study, pf_rows, early, figures)
+        drawn = _draw(out, study, pf_rows, figures) + early.paths(out)
         files += [p for p, _ in drawn]
         figure_links = [(p.relative_to(out).as_posix(), c) for p, c in drawn]
-    if own_pool:
-        figure_pool.close()
     section = LabSection(
         experiments=tuple(sorted({s.experiment for s in study.sessions})),
         matrix=tuple(matrix),
@@ -231,16 +243,15 @@ def write_lab_outputs(
         outliers=tuple(flags),
         pf=tuple(_pf_report_row(r, study.sets[(str(r["log"]), str(r["set_id"]))]) for r in pf_rows),
         figures=tuple(figure_links),
-        embedded=tuple(
-            (rel, data_uri((out / rel).read_bytes()))
-            for rel, _ in figure_links
-            if rel.startswith("figures/shifts_")
-        ),
     )
     warnings = [
         f"outlier: {o.participant} {o.what} = {o.value_db:.2f} dB (z {o.z:+.1f})" for o in flags
     ]
-    return LabOutputs(files, section, warnings)
+    lab = LabOutputs(files, section, warnings, embed_shifts=lambda: early.write(out))
+    if own_pool:  # nothing later to overlap with: collect the figures now
+        lab.finished()
+        figure_pool.close()
+    return lab
 
 
 def _pf_report_row(r: Mapping[str, Any], st: SetTrials) -> PFRow:
@@ -269,9 +280,9 @@ def _draw(
     out: Path,
     study: StudyLogs,
     pf_rows: Sequence[Mapping[str, Any]],
-    shift_figures: _ShiftFigures,
     figures: str,
 ) -> list[tuple[Path, str]]:
+    """The psychometric figures (``--figures all``), drawn here."""
     from masking_lab.analysis.figures import safe_stem
     from masking_lab.analysis.lab_figures import pf_figure_png
 
@@ -292,10 +303,6 @@ def _draw(
         path = out / "figures" / "psychometric" / f"{safe_stem(f'{p}_{e}')}.png"
         write_bytes_atomic(path, pf_figure_png(f"Psychometric functions: {p}, {e}", panels))
         drawn.append((path, f"psychometric functions of {p} in {e}, one panel per set"))
-    for e, png in shift_figures.result():
-        path = out / "figures" / f"shifts_{safe_stem(str(e))}.png"
-        write_bytes_atomic(path, png)
-        drawn.append((path, f"each participant's AL shift in {e} against masker level"))
     return drawn
 
 
@@ -331,6 +338,26 @@ class _ShiftFigures:
     def result(self) -> list[tuple[str, bytes]]:
         """(experiment, PNG bytes) per experiment, sorted by experiment."""
         return [(job[0], get()) for job, get in zip(self.jobs, self.results, strict=True)]
+
+    def paths(self, out: Path) -> list[tuple[Path, str]]:
+        """(file, caption) of each experiment's figure in ``out``, before it is drawn."""
+        from masking_lab.analysis.figures import safe_stem
+
+        return [
+            (
+                out / "figures" / f"shifts_{safe_stem(e)}.png",
+                f"each participant's AL shift in {e} against masker level",
+            )
+            for e, *_ in self.jobs
+        ]
+
+    def write(self, out: Path) -> tuple[tuple[str, str], ...]:
+        """Wait for the figures, write them into ``out``; (path, data URI) of each."""
+        embedded = []
+        for (path, _), (_, png) in zip(self.paths(out), self.result(), strict=True):
+            write_bytes_atomic(path, png)
+            embedded.append((path.relative_to(out).as_posix(), data_uri(png)))
+        return tuple(embedded)
 
 
 def _write_participants(out: Path, study: StudyLogs) -> list[Path]:
