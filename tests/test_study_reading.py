@@ -3,6 +3,8 @@ order, as one process reading the logs itself, and an unreadable log is passed o
 
 from __future__ import annotations
 
+import json
+
 import pytest
 
 from masking_lab.analysis import study_reading
@@ -46,21 +48,24 @@ def test_a_study_gathers_sessions_sets_and_info_in_log_order(logs):
     assert all(st.levels and len(st.levels) == len(st.correct) for st in study.sets.values())
 
 
-def test_only_logs_that_can_name_a_functional_set_are_parsed_again(tmp_path):
-    from masking_lab.analysis.log_reading import may_hold_functional, read_one
+def test_only_logs_with_a_functional_set_are_parsed_again(tmp_path):
+    from masking_lab.analysis.log_reading import names_masker_placing_set, read_one
     from masking_lab.analysis.thresholds import EstimatorSettings
 
     plain = b'{"record":"set_start","procedure":{"kind":"quest_plus"}}\n'
     named = b'{"record":"set_start","procedure":{"kind":"functional_ramp"}}\n'
     escaped = b'{"record":"set_start","procedure":{"kind":"\\u0066unctional_ramp"}}\n'
-    assert not may_hold_functional(plain)
-    assert may_hold_functional(named) and may_hold_functional(escaped)
-    # asked in the one read of each log, and so of a whole log
+    # the name elsewhere than a set's procedure holds no functional set
+    elsewhere = b'{"record":"set_start","note":"functional_ramp","procedure":{"kind":"x"}}\n'
+    # asked in the one read of each log, of its records: typed view and general reader alike
     header = b'{"record":"header","participant":"P1","protocol":{"experiment":"e"}}\n'
-    for name, body, expected in (("a", plain, False), ("b", named, True), ("c", escaped, True)):
+    cases = (("a", plain, False), ("b", named, True), ("c", escaped, True), ("d", elsewhere, False))
+    for name, body, expected in cases:
         (tmp_path / f"{name}.jsonl").write_bytes(header + body)
         res = read_one(tmp_path / f"{name}.jsonl", f"{name}.jsonl", EstimatorSettings())
-        assert res.error is None and res.may_hold_functional is expected
+        assert res.error is None and res.may_hold_functional is expected, name
+        records = [json.loads(line) for line in (header + body).splitlines()]
+        assert names_masker_placing_set(records) is expected, name
 
 
 def test_shift_figures_drawn_in_their_own_process_are_the_ones_drawn_in_process(logs):

@@ -13,7 +13,6 @@ record-continuity problems (:mod:`masking_lab.formats.log_integrity`), or why it
 
 from __future__ import annotations
 
-import functools
 import hashlib
 import os
 from collections.abc import Callable, Iterator, Mapping, Sequence
@@ -25,14 +24,20 @@ from typing import Any
 import msgspec
 
 from masking_lab.analysis.played_levels import played_level_problems
+from masking_lab.analysis.procedure_estimates import places_masker
 from masking_lab.analysis.study_status import SessionInfo, session_of
 from masking_lab.analysis.thresholds import EstimatorSettings, packed, session_rows
 from masking_lab.core.errors import LogError
 from masking_lab.formats.log_bytes import check_schema_version, read_log_bytes, strip_bom
-from masking_lab.formats.log_records import ANALYSIS_DECODER, AHeader
+from masking_lab.formats.log_records import ANALYSIS_DECODER, AHeader, ASetStart
 from masking_lab.formats.session_log import SessionLog, parse_log
 
-__all__ = ["LogResult", "fast_parse", "may_hold_functional", "read_logs"]
+__all__ = [
+    "LogResult",
+    "fast_parse",
+    "names_masker_placing_set",
+    "read_logs",
+]
 
 PARALLEL_FROM = 64  # fewer logs than this are read in-process (workers cost ~0.3 s to start)
 _CHUNK = 32
@@ -74,9 +79,8 @@ class LogResult:
         (:func:`~masking_lab.analysis.study_status.session_of`), so the study matrix and
         ``participants.tsv`` need no second read of the log.
     may_hold_functional : bool
-        Its bytes name a procedure that places the masker level, or escape a character
-        (which could spell one): only such logs are read again for the functional outputs
-        (:func:`may_hold_functional`).
+        A ``set_start`` of its records runs a procedure that places the masker level: only
+        such logs are read again for the functional outputs (:func:`names_masker_placing_set`).
     """
 
     path: Path
@@ -162,31 +166,35 @@ def read_one(path: Path, rel: str, settings: EstimatorSettings) -> LogResult:
         n_bytes=len(raw),
         completed=_completed(log),
         session=session_of(header, rel, log.ended),
-        may_hold_functional=may_hold_functional(raw),
+        may_hold_functional=names_masker_placing_set(log.records),
     )
 
 
-@functools.cache
-def _masker_placing_names() -> tuple[bytes, ...]:
-    from masking_lab.procedures.registry import kinds
+def names_masker_placing_set(records: Sequence[Any]) -> bool:
+    """Whether any ``set_start`` among a log's parsed records (typed view or dicts) runs a
+    procedure that places the masker level (the registry's ``places_masker`` kinds).
 
-    return tuple(k.name.encode() for k in kinds() if k.places_masker)
-
-
-def may_hold_functional(raw: bytes) -> bool:
-    """Whether a log's bytes can hold a set whose procedure places the masker level (the
-    registry's ``places_masker`` kinds): they name one, or escape a character, which could
-    spell one. Asked during the one read of each log, so that finding no functional set is
-    not a third read of the study.
+    Read off the records the one read decoded anyway (escapes already decoded), so finding
+    no functional set is neither a second read of the study nor a second scan of its bytes.
 
     Examples
     --------
-    >>> may_hold_functional(b'{"record":"set_start","procedure":{"kind":"quest_plus"}}\\n')
+    >>> start = {"record": "set_start", "procedure": {"kind": "quest_plus"}}
+    >>> names_masker_placing_set([start])
     False
-    >>> may_hold_functional(b'{"kind":"\\\\u0066unctional_ramp"}\\n')
+    >>> names_masker_placing_set([{**start, "procedure": {"kind": "functional_ramp"}}])
     True
     """
-    return any(name in raw for name in _masker_placing_names()) or b"\\u" in raw
+    for rec in records:
+        if type(rec) is ASetStart:
+            procedure = rec.procedure
+        elif isinstance(rec, Mapping) and rec.get("record") == "set_start":
+            procedure = rec.get("procedure")
+        else:
+            continue
+        if isinstance(procedure, Mapping) and places_masker(procedure):
+            return True
+    return False
 
 
 def _completed(log: SessionLog) -> bool:
