@@ -188,7 +188,7 @@ def names_masker_placing_set(records: Sequence[Any]) -> bool:
     for rec in records:
         if type(rec) is ASetStart:
             procedure = rec.procedure
-        elif isinstance(rec, Mapping) and rec.get("record") == "set_start":
+        elif isinstance(rec, dict) and rec.get("record") == "set_start":  # the general reader's
             procedure = rec.get("procedure")
         else:
             continue

@@ -240,6 +240,8 @@ def estimate_set(records: SetRecords, settings: EstimatorSettings) -> SetEstimat
 
 def _first_non_finite(values: list[Any]) -> int | None:
     """Index of the first value that is not a finite number, or None."""
+    if all(map(math.isfinite, values)):  # the common case, in C
+        return None
     for k, v in enumerate(values):
         if not math.isfinite(v):
             return k
@@ -384,7 +386,7 @@ def packed(rows: list[dict]) -> list[tuple]:
     >>> packed([{"participant": "P1", "status": "completed"}])[0][:2]
     ('P1', None)
     """
-    return [tuple(r.get(k) for k in ROW_KEYS) for r in rows]
+    return [tuple(map(r.get, ROW_KEYS)) for r in rows]
 
 
 def unpacked(rows: list[tuple]) -> list[dict]:

@@ -150,7 +150,8 @@ class SessionLog:
     @property
     def ended(self) -> bool:
         """True if the log has a ``session_end`` record."""
-        return any(r.get("record") == "session_end" for r in self.records)
+        # Looked for from the end, where a finished session's is: one record, not all of them.
+        return any(r.get("record") == "session_end" for r in reversed(self.records))
 
     def continuity_problems(self) -> list[str]:
         """Deleted, repeated or reordered records, bad trial indices and set boundaries.
