@@ -110,11 +110,24 @@ def _old_flag(values, what):
 
 def test_the_outlier_rule_on_slices_is_the_rule_on_new_arrays() -> None:
     rng = np.random.default_rng(3)
-    for n in (3, 5, 8, 60):
+    cases = []
+    for n in (3, 5, 6, 8, 60, 333):
         vals = {f"P{i}": float(x) for i, x in enumerate(rng.standard_t(2, n))}
         vals["P0"] = 40.0
+        cases.append(vals)
+    # every cell equal, all but one equal, and a value placed at z = 3.5 ± an ulp's worth
+    cases += [{f"P{i}": 2.5 for i in range(9)}, {**{f"P{i}": 2.5 for i in range(9)}, "P9": 3.0}]
+    base = rng.normal(0.0, 1.0, 40)
+    others = base[1:]
+    for dz in (-1e-9, 0.0, 1e-9):
+        at = others.mean() + (OUTLIER_Z + dz) * others.std(ddof=1)
+        cases.append({f"P{i}": float(x) for i, x in enumerate([at, *others])})
+    flagged = 0
+    for vals in cases:
         got = [(o.participant, o.what, o.value_db, o.others_mean_db, o.z) for o in _flag(vals, "w")]
         assert got == _old_flag(vals, "w")
+        flagged += len(got)
+    assert flagged >= 6  # the rule fired, so the screen let the flagged ones through
     t = pd.DataFrame({"participant": [f"P{i}" for i in range(6)], "experiment": ["e"] * 6,
         "target": ["EV270"] * 6, "masker": ["MV120"] * 6, "masker_level_db_sl": [10.0] * 6,
         "status": ["completed"] * 6, "shift_db": [1.0, 1.2, 0.9, 1.1, 1.0, 9.0],
