@@ -220,8 +220,10 @@ def _analyze_into(
             if settings.figures == "all":
                 tracks.append(_track_job(out, read_log(res.path), unpacked(res.rows)))
         # The rows live on in ``rows`` only, so thresholds_table(consume=True) can free them
-        # (at 10,000 sessions the result kept them: ~50 MB held to the end of the run).
+        # (at 10,000 sessions the result kept them: ~50 MB held to the end of the run); of the
+        # header, only what the cross-log check below reads (the whole header: ~20 MB).
         res.rows = []
+        res.header = _cross_log_fields(res.header)
     problems += repeated_sessions([r for r in results if r.rel in analysed])
     if not inputs:
         raise AnalysisError(
@@ -247,10 +249,10 @@ def _analyze_into(
         ),
         rig_warnings=tuple(rig_changes(rigs)),
     )
-    columns = [thresholds[c].tolist() for c in THRESHOLD_COLUMNS]  # formatted column-wise
-    files.append(
-        write_text_atomic(out / "thresholds.csv", csv_text_columns(THRESHOLD_COLUMNS, columns))
-    )
+    # Formatted column-wise; the column lists are not kept (at 10,000 sessions ~25 MB).
+    text = csv_text_columns(THRESHOLD_COLUMNS, [thresholds[c].tolist() for c in THRESHOLD_COLUMNS])
+    files.append(write_text_atomic(out / "thresholds.csv", text))
+    del text
     files.append(
         write_text_atomic(out / "problems.csv", csv_text(["log", "problem", "action"], problems))
     )
@@ -309,6 +311,17 @@ def _analyze_into(
     warnings += result_warnings(experiments)
     ramp_files, ramp_problems = _functional_ramps(out, analysed_logs, inputs, settings, created_utc)
     return RunSummary(out, files + ramp_files, warnings + ramp_problems)
+
+
+def _cross_log_fields(header: dict[str, Any]) -> dict[str, Any]:
+    """The header fields :func:`~masking_lab.analysis.log_checks.repeated_sessions` reads."""
+    kept: dict[str, Any] = {
+        k: header[k] for k in ("participant", "session_id", "created_utc") if k in header
+    }
+    protocol = header.get("protocol")
+    if isinstance(protocol, dict):
+        kept["protocol"] = {k: protocol[k] for k in ("experiment",) if k in protocol}
+    return kept
 
 
 def _functional_ramps(
