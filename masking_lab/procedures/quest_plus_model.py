@@ -145,6 +145,13 @@ def expected_entropy(
 
 def _xlogx(a: NDArray[np.float64]) -> NDArray[np.float64]:
     """a·log a with 0·log 0 = 0 (posterior cells that underflowed)."""
+    if a.size and a.min() > 0:
+        # The usual case, no cell underflowed: a plain log, the same values as the masked one
+        # below (element by element) in about two thirds of its time, on the hot path of
+        # every Bayesian placement.
+        out = np.log(a)
+        out *= a
+        return out
     out = np.zeros_like(a)
     np.log(a, out=out, where=a > 0)  # no log of the cells that stay 0: one pass fewer
     out *= a
