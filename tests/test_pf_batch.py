@@ -65,7 +65,7 @@ def test_fits_spread_over_processes_are_the_fits_made_in_process(monkeypatch):
     serial = fit_all(jobs, workers=1)
     parallel = fit_all(jobs, workers=2, progress=lambda i, n: seen.append((i, n)))
     assert [repr(f) for f in parallel] == [repr(f) for f in serial]
-    assert seen and seen[-1] == (9, 9)
+    assert seen and seen[-1] == (9, 9) and seen == sorted(seen)
 
 
 def test_chunks_cover_every_job_once_evenly_in_a_multiple_of_the_workers():

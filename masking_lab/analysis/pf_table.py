@@ -213,6 +213,9 @@ def fit_all(
     """:func:`~masking_lab.analysis.psychometric.fit_pf_many` of every job, in chunks spread
     over processes for many sets (each fit is the same whichever chunk holds it).
 
+    This process is one of the ``workers``: it fits its share of the chunks while
+    ``workers − 1`` forked processes fit the rest (it would only wait for them otherwise).
+
     Examples
     --------
     >>> fit_all([])
@@ -229,11 +232,24 @@ def fit_all(
             if progress:
                 progress(len(fits), n)
         return fits
-    with ProcessPoolExecutor(max_workers=min(workers, len(chunks))) as pool:
-        for done in pool.map(fit_pf_many, chunks):
-            fits += done
+    share = workers if len(chunks) >= workers else len(chunks)
+    results: list[list[PFFit] | None] = [None] * len(chunks)
+    made = 0
+    with ProcessPoolExecutor(max_workers=share - 1) as pool:
+        away = {i: pool.submit(fit_pf_many, c) for i, c in enumerate(chunks) if i % share}
+        for i in range(0, len(chunks), share):  # this process's share, while the pool works
+            results[i] = fit_pf_many(chunks[i])
+            made += len(chunks[i])
             if progress:
-                progress(len(fits), n)
+                progress(made, n)
+        for i, fut in away.items():
+            results[i] = fut.result()
+            made += len(chunks[i])
+            if progress:
+                progress(made, n)
+    for done in results:
+        assert done is not None
+        fits += done
     return fits
 
 
