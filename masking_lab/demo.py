@@ -355,8 +355,16 @@ _SESSION_MODULES = (
     "numpy.random",
     "threadpoolctl",
 )
-# What the analysis and the scene load, imported while the sessions run.
-_LATER_MODULES = ("masking_lab.analysis.batch", "masking_lab.rendering.render")
+# What the analysis and the scene load, imported while the sessions run. The analysis imports
+# scipy.optimize (the staircase's target p), jinja2 (report.html) and pyarrow.parquet
+# (trials.parquet) only when it first needs them: ~0.25 s of CPU on its critical path otherwise.
+_LATER_MODULES = (
+    "masking_lab.analysis.batch",
+    "masking_lab.rendering.render",
+    "scipy.optimize",
+    "jinja2",
+    "pyarrow.parquet",
+)
 
 
 def _session_imports() -> None:
@@ -369,9 +377,10 @@ def _session_imports() -> None:
 
 def _warm_imports() -> None:
     """Import the analysis, figure and rendering modules (errors surface where they are used)."""
-    with contextlib.suppress(Exception):
-        for name in _LATER_MODULES:
+    for name in _LATER_MODULES:
+        with contextlib.suppress(Exception):  # e.g. pyarrow, an optional dependency
             importlib.import_module(name)
+    with contextlib.suppress(Exception):
         from masking_lab.formats.png_figure import pyplot
 
         pyplot()

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import io
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 from masking_lab import demo
@@ -71,3 +73,18 @@ def test_a_failed_baseline_starts_none_of_that_participants_experiments(tmp_path
     )
     # Baselines are handed out first: each unlocks two experiments.
     assert [s.protocol for s in done[:2]] == ["baseline", "baseline"]
+
+
+def test_the_warm_up_loads_what_the_analysis_would_import_on_its_critical_path():
+    # A fresh interpreter: this one may have imported them already (then the test could not
+    # fail). After the warm-up, the modules the analysis imports lazily are loaded.
+    code = (
+        "import sys\n"
+        "from masking_lab import demo\n"
+        "lazy = ('scipy.optimize', 'jinja2', 'masking_lab.analysis.batch')\n"
+        "before = [m in sys.modules for m in lazy]\n"
+        "demo._warm_imports()\n"
+        "print(before, [m in sys.modules for m in lazy])\n"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert done.stdout.strip() == "[False, False, False] [True, True, True]"

@@ -5,6 +5,7 @@ and a missing session, the ML estimator's intervals, and report.txt/report.html 
 from __future__ import annotations
 
 import json
+import math
 import re
 import shutil
 from pathlib import Path
@@ -350,3 +351,16 @@ def test_shift_figures_are_collected_when_the_report_asks_for_them(study, analyz
     for (_, uri), path in zip(section.embedded, shifts, strict=True):
         assert path.read_bytes() == (analyzed / "figures" / path.name).read_bytes()
         assert uri == data_uri(path.read_bytes())
+
+
+def test_trial_rows_keep_finite_numbers_and_drop_everything_else():
+    from masking_lab.analysis import trials_table as tt
+
+    assert [tt._num(v) for v in (1.5, 2, True, "3", None, math.inf, -math.inf, math.nan)] == [
+        1.5, 2.0, None, None, None, None, None, None,
+    ]  # fmt: skip
+    assert type(tt._num(2)) is float and tt._num(np.float64(0.5)) == 0.5  # a float subclass
+    assert [tt._int(v) for v in (3, True, 3.0, None)] == [3, None, None, None]
+    assert tt._onsets([1, 2.5, math.nan]) == [1.0, 2.5, None]
+    assert tt._onsets([1.0]) == [1.0, None, None] and tt._onsets("123") == [None] * 3
+    assert tt._onsets([1.0, 2.0, 3.0, 4.0]) == [1.0, 2.0, 3.0]

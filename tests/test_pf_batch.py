@@ -55,7 +55,7 @@ def test_a_batched_fit_is_bit_for_bit_the_fit_alone(monkeypatch):
 
 
 def test_fits_spread_over_processes_are_the_fits_made_in_process(monkeypatch):
-    monkeypatch.setattr(pf_table, "_PF_CHUNK", 4)  # three chunks, so two workers share them
+    monkeypatch.setattr(pf_table, "_PF_CHUNK", 2)  # four chunks, so two workers share them
     rng = np.random.default_rng(5)
     jobs = []
     for i in range(9):
@@ -65,7 +65,23 @@ def test_fits_spread_over_processes_are_the_fits_made_in_process(monkeypatch):
     serial = fit_all(jobs, workers=1)
     parallel = fit_all(jobs, workers=2, progress=lambda i, n: seen.append((i, n)))
     assert [repr(f) for f in parallel] == [repr(f) for f in serial]
-    assert seen and seen[-1] == (9, 9)
+    assert seen and seen[-1] == (9, 9) and seen == sorted(seen)
+
+
+def test_chunks_cover_every_job_once_evenly_in_a_multiple_of_the_workers():
+    for n in (1, 2, 5, 9, 127, 128, 129, 340, 1000, 4097):
+        for workers in (1, 2, 3, 4):
+            for chunk in (1, 2, 128):
+                bounds = pf_table.chunk_bounds(n, workers, chunk)
+                assert [a for a, _ in bounds] == [0] + [b for _, b in bounds[:-1]]
+                assert bounds[-1][1] == n
+                sizes = [b - a for a, b in bounds]
+                assert min(sizes) >= 1 and max(sizes) - min(sizes) <= 1
+                assert max(sizes) <= 2 * chunk or len(bounds) == workers
+                assert len(bounds) % workers == 0 or len(bounds) == n
+    assert pf_table.chunk_bounds(0, 2, 128) == []
+    # The demo's 340 sets on two workers: one even chunk each, not 128 + 128 + 84.
+    assert pf_table.chunk_bounds(340, 2, 128) == [(0, 170), (170, 340)]
 
 
 def test_an_empty_batch_and_a_bad_track_are_answered_not_raised():

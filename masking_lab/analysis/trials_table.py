@@ -60,14 +60,18 @@ TRIAL_COLUMNS = [
 
 def _num(v: Any) -> float | None:
     """A finite float, or None (non-finite numbers never reach an output)."""
-    if isinstance(v, bool) or not isinstance(v, int | float):
+    # The exact types a parsed log holds first: this runs ~12 times per trial row.
+    kind = type(v)
+    if kind is float:
+        return v if math.isfinite(v) else None
+    if kind is bool or not isinstance(v, int | float):
         return None
     f = float(v)
     return f if math.isfinite(f) else None
 
 
 def _int(v: Any) -> int | None:
-    return v if isinstance(v, int) and not isinstance(v, bool) else None
+    return v if type(v) is int or (isinstance(v, int) and not isinstance(v, bool)) else None
 
 
 def _flag(v: Any) -> int | None:
@@ -76,6 +80,8 @@ def _flag(v: Any) -> int | None:
 
 
 def _onsets(v: Any) -> list[float | None]:
+    if type(v) is list and len(v) == 3:  # a 3IFC trial's onsets: the common case
+        return [_num(v[0]), _num(v[1]), _num(v[2])]
     vals = list(v) if isinstance(v, list) else []
     return [_num(vals[i]) if i < len(vals) else None for i in range(3)]
 
@@ -158,7 +164,9 @@ def trial_rows(
         elif kind == "trial" and isinstance(sid, str) and sid in starts:
             head, unit = starts[sid]
             level = _num(rec.get("level_" + unit))
-            post = rec.get("posterior") if isinstance(rec.get("posterior"), Mapping) else {}
+            post = rec.get("posterior")
+            if not isinstance(post, Mapping):
+                post = {}
             bound = rec.get("at_bound")
             yield [
                 *base,

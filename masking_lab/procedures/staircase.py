@@ -268,17 +268,18 @@ class Staircase(TrackState):
             reversal_levels = (*reversal_levels, trial_level)
             reversal_trials = (*reversal_trials, trial_index)
 
-        state = replace(
-            self,
-            levels_db=levels,
-            responses=responses,
-            reversal_levels_db=reversal_levels,
-            reversal_trials=reversal_trials,
-            run=run,
-            direction=direction,
-        )
         if len(reversal_levels) >= s.n_reversals:
-            return replace(state, status="completed", _initial_step_pending=False)
+            return replace(
+                self,
+                levels_db=levels,
+                responses=responses,
+                reversal_levels_db=reversal_levels,
+                reversal_trials=reversal_trials,
+                run=run,
+                direction=direction,
+                status="completed",
+                _initial_step_pending=False,
+            )
 
         up = s.up_step_db(len(reversal_levels))
         if (initial_phase or initial_step_pending) and s.initial_one_down_one_up:
@@ -290,7 +291,17 @@ class Staircase(TrackState):
             step = up
         else:
             step = 0.0
-        state = replace(state, _initial_step_pending=initial_step_pending)
+        # One copy per trial (each ``replace`` is a few µs of a simulated trial's CPU).
+        state = replace(
+            self,
+            levels_db=levels,
+            responses=responses,
+            reversal_levels_db=reversal_levels,
+            reversal_trials=reversal_trials,
+            run=run,
+            direction=direction,
+            _initial_step_pending=initial_step_pending,
+        )
 
         if step != 0.0:
             state = state._apply_step(trial_level, step)
