@@ -24,7 +24,7 @@ from masking_lab.analysis.pf_table import SetTrials, set_trials
 from masking_lab.analysis.study_status import SessionInfo, session_of
 from masking_lab.analysis.trials_table import TRIAL_COLUMNS, trial_rows
 from masking_lab.core.errors import LogError
-from masking_lab.formats.csv_table import csv_text_rows
+from masking_lab.formats.csv_table import csv_text_columns
 from masking_lab.formats.session_log import read_log
 
 __all__ = ["LogPart", "ParquetSink", "StudyLogs", "read_parts", "trial_batch"]
@@ -109,7 +109,10 @@ def read_part(
     if csv or rows:
         table = list(trial_rows(log, rel, set_status))
         if csv:
-            part.trials_csv = csv_text_rows(TRIAL_COLUMNS, table).split("\n", 1)[1]
+            # Formatted a column at a time (the same bytes as row by row, csv_table's tests):
+            # a study's trials.csv has millions of cells.
+            columns = [list(c) for c in zip(*table, strict=True)] or [[] for _ in TRIAL_COLUMNS]
+            part.trials_csv = csv_text_columns(TRIAL_COLUMNS, columns).split("\n", 1)[1]
         if rows:
             part.trial_batch = trial_batch(table)
     return part
