@@ -65,6 +65,17 @@ class LevelCounts:
         return self.n_wrong > 0
 
     @functools.cached_property
+    def floor_correct(self) -> NDArray[np.float64]:
+        """Least p(correct) per level: the smallest normal float where a correct answer is
+        weighed, 1 where none is (ln 1 = +0, so the term vanishes without a masked logarithm)."""
+        return np.maximum(self.n_correct == 0, np.finfo(float).tiny)
+
+    @functools.cached_property
+    def floor_wrong(self) -> NDArray[np.float64]:
+        """Least p(wrong) per level, as :attr:`floor_correct` for the wrong answers."""
+        return np.maximum(self.n_wrong == 0, np.finfo(float).tiny)
+
+    @functools.cached_property
     def no_correct(self) -> NDArray[np.bool_]:
         """Levels without a correct answer (the complement of :attr:`any_correct`)."""
         return ~self.any_correct
@@ -198,10 +209,16 @@ def _logistic_parts(
     y = (counts.level_db - threshold_db[:, None]) / scale_db[:, None]
     z = y + c
     e = np.exp(-np.abs(z))
-    small = e / (1.0 + e)
-    big = 1.0 / (1.0 + e)
-    pos = z >= 0
-    return y, np.where(pos, big, small), np.where(pos, small, big)
+    d = 1.0 + e
+    # F = 1/d where z ≥ 0, else e/d; 1 − F the other one. Picked by maxima (0 ≤ e ≤ 1; with
+    # h = 1 where z ≥ 0, max(e, h) is the numerator of F): a masked select costs more.
+    h = np.heaviside(z, 1.0, out=z)
+    f = np.maximum(e, h)
+    np.subtract(1.0, h, out=h)
+    g = np.maximum(e, h, out=h)
+    f /= d
+    g /= d
+    return y, f, g
 
 
 @dataclass(frozen=True)
@@ -232,13 +249,50 @@ class LogisticModel:
     ) -> NDArray[np.float64]:
         """Log-likelihood (natural log) per track at threshold ``threshold_db`` and scale
         ``scale_db`` (both dB, shape (R,))."""
-        # The arithmetic of _logistic_parts, then p and q, in four work arrays updated in
+        # The arithmetic of _logistic_parts, then p and q, in a few work arrays updated in
         # place (the fits call this ~10⁴ times: fresh temporaries cost more than the maths).
-        # Every operation and its order are those of _logistic_parts and derivatives, so the
-        # sums are the same numbers bit for bit (tests/test_ml_likelihood_terms.py).
+        # Every rounded operation and its order are those of _logistic_parts and derivatives,
+        # so the sums are the same numbers bit for bit (tests/test_ml_likelihood_terms.py).
         z = counts.level_db - threshold_db[:, None]
         z /= scale_db[:, None]
         z += self.c
+        if np.isnan(z).any():  # NaN must stay NaN only where a term is weighed
+            return self._log_likelihood_masked(counts, z)
+        # Selections by maxima, not masks (numpy's masked loops cost ~10× a plain pass): with
+        # h = 1 where z ≥ 0 and 0 elsewhere, max(e, h) is 1 or e and max(e, 1 − h) is e or 1
+        # (0 ≤ e ≤ 1), the numerators of F(z) and 1 − F(z); the quotients are those of
+        # _logistic_parts exactly.
+        e = np.abs(z)
+        np.negative(e, out=e)
+        np.exp(e, out=e)
+        d = e + 1.0
+        h = np.heaviside(z, 1.0, out=z)
+        p = np.maximum(e, h)
+        np.subtract(1.0, h, out=h)
+        q = np.maximum(e, h, out=h)
+        p /= d
+        q /= d
+        p *= self.rise
+        p += self.guess
+        q *= self.rise
+        q += self.lapse  # 1 − p without cancellation
+        # k·ln p + (n − k)·ln q. Where a weight is 0 the floor is 1 instead of the smallest
+        # normal float: ln 1 = +0 and +0·0 = +0, the number the masked form puts there (p and
+        # q never exceed 1, so the floor changes no weighed term and no other).
+        np.maximum(p, counts.floor_correct, out=p)
+        np.maximum(q, counts.floor_wrong, out=q)
+        np.log(p, out=p)
+        np.log(q, out=q)
+        p *= counts.n_correct
+        q *= counts.n_wrong
+        p += q
+        return p.sum(axis=1)
+
+    def _log_likelihood_masked(
+        self, counts: LevelCounts, z: NDArray[np.float64]
+    ) -> NDArray[np.float64]:
+        """:meth:`log_likelihood` from z = (x − t)/s + c when z holds a NaN: the logarithms
+        whose weight is 0 are skipped, so a NaN there leaves the term 0."""
         pos = z >= 0
         e = np.abs(z)
         np.negative(e, out=e)
@@ -253,11 +307,8 @@ class LogisticModel:
         p += self.guess
         np.maximum(p, tiny, out=p)
         q *= self.rise
-        q += self.lapse  # 1 − p without cancellation
+        q += self.lapse
         np.maximum(q, tiny, out=q)
-        # k·ln p + (n − k)·ln q, skipping the logarithms whose weight is 0: a staircase answers
-        # most of its levels all right or all wrong, and rows are padded, so this halves the
-        # logarithms; the sums are the same numbers (a zero term adds nothing).
         np.log(p, out=p, where=counts.any_correct)
         np.log(q, out=q, where=counts.any_wrong)
         np.copyto(p, 0.0, where=counts.no_correct)
