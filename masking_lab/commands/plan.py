@@ -288,14 +288,8 @@ def _run(args: argparse.Namespace) -> int:
     from masking_lab.formats.output_dir import staged_output
     from masking_lab.formats.protocol import load_protocol
     from masking_lab.planning import plan as P
-    from masking_lab.planning.figures import png_bytes, speed_accuracy
     from masking_lab.planning.parallel import started_tasks
     from masking_lab.planning.procedure_plan import compare_procedures, quest_tasks
-    from masking_lab.planning.procedure_report import (
-        format_comparison,
-        format_fewest,
-        procedures_figure,
-    )
     from masking_lab.planning.report import (
         answer_text,
         format_per_set,
@@ -390,6 +384,15 @@ def _run(args: argparse.Namespace) -> int:
     progress(f"simulating {n_stair + n_quest} chunks ({args.scheduler})")
     pngs: dict[str, bytes] = {}
     with started_tasks([*staircase, *quest], scheduler=args.scheduler) as pending:
+        # matplotlib (~0.6 s to import) is loaded here, while the workers compute, not before
+        # they start (nor in them: they are forked without it).
+        from masking_lab.planning.figures import png_bytes, speed_accuracy
+        from masking_lab.planning.procedure_report import (
+            format_comparison,
+            format_fewest,
+            procedures_figure,
+        )
+
         result = P.assemble_plan(
             protocol, settings, thresholds, pending.wait(0, n_stair), progress=progress
         )
