@@ -253,11 +253,7 @@ class LogisticModel:
         # place (the fits call this ~10⁴ times: fresh temporaries cost more than the maths).
         # Every rounded operation and its order are those of _logistic_parts and derivatives,
         # so the sums are the same numbers bit for bit (tests/test_ml_likelihood_terms.py).
-        z = counts.level_db - threshold_db[:, None]
-        z /= scale_db[:, None]
-        z += self.c
-        if np.isnan(z).any():  # NaN must stay NaN only where a term is weighed
-            return self._log_likelihood_masked(counts, z)
+        z = self._z(counts, threshold_db, scale_db)
         # Selections by maxima, not masks (numpy's masked loops cost ~10× a plain pass): with
         # h = 1 where z ≥ 0 and 0 elsewhere, max(e, h) is 1 or e and max(e, 1 − h) is e or 1
         # (0 ≤ e ≤ 1), the numerators of F(z) and 1 − F(z); the quotients are those of
@@ -286,13 +282,28 @@ class LogisticModel:
         p *= counts.n_correct
         q *= counts.n_wrong
         p += q
-        return p.sum(axis=1)
+        ll = p.sum(axis=1)
+        # A row sums to NaN here exactly when its z holds a NaN (p and q lie in [tiny, 1]
+        # otherwise); NaN must then count only where a term is weighed, as the masked form has
+        # it. Checking the sums, not z, saves two passes over the array.
+        if np.isnan(ll).any():
+            return self._log_likelihood_masked(counts, self._z(counts, threshold_db, scale_db))
+        return ll
+
+    def _z(
+        self, counts: LevelCounts, threshold_db: NDArray[np.float64], scale_db: NDArray[np.float64]
+    ) -> NDArray[np.float64]:
+        """(x − t)/s + c, the logistic's argument at every level (a fresh array)."""
+        z = counts.level_db - threshold_db[:, None]
+        z /= scale_db[:, None]
+        z += self.c
+        return z
 
     def _log_likelihood_masked(
         self, counts: LevelCounts, z: NDArray[np.float64]
     ) -> NDArray[np.float64]:
-        """:meth:`log_likelihood` from z = (x − t)/s + c when z holds a NaN: the logarithms
-        whose weight is 0 are skipped, so a NaN there leaves the term 0."""
+        """:meth:`log_likelihood` from z = (x − t)/s + c, skipping the logarithms whose
+        weight is 0, so that a NaN in z leaves such a term 0."""
         pos = z >= 0
         e = np.abs(z)
         np.negative(e, out=e)
