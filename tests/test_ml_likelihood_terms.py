@@ -90,3 +90,16 @@ def test_a_nan_threshold_leaves_weightless_terms_zero():
     model = logistic_model(1 / 3, 0.02, 0.794)
     ll = model.log_likelihood(counts, np.array([np.nan, 1.0]), np.array([1.5, 1.5]))
     np.testing.assert_array_equal(ll, [0.0, 0.0])
+
+
+def test_the_threshold_derivatives_are_those_of_the_full_derivatives():
+    rng = np.random.default_rng(12)
+    level = np.sort(rng.uniform(-20.0, 20.0, (150, 12)), axis=1)
+    n = rng.integers(0, 5, level.shape).astype(float)
+    k = np.minimum(n, rng.integers(0, 5, level.shape)).astype(float)
+    counts = ml_counts.LevelCounts(level, n, k)
+    model = logistic_model(1 / 3, 0.02, 0.794)
+    t, s = rng.uniform(-25.0, 25.0, 150), np.exp(rng.uniform(-3.0, 3.0, 150))
+    g_t, _, h_tt, *_ = model.derivatives(counts, t, s)
+    score, curvature = model.threshold_derivatives(counts, t, s)
+    assert score.tobytes() == g_t.tobytes() and curvature.tobytes() == h_tt.tobytes()

@@ -255,7 +255,7 @@ def _fit_threshold(
             counts.level_db[active], counts.n_trials[active], counts.n_correct[active]
         )
         ta = t[active]
-        score, _, curvature, *_ = model.derivatives(part, ta, scale_db[active])
+        score, curvature = model.threshold_derivatives(part, ta, scale_db[active])
         a[active] = np.where(score > 0, ta, a[active])
         b[active] = np.where(score < 0, ta, b[active])
         with np.errstate(divide="ignore", invalid="ignore"):

@@ -337,17 +337,8 @@ class LogisticModel:
         Returns (g_t, g_u, H_tt, H_tu, H_uu, I_tt, I_tu, I_uu): gradient, observed Hessian and
         expected (Fisher) information, each of shape (R,).
         """
-        y, f, g = _logistic_parts(counts, threshold_db, scale_db, self.c)
-        tiny = np.finfo(float).tiny
-        p = np.maximum(self.guess + self.rise * f, tiny)
-        q = np.maximum(self.lapse + self.rise * g, tiny)
-        h = self.rise * f * g  # dp/dz
-        h2 = h * (g - f)  # d²p/dz²
+        y, p, q, h, h2, w, curv = self._slopes(counts, threshold_db, scale_db)
         s = scale_db[:, None]
-        k = counts.n_correct
-        m = counts.n_trials - k
-        w = k / p - m / q
-        curv = -(k / p**2 + m / q**2)
         info = counts.n_trials / (p * q)
         dt = -h / s
         du = -h * y
@@ -364,6 +355,33 @@ class LogisticModel:
             (info * dt * du).sum(axis=1),
             (info * du * du).sum(axis=1),
         )
+
+    def threshold_derivatives(
+        self, counts: LevelCounts, threshold_db: NDArray[np.float64], scale_db: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Score and observed curvature in t alone (g_t, H_tt of :meth:`derivatives`, the same
+        numbers), for the fixed-scale fits that need no more."""
+        _, _, _, h, h2, w, curv = self._slopes(counts, threshold_db, scale_db)
+        s = scale_db[:, None]
+        dt = -h / s
+        dtt = h2 / s**2
+        return (w * dt).sum(axis=1), (w * dtt + curv * dt * dt).sum(axis=1)
+
+    def _slopes(
+        self, counts: LevelCounts, threshold_db: NDArray[np.float64], scale_db: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], ...]:
+        """y, p, q, dp/dz, d²p/dz², the score weight w and the curvature weight per level."""
+        y, f, g = _logistic_parts(counts, threshold_db, scale_db, self.c)
+        tiny = np.finfo(float).tiny
+        p = np.maximum(self.guess + self.rise * f, tiny)
+        q = np.maximum(self.lapse + self.rise * g, tiny)
+        h = self.rise * f * g  # dp/dz
+        h2 = h * (g - f)  # d²p/dz²
+        k = counts.n_correct
+        m = counts.n_trials - k
+        w = k / p - m / q
+        curv = -(k / p**2 + m / q**2)
+        return y, p, q, h, h2, w, curv
 
 
 def log_likelihood(
