@@ -11,6 +11,10 @@ on a cluster. A chunk holds a bounded number of replicates, which bounds a worke
 seconds to start and, its idle workers polling, more system time than the simulation itself);
 an address (``tcp://host:8786``) joins that Dask cluster's scheduler. Every chunk runs with one
 BLAS thread wherever it runs, so its floating-point sums are the same everywhere.
+
+:func:`run_tasks` waits for every result; :func:`started_tasks` starts the tasks and hands
+back their results one range at a time, so the caller can work on the first ones (``plan``
+assembles its staircase plan) while the workers compute the rest.
 """
 
 from __future__ import annotations
