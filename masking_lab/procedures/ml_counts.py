@@ -338,22 +338,52 @@ class LogisticModel:
         expected (Fisher) information, each of shape (R,).
         """
         y, p, q, h, h2, w, curv = self._slopes(counts, threshold_db, scale_db)
+        # The products of the formulas (−h/s, −h·y, h″/s², (h″·y + h)/s, h″·y² + h·y, then
+        # w·a + curv·b·c), in order, into few arrays: fresh ones cost more than the maths.
         s = scale_db[:, None]
-        info = counts.n_trials / (p * q)
-        dt = -h / s
-        du = -h * y
+        info = np.multiply(p, q, out=p)
+        np.divide(counts.n_trials, info, out=info)
+        dt = np.negative(h)
+        dt /= s
+        du = np.negative(h)
+        du *= y
         dtt = h2 / s**2
-        dtu = (h2 * y + h) / s
-        duu = h2 * y**2 + h * y
+        dtu = h2 * y
+        dtu += h
+        dtu /= s
+        duu = np.multiply(y, y, out=q)  # y² as y**2 computes it
+        duu *= h2
+        np.multiply(h, y, out=h)
+        duu += h
+        a, b = h2, y  # free now: work arrays for the sums
+
+        def weighed(x: NDArray[np.float64]) -> NDArray[np.float64]:
+            """Σ w·x per track."""
+            return np.multiply(w, x, out=a).sum(axis=1)
+
+        def curved(
+            x: NDArray[np.float64], u: NDArray[np.float64], v: NDArray[np.float64]
+        ) -> NDArray[np.float64]:
+            """Σ (w·x + curv·u·v) per track."""
+            np.multiply(w, x, out=a)
+            np.multiply(curv, u, out=b)
+            np.multiply(b, v, out=b)
+            return np.add(a, b, out=a).sum(axis=1)
+
+        def informed(u: NDArray[np.float64], v: NDArray[np.float64]) -> NDArray[np.float64]:
+            """Σ info·u·v per track."""
+            np.multiply(info, u, out=a)
+            return np.multiply(a, v, out=a).sum(axis=1)
+
         return (
-            (w * dt).sum(axis=1),
-            (w * du).sum(axis=1),
-            (w * dtt + curv * dt * dt).sum(axis=1),
-            (w * dtu + curv * dt * du).sum(axis=1),
-            (w * duu + curv * du * du).sum(axis=1),
-            (info * dt * dt).sum(axis=1),
-            (info * dt * du).sum(axis=1),
-            (info * du * du).sum(axis=1),
+            weighed(dt),
+            weighed(du),
+            curved(dtt, dt, dt),
+            curved(dtu, dt, du),
+            curved(duu, du, du),
+            informed(dt, dt),
+            informed(dt, du),
+            informed(du, du),
         )
 
     def threshold_derivatives(
@@ -373,14 +403,27 @@ class LogisticModel:
         """y, p, q, dp/dz, d²p/dz², the score weight w and the curvature weight per level."""
         y, f, g = _logistic_parts(counts, threshold_db, scale_db, self.c)
         tiny = np.finfo(float).tiny
-        p = np.maximum(self.guess + self.rise * f, tiny)
-        q = np.maximum(self.lapse + self.rise * g, tiny)
-        h = self.rise * f * g  # dp/dz
-        h2 = h * (g - f)  # d²p/dz²
-        k = counts.n_correct
-        m = counts.n_trials - k
-        w = k / p - m / q
-        curv = -(k / p**2 + m / q**2)
+        # γ + (1 − γ − λ)·F, λ + (1 − γ − λ)·(1 − F), (1 − γ − λ)·F·(1 − F), that·(G − F),
+        # k/p − m/q and −(k/p² + m/q²), in place where an operand is not needed again.
+        p = self.rise * f
+        p += self.guess
+        np.maximum(p, tiny, out=p)
+        q = self.rise * g
+        q += self.lapse
+        np.maximum(q, tiny, out=q)
+        h = self.rise * f  # dp/dz
+        h *= g
+        h2 = np.subtract(g, f, out=f)  # d²p/dz²
+        h2 *= h
+        k, m = counts.n_correct, counts.n_wrong
+        w = k / p
+        w -= m / q
+        curv = np.multiply(p, p, out=g)  # p² as p**2 computes it
+        np.divide(k, curv, out=curv)
+        q2 = q * q
+        np.divide(m, q2, out=q2)
+        curv += q2
+        np.negative(curv, out=curv)
         return y, p, q, h, h2, w, curv
 
 
