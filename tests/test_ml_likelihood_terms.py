@@ -63,3 +63,43 @@ def test_the_in_place_likelihood_is_the_parts_formula_for_odd_rows_too():
                   where=n - k > 0)  # fmt: skip
     np.testing.assert_array_equal(ours, (k * ln_p + (n - k) * ln_q).sum(axis=1))
     assert ours[1] == 0.0 and np.all(np.isfinite(ours))
+
+
+def test_the_maxima_select_the_terms_the_masks_select():
+    # The likelihood picks F(z), 1 − F(z) and the weightless terms by maxima instead of masked
+    # loops; the masked form (kept for a z holding NaN) must give the same bits wherever z is
+    # a number, at both guess rates, without lapses (p reaches 1) and at extreme z.
+    rng = np.random.default_rng(11)
+    for guess, lapse in ((1 / 3, 0.02), (0.5, 0.0), (0.25, 0.05)):
+        level = np.sort(np.round(rng.uniform(-30.0, 30.0, (200, 17))), axis=1)
+        n = rng.integers(0, 5, level.shape).astype(float)
+        k = np.minimum(n, rng.integers(0, 5, level.shape)).astype(float)
+        counts = ml_counts.LevelCounts(level, n, k)
+        model = logistic_model(guess, lapse, (1 + guess) / 2)
+        t = np.round(rng.uniform(-40.0, 40.0, 200))  # some z exactly 0
+        s = np.exp(rng.uniform(np.log(1e-3), np.log(50.0), 200))
+        fast = model.log_likelihood(counts, t, s)
+        z = (level - t[:, None]) / s[:, None] + model.c
+        masked = model._log_likelihood_masked(counts, z)
+        assert fast.tobytes() == masked.tobytes()
+
+
+def test_a_nan_threshold_leaves_weightless_terms_zero():
+    level = np.array([[0.0, 2.0], [0.0, 2.0]])
+    counts = ml_counts.LevelCounts(level, np.zeros((2, 2)), np.zeros((2, 2)))
+    model = logistic_model(1 / 3, 0.02, 0.794)
+    ll = model.log_likelihood(counts, np.array([np.nan, 1.0]), np.array([1.5, 1.5]))
+    np.testing.assert_array_equal(ll, [0.0, 0.0])
+
+
+def test_the_threshold_derivatives_are_those_of_the_full_derivatives():
+    rng = np.random.default_rng(12)
+    level = np.sort(rng.uniform(-20.0, 20.0, (150, 12)), axis=1)
+    n = rng.integers(0, 5, level.shape).astype(float)
+    k = np.minimum(n, rng.integers(0, 5, level.shape)).astype(float)
+    counts = ml_counts.LevelCounts(level, n, k)
+    model = logistic_model(1 / 3, 0.02, 0.794)
+    t, s = rng.uniform(-25.0, 25.0, 150), np.exp(rng.uniform(-3.0, 3.0, 150))
+    g_t, _, h_tt, *_ = model.derivatives(counts, t, s)
+    score, curvature = model.threshold_derivatives(counts, t, s)
+    assert score.tobytes() == g_t.tobytes() and curvature.tobytes() == h_tt.tobytes()

@@ -14,7 +14,7 @@ import pytest
 from masking_lab.commands.cli import main as cli_main
 from masking_lab.formats.resources import shipped
 from masking_lab.planning import parallel
-from masking_lab.planning.parallel import chunk_plan, run_chunks, run_tasks
+from masking_lab.planning.parallel import chunk_plan, run_chunks, run_tasks, started_tasks
 
 # Few replicates, cut into several chunks each (the shipped chunk sizes would make one).
 PLAN_ARGS = [
@@ -91,6 +91,35 @@ def test_local_worker_processes_keep_the_order_of_the_chunks():
         32,
     ]
     assert run_tasks([(divmod, (17, 5)), (pow, (3, 2))], scheduler="local") == [(3, 2), 9]
+
+
+@pytest.mark.parametrize("scheduler", ["synchronous", "local"])
+def test_started_tasks_hand_back_each_result_when_waited_for_in_any_order(scheduler):
+    tasks = [(pow, (2, k)) for k in range(5)]
+    with started_tasks(tasks, scheduler=scheduler) as results:
+        late = results.wait(3, 5)  # the last ones first: plan reads the staircase's early
+        early = results.wait(0, 3)
+        again = results.wait(1, 2)
+        with pytest.raises(IndexError, match="not among the 5"):
+            results.wait(4, 6)
+    assert early + late == run_tasks(tasks) == [1, 2, 4, 8, 16]
+    assert again == [2]
+
+
+def test_a_failing_task_raises_where_its_result_is_waited_for():
+    tasks = [(pow, (2, 1)), (divmod, (1, 0))]
+    with pytest.raises(ZeroDivisionError), started_tasks(tasks, scheduler="local") as results:
+        assert results.wait(0, 1) == [2]
+        results.wait(1, 2)
+
+
+def test_synchronous_tasks_run_in_this_process_only_when_wanted():
+    calls = []
+    with started_tasks([(calls.append, (k,)) for k in range(3)]) as results:
+        results.wait(1, 2)
+        assert calls == [1]
+        results.wait(1, 3)
+    assert calls == [1, 2]
 
 
 def test_plan_tables_are_the_same_in_process_on_local_workers_and_on_a_dask_cluster(

@@ -288,14 +288,8 @@ def _run(args: argparse.Namespace) -> int:
     from masking_lab.formats.output_dir import staged_output
     from masking_lab.formats.protocol import load_protocol
     from masking_lab.planning import plan as P
-    from masking_lab.planning.figures import png_bytes, speed_accuracy
-    from masking_lab.planning.parallel import run_tasks
+    from masking_lab.planning.parallel import started_tasks
     from masking_lab.planning.procedure_plan import compare_procedures, quest_tasks
-    from masking_lab.planning.procedure_report import (
-        format_comparison,
-        format_fewest,
-        procedures_figure,
-    )
     from masking_lab.planning.report import (
         answer_text,
         format_per_set,
@@ -378,35 +372,44 @@ def _run(args: argparse.Namespace) -> int:
 
     progress = step_bar("plan", progress_wanted(args.progress))
 
-    # The staircase plan's chunks and the QUEST+ tracks' run together, longest first (the ML
-    # fits, the QUEST+ parts, the staircases' long runs), so both workers stay busy to the end;
-    # every chunk has its own seed, so the tables do not depend on where it ran.
+    # The staircase plan's chunks (the ML fits first, the longest) and then the QUEST+ tracks'
+    # run together on the workers; this process assembles the staircase plan and draws its
+    # figure while the QUEST+ chunks still run, so no core idles at the end. Every chunk has
+    # its own seed, so the tables do not depend on where or in which order it ran.
     quest_kw = {"quest_replicates": args.quest_replicates, "psi": args.psi}
     quest_kw["quest_max_trials"] = args.quest_max_trials
     staircase = P.plan_tasks(protocol, settings, thresholds)
     quest = quest_tasks(protocol, settings, thresholds, **quest_kw) if args.quest_replicates else []
-    n_ml = len(settings.schedules) * len(P.chunk_layout(settings)[1])
-    progress(f"simulating {len(staircase) + len(quest)} chunks ({args.scheduler})")
-    results = run_tasks([*staircase[:n_ml], *quest, *staircase[n_ml:]], scheduler=args.scheduler)
-    n_quest = len(quest)
-    result = P.assemble_plan(
-        protocol,
-        settings,
-        thresholds,
-        [*results[:n_ml], *results[n_ml + n_quest :]],
-        progress=progress,
-    )
-    comparison = None
-    if quest:
-        comparison = compare_procedures(
-            protocol,
-            result,
-            settings,
-            thresholds,
-            progress=progress,
-            outcomes=results[n_ml : n_ml + n_quest],
-            **quest_kw,
+    n_stair, n_quest = len(staircase), len(quest)
+    progress(f"simulating {n_stair + n_quest} chunks ({args.scheduler})")
+    pngs: dict[str, bytes] = {}
+    with started_tasks([*staircase, *quest], scheduler=args.scheduler) as pending:
+        # matplotlib (~0.6 s to import) is loaded here, while the workers compute, not before
+        # they start (nor in them: they are forked without it).
+        from masking_lab.planning.figures import png_bytes, speed_accuracy
+        from masking_lab.planning.procedure_report import (
+            format_comparison,
+            format_fewest,
+            procedures_figure,
         )
+
+        result = P.assemble_plan(
+            protocol, settings, thresholds, pending.wait(0, n_stair), progress=progress
+        )
+        pngs["plan_speed_accuracy.png"] = png_bytes(
+            speed_accuracy(result, title=f"{protocol.experiment}: speed against accuracy")
+        )
+        comparison = None
+        if quest:
+            comparison = compare_procedures(
+                protocol,
+                result,
+                settings,
+                thresholds,
+                progress=progress,
+                outcomes=pending.wait(n_stair, n_stair + n_quest),
+                **quest_kw,
+            )
     cap = P.protocol_staircase(protocol).max_trials
     own_text = protocol_procedure_text(protocol)
     if not runs_staircase(protocol):
@@ -458,18 +461,15 @@ def _run(args: argparse.Namespace) -> int:
         "plan_sets.csv": rows_to_csv(result.per_set),
         "plan_ladder.csv": rows_to_csv(result.ladder),
     }
-    figures = {
-        "plan_speed_accuracy.png": speed_accuracy(
-            result, title=f"{protocol.experiment}: speed against accuracy"
-        )
-    }
     if comparison is not None:
         files["plan_procedures.csv"] = rows_to_csv(comparison.rows)
         files["plan_procedures_sets.csv"] = rows_to_csv(comparison.per_set)
-        figures["plan_procedures.png"] = procedures_figure(
-            comparison, title=f"{protocol.experiment}: procedures against the Cramér-Rao bound"
+        pngs["plan_procedures.png"] = png_bytes(
+            procedures_figure(
+                comparison,
+                title=f"{protocol.experiment}: procedures against the Cramér-Rao bound",
+            )
         )
-    pngs = {name: png_bytes(fig) for name, fig in figures.items()}
     files["report.html"] = render_plan_html(
         result,
         title=f"masking-lab plan: {protocol.experiment}",
@@ -486,7 +486,7 @@ def _run(args: argparse.Namespace) -> int:
             write_text_atomic(stage / name, content)
         for name, png in pngs.items():
             write_bytes_atomic(stage / name, png)
-    print(f"\nwrote {', '.join(str(out / n) for n in [*files, *figures])}", file=sys.stderr)
+    print(f"\nwrote {', '.join(str(out / n) for n in [*files, *pngs])}", file=sys.stderr)
     return 0
 
 

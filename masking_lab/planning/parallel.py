@@ -11,11 +11,16 @@ on a cluster. A chunk holds a bounded number of replicates, which bounds a worke
 seconds to start and, its idle workers polling, more system time than the simulation itself);
 an address (``tcp://host:8786``) joins that Dask cluster's scheduler. Every chunk runs with one
 BLAS thread wherever it runs, so its floating-point sums are the same everywhere.
+
+:func:`run_tasks` waits for every result; :func:`started_tasks` starts the tasks and hands
+back their results one range at a time, so the caller can work on the first ones (``plan``
+assembles its staircase plan) while the workers compute the rest.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from typing import Any
 
 import numpy as np
@@ -25,9 +30,11 @@ from masking_lab.core.errors import AnalysisError
 __all__ = [
     "CONNECT_TIMEOUT_S",
     "Task",
+    "TaskResults",
     "chunk_plan",
     "run_chunks",
     "run_tasks",
+    "started_tasks",
 ]
 
 #: Seconds to wait for a Dask scheduler to answer before giving up with a clear error.
@@ -95,6 +102,83 @@ def run_tasks(tasks: Sequence[Task], *, scheduler: str | None = "synchronous") -
     return run_chunks(_one_thread_call, list(tasks), scheduler=scheduler)
 
 
+class TaskResults:
+    """The results of tasks started together (:func:`started_tasks`), each waited for when
+    it is needed, so this process can use some while the workers compute the others.
+
+    Examples
+    --------
+    >>> with started_tasks([(pow, (2, 3)), (divmod, (7, 2))]) as results:
+    ...     results.wait(1, 2), results.wait(0, 1)
+    ([(3, 1)], [8])
+    """
+
+    def __init__(self, fetch: Callable[[int], Any], n_tasks: int) -> None:
+        self._fetch = fetch
+        self._n = n_tasks
+
+    def wait(self, start: int, stop: int) -> list[Any]:
+        """The results of tasks ``start`` … ``stop − 1``, in order (waiting for them).
+
+        Raises
+        ------
+        IndexError
+            If the range is not within the tasks.
+        """
+        if not 0 <= start <= stop <= self._n:
+            raise IndexError(f"tasks {start}…{stop - 1} are not among the {self._n} started")
+        return [self._fetch(i) for i in range(start, stop)]
+
+
+@contextmanager
+def started_tasks(
+    tasks: Sequence[Task], *, scheduler: str | None = "synchronous", max_workers: int = 4
+) -> Iterator[TaskResults]:
+    """Start every task where ``scheduler`` says (as :func:`run_tasks`) and hand back their
+    results to wait for, in any order, while the workers go on; leaving the block waits for
+    (or, on an error, cancels) whatever is still running.
+
+    ``"synchronous"`` runs a task in this process when its result is first wanted (then keeps
+    it): the same numbers, one task at a time.
+
+    Raises
+    ------
+    AnalysisError
+        If no Dask scheduler answers at the address within :data:`CONNECT_TIMEOUT_S`.
+
+    Examples
+    --------
+    >>> with started_tasks([(pow, (2, 3)), (pow, (3, 2))], scheduler="local") as results:
+    ...     results.wait(0, 2)
+    [8, 9]
+    """
+    calls = [(_one_thread_call, task) for task in tasks]
+    if scheduler == "synchronous" or (
+        scheduler in (None, "local") and min(max_workers, _cores(), len(calls)) <= 1
+    ):
+        done: dict[int, Any] = {}
+
+        def run_here(i: int) -> Any:
+            if i not in done:
+                fn, args = calls[i]
+                done[i] = fn(*args)
+            return done[i]
+
+        yield TaskResults(run_here, len(calls))
+    elif scheduler is None or scheduler == "local":
+        with _forked_pool(min(max_workers, _cores(), len(calls))) as pool:
+            futures = [pool.submit(fn, *args) for fn, args in calls]
+            try:
+                yield TaskResults(lambda i: futures[i].result(), len(calls))
+            except BaseException:
+                pool.shutdown(wait=True, cancel_futures=True)
+                raise
+    else:
+        with _connect(scheduler) as client:
+            futures = [client.submit(fn, *args, pure=False) for fn, args in calls]
+            yield TaskResults(lambda i: futures[i].result(), len(calls))
+
+
 def _one_thread_call(fn: Callable[..., Any], args: tuple[Any, ...]) -> Any:
     from threadpoolctl import threadpool_limits
 
@@ -121,17 +205,22 @@ def _local_pool(
     fn: Callable[..., Any], args: Sequence[tuple[Any, ...]], max_workers: int
 ) -> list[Any]:
     """``[fn(*a) for a in args]`` on worker processes of this machine, in order."""
-    import multiprocessing
-    from concurrent.futures import ProcessPoolExecutor
-
     workers = max(1, min(max_workers, _cores(), len(args)))
     if workers == 1:
         return [fn(*a) for a in args]
-    methods = multiprocessing.get_all_start_methods()
-    context = multiprocessing.get_context("fork" if "fork" in methods else None)
-    with ProcessPoolExecutor(workers, mp_context=context, initializer=_one_blas_thread) as pool:
+    with _forked_pool(workers) as pool:
         futures = [pool.submit(fn, *a) for a in args]
         return [f.result() for f in futures]
+
+
+def _forked_pool(workers: int) -> Any:
+    """A pool of ``workers`` processes forked from this one (they start with its imports)."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    methods = multiprocessing.get_all_start_methods()
+    context = multiprocessing.get_context("fork" if "fork" in methods else None)
+    return ProcessPoolExecutor(workers, mp_context=context, initializer=_one_blas_thread)
 
 
 def _one_blas_thread() -> None:

@@ -251,11 +251,9 @@ def _fit_threshold(
     for _ in range(_NEWTON_ITERATIONS):
         if active.size == 0:
             break
-        part = LevelCounts(
-            counts.level_db[active], counts.n_trials[active], counts.n_correct[active]
-        )
+        part = _rows(counts, active)
         ta = t[active]
-        score, _, curvature, *_ = model.derivatives(part, ta, scale_db[active])
+        score, curvature = model.threshold_derivatives(part, ta, scale_db[active])
         a[active] = np.where(score > 0, ta, a[active])
         b[active] = np.where(score < 0, ta, b[active])
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -269,6 +267,14 @@ def _fit_threshold(
     worse = ll < grid_best  # never return less than the grid found (guards odd likelihoods)
     t = np.where(worse, t_lo + j_best * spacing, t)
     return t, np.where(worse, grid_best, ll)
+
+
+def _rows(counts: LevelCounts, rows: NDArray[np.intp]) -> LevelCounts:
+    """The counts of some tracks (``rows``: ascending, distinct); all of them are the counts
+    themselves, not a copy, so that their cached terms are computed once."""
+    if rows.size == counts.level_db.shape[0]:
+        return counts
+    return LevelCounts(counts.level_db[rows], counts.n_trials[rows], counts.n_correct[rows])
 
 
 def _steep_start(
@@ -339,9 +345,7 @@ def _maximise_2d(
     for _ in range(_SCORING_ITERATIONS):
         if active.size == 0:
             break
-        sub = LevelCounts(
-            counts.level_db[active], counts.n_trials[active], counts.n_correct[active]
-        )
+        sub = _rows(counts, active)
         ta, ua, la = t[active], u[active], ll[active]
         g_t, g_u, h_tt, h_tu, h_uu, i_tt, i_tu, i_uu = model.derivatives(sub, ta, np.exp(ua))
         newton_ok = (h_tt < 0) & (h_tt * h_uu - h_tu**2 > 0)
@@ -367,7 +371,7 @@ def _maximise_2d(
                 break
             cand_t = np.clip(ta[todo] + factor[todo] * step_t[todo], t_lo_a[todo], t_hi_a[todo])
             cand_u = np.clip(ua[todo] + factor[todo] * step_u[todo], u_lo, u_hi)
-            part = LevelCounts(sub.level_db[todo], sub.n_trials[todo], sub.n_correct[todo])
+            part = _rows(sub, todo)
             cand_l = model.log_likelihood(part, cand_t, np.exp(cand_u))
             good = cand_l >= la[todo]
             hit = todo[good]

@@ -65,6 +65,17 @@ class LevelCounts:
         return self.n_wrong > 0
 
     @functools.cached_property
+    def floor_correct(self) -> NDArray[np.float64]:
+        """Least p(correct) per level: the smallest normal float where a correct answer is
+        weighed, 1 where none is (ln 1 = +0, so the term vanishes without a masked logarithm)."""
+        return np.maximum(self.n_correct == 0, np.finfo(float).tiny)
+
+    @functools.cached_property
+    def floor_wrong(self) -> NDArray[np.float64]:
+        """Least p(wrong) per level, as :attr:`floor_correct` for the wrong answers."""
+        return np.maximum(self.n_wrong == 0, np.finfo(float).tiny)
+
+    @functools.cached_property
     def no_correct(self) -> NDArray[np.bool_]:
         """Levels without a correct answer (the complement of :attr:`any_correct`)."""
         return ~self.any_correct
@@ -198,10 +209,16 @@ def _logistic_parts(
     y = (counts.level_db - threshold_db[:, None]) / scale_db[:, None]
     z = y + c
     e = np.exp(-np.abs(z))
-    small = e / (1.0 + e)
-    big = 1.0 / (1.0 + e)
-    pos = z >= 0
-    return y, np.where(pos, big, small), np.where(pos, small, big)
+    d = 1.0 + e
+    # F = 1/d where z ≥ 0, else e/d; 1 − F the other one. Picked by maxima (0 ≤ e ≤ 1; with
+    # h = 1 where z ≥ 0, max(e, h) is the numerator of F): a masked select costs more.
+    h = np.heaviside(z, 1.0, out=z)
+    f = np.maximum(e, h)
+    np.subtract(1.0, h, out=h)
+    g = np.maximum(e, h, out=h)
+    f /= d
+    g /= d
+    return y, f, g
 
 
 @dataclass(frozen=True)
@@ -232,13 +249,61 @@ class LogisticModel:
     ) -> NDArray[np.float64]:
         """Log-likelihood (natural log) per track at threshold ``threshold_db`` and scale
         ``scale_db`` (both dB, shape (R,))."""
-        # The arithmetic of _logistic_parts, then p and q, in four work arrays updated in
+        # The arithmetic of _logistic_parts, then p and q, in a few work arrays updated in
         # place (the fits call this ~10⁴ times: fresh temporaries cost more than the maths).
-        # Every operation and its order are those of _logistic_parts and derivatives, so the
-        # sums are the same numbers bit for bit (tests/test_ml_likelihood_terms.py).
+        # Every rounded operation and its order are those of _logistic_parts and derivatives,
+        # so the sums are the same numbers bit for bit (tests/test_ml_likelihood_terms.py).
+        z = self._z(counts, threshold_db, scale_db)
+        # Selections by maxima, not masks (numpy's masked loops cost ~10× a plain pass): with
+        # h = 1 where z ≥ 0 and 0 elsewhere, max(e, h) is 1 or e and max(e, 1 − h) is e or 1
+        # (0 ≤ e ≤ 1), the numerators of F(z) and 1 − F(z); the quotients are those of
+        # _logistic_parts exactly.
+        e = np.abs(z)
+        np.negative(e, out=e)
+        np.exp(e, out=e)
+        d = e + 1.0
+        h = np.heaviside(z, 1.0, out=z)
+        p = np.maximum(e, h)
+        np.subtract(1.0, h, out=h)
+        q = np.maximum(e, h, out=h)
+        p /= d
+        q /= d
+        p *= self.rise
+        p += self.guess
+        q *= self.rise
+        q += self.lapse  # 1 − p without cancellation
+        # k·ln p + (n − k)·ln q. Where a weight is 0 the floor is 1 instead of the smallest
+        # normal float: ln 1 = +0 and +0·0 = +0, the number the masked form puts there (p and
+        # q never exceed 1, so the floor changes no weighed term and no other).
+        np.maximum(p, counts.floor_correct, out=p)
+        np.maximum(q, counts.floor_wrong, out=q)
+        np.log(p, out=p)
+        np.log(q, out=q)
+        p *= counts.n_correct
+        q *= counts.n_wrong
+        p += q
+        ll = p.sum(axis=1)
+        # A row sums to NaN here exactly when its z holds a NaN (p and q lie in [tiny, 1]
+        # otherwise); NaN must then count only where a term is weighed, as the masked form has
+        # it. Checking the sums, not z, saves two passes over the array.
+        if np.isnan(ll).any():
+            return self._log_likelihood_masked(counts, self._z(counts, threshold_db, scale_db))
+        return ll
+
+    def _z(
+        self, counts: LevelCounts, threshold_db: NDArray[np.float64], scale_db: NDArray[np.float64]
+    ) -> NDArray[np.float64]:
+        """(x − t)/s + c, the logistic's argument at every level (a fresh array)."""
         z = counts.level_db - threshold_db[:, None]
         z /= scale_db[:, None]
         z += self.c
+        return z
+
+    def _log_likelihood_masked(
+        self, counts: LevelCounts, z: NDArray[np.float64]
+    ) -> NDArray[np.float64]:
+        """:meth:`log_likelihood` from z = (x − t)/s + c, skipping the logarithms whose
+        weight is 0, so that a NaN in z leaves such a term 0."""
         pos = z >= 0
         e = np.abs(z)
         np.negative(e, out=e)
@@ -253,11 +318,8 @@ class LogisticModel:
         p += self.guess
         np.maximum(p, tiny, out=p)
         q *= self.rise
-        q += self.lapse  # 1 − p without cancellation
+        q += self.lapse
         np.maximum(q, tiny, out=q)
-        # k·ln p + (n − k)·ln q, skipping the logarithms whose weight is 0: a staircase answers
-        # most of its levels all right or all wrong, and rows are padded, so this halves the
-        # logarithms; the sums are the same numbers (a zero term adds nothing).
         np.log(p, out=p, where=counts.any_correct)
         np.log(q, out=q, where=counts.any_wrong)
         np.copyto(p, 0.0, where=counts.no_correct)
@@ -275,33 +337,94 @@ class LogisticModel:
         Returns (g_t, g_u, H_tt, H_tu, H_uu, I_tt, I_tu, I_uu): gradient, observed Hessian and
         expected (Fisher) information, each of shape (R,).
         """
+        y, p, q, h, h2, w, curv = self._slopes(counts, threshold_db, scale_db)
+        # The products of the formulas (−h/s, −h·y, h″/s², (h″·y + h)/s, h″·y² + h·y, then
+        # w·a + curv·b·c), in order, into few arrays: fresh ones cost more than the maths.
+        s = scale_db[:, None]
+        info = np.multiply(p, q, out=p)
+        np.divide(counts.n_trials, info, out=info)
+        dt = np.negative(h)
+        dt /= s
+        du = np.negative(h)
+        du *= y
+        dtt = h2 / s**2
+        dtu = h2 * y
+        dtu += h
+        dtu /= s
+        duu = np.multiply(y, y, out=q)  # y² as y**2 computes it
+        duu *= h2
+        np.multiply(h, y, out=h)
+        duu += h
+        a, b = h2, y  # free now: work arrays for the sums
+
+        def weighed(x: NDArray[np.float64]) -> NDArray[np.float64]:
+            """Σ w·x per track."""
+            return np.multiply(w, x, out=a).sum(axis=1)
+
+        def curved(
+            x: NDArray[np.float64], u: NDArray[np.float64], v: NDArray[np.float64]
+        ) -> NDArray[np.float64]:
+            """Σ (w·x + curv·u·v) per track."""
+            np.multiply(w, x, out=a)
+            np.multiply(curv, u, out=b)
+            np.multiply(b, v, out=b)
+            return np.add(a, b, out=a).sum(axis=1)
+
+        def informed(u: NDArray[np.float64], v: NDArray[np.float64]) -> NDArray[np.float64]:
+            """Σ info·u·v per track."""
+            np.multiply(info, u, out=a)
+            return np.multiply(a, v, out=a).sum(axis=1)
+
+        return (
+            weighed(dt),
+            weighed(du),
+            curved(dtt, dt, dt),
+            curved(dtu, dt, du),
+            curved(duu, du, du),
+            informed(dt, dt),
+            informed(dt, du),
+            informed(du, du),
+        )
+
+    def threshold_derivatives(
+        self, counts: LevelCounts, threshold_db: NDArray[np.float64], scale_db: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Score and observed curvature in t alone (g_t, H_tt of :meth:`derivatives`, the same
+        numbers), for the fixed-scale fits that need no more."""
+        _, _, _, h, h2, w, curv = self._slopes(counts, threshold_db, scale_db)
+        s = scale_db[:, None]
+        dt = -h / s
+        dtt = h2 / s**2
+        return (w * dt).sum(axis=1), (w * dtt + curv * dt * dt).sum(axis=1)
+
+    def _slopes(
+        self, counts: LevelCounts, threshold_db: NDArray[np.float64], scale_db: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], ...]:
+        """y, p, q, dp/dz, d²p/dz², the score weight w and the curvature weight per level."""
         y, f, g = _logistic_parts(counts, threshold_db, scale_db, self.c)
         tiny = np.finfo(float).tiny
-        p = np.maximum(self.guess + self.rise * f, tiny)
-        q = np.maximum(self.lapse + self.rise * g, tiny)
-        h = self.rise * f * g  # dp/dz
-        h2 = h * (g - f)  # d²p/dz²
-        s = scale_db[:, None]
-        k = counts.n_correct
-        m = counts.n_trials - k
-        w = k / p - m / q
-        curv = -(k / p**2 + m / q**2)
-        info = counts.n_trials / (p * q)
-        dt = -h / s
-        du = -h * y
-        dtt = h2 / s**2
-        dtu = (h2 * y + h) / s
-        duu = h2 * y**2 + h * y
-        return (
-            (w * dt).sum(axis=1),
-            (w * du).sum(axis=1),
-            (w * dtt + curv * dt * dt).sum(axis=1),
-            (w * dtu + curv * dt * du).sum(axis=1),
-            (w * duu + curv * du * du).sum(axis=1),
-            (info * dt * dt).sum(axis=1),
-            (info * dt * du).sum(axis=1),
-            (info * du * du).sum(axis=1),
-        )
+        # γ + (1 − γ − λ)·F, λ + (1 − γ − λ)·(1 − F), (1 − γ − λ)·F·(1 − F), that·(G − F),
+        # k/p − m/q and −(k/p² + m/q²), in place where an operand is not needed again.
+        p = self.rise * f
+        p += self.guess
+        np.maximum(p, tiny, out=p)
+        q = self.rise * g
+        q += self.lapse
+        np.maximum(q, tiny, out=q)
+        h = self.rise * f  # dp/dz
+        h *= g
+        h2 = np.subtract(g, f, out=f)  # d²p/dz²
+        h2 *= h
+        k, m = counts.n_correct, counts.n_wrong
+        w = k / p
+        w -= m / q
+        curv = np.multiply(p, p, out=g)  # p² as p**2 computes it
+        np.divide(k, curv, out=curv)
+        q2 = q * q
+        np.divide(m, q2, out=q2)
+        curv += q2
+        np.negative(curv, out=curv)
+        return y, p, q, h, h2, w, curv
 
 
 def log_likelihood(
