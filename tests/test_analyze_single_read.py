@@ -126,3 +126,38 @@ def test_status_reads_each_log_once(study, monkeypatch, capsys):
     assert main(["status", str(study)]) == 0
     out = capsys.readouterr().out
     assert "partial" in out and "complete" in out  # the cut log and the whole ones
+
+
+def test_the_log_reading_workers_are_forked_without_the_statistics_modules():
+    """analyze starts its read workers before it loads pandas and SciPy (it loads them while
+    the workers read): importing the analysis shell and the reader must not pull them in."""
+    import subprocess
+    import sys
+
+    probe = (
+        "import sys, masking_lab.analysis.batch, masking_lab.analysis.log_reading\n"
+        "print(sorted(m for m in ('pandas', 'scipy', 'matplotlib') if m in sys.modules))"
+    )
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
+
+
+def test_reading_stopped_early_leaves_no_worker_behind(study, tmp_path):
+    """read_logs hands every chunk to its workers at once; a caller that stops after the first
+    result (an error in the analysis) cancels the chunks not yet read and ends the workers."""
+    import multiprocessing
+
+    from masking_lab.analysis.log_reading import read_logs
+    from masking_lab.analysis.thresholds import EstimatorSettings
+
+    paths = sorted(study.rglob("*.jsonl"))
+    before = set(multiprocessing.active_children())  # e.g. earlier tests' figure workers
+    reading = read_logs(paths, study, EstimatorSettings(), workers=2)
+    assert set(multiprocessing.active_children()) > before  # reading started before asked
+    first = next(reading)
+    assert first.rel == paths[0].relative_to(study).as_posix()
+    reading.close()
+    assert set(multiprocessing.active_children()) <= before
+    # and read to the end, the same results as one process
+    alone = [r.rel for r in read_logs(paths, study, EstimatorSettings(), workers=1)]
+    assert [r.rel for r in read_logs(paths, study, EstimatorSettings(), workers=2)] == alone

@@ -20,14 +20,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
 
-from masking_lab.analysis.experiment import analyze_shifts, result_warnings
-from masking_lab.analysis.export import write_outputs
 from masking_lab.analysis.figure_pool import FigurePool
 from masking_lab.analysis.log_checks import duplicate_sessions, refused_sets, repeated_sessions
 from masking_lab.analysis.log_reading import PARALLEL_FROM, read_logs
-from masking_lab.analysis.report import LogsInput, ShiftsTableInput, build_report
-from masking_lab.analysis.report_html import render_html
-from masking_lab.analysis.report_text import render_text
 from masking_lab.analysis.rig_check import RigUse, rig_changes, rig_use
 from masking_lab.analysis.settings import EPOCH_UTC, AnalysisSettings, is_utc_stamp
 from masking_lab.analysis.thresholds import COLUMNS as THRESHOLD_COLUMNS
@@ -41,7 +36,6 @@ from masking_lab.core.errors import AnalysisError
 from masking_lab.formats.csv_table import csv_text, csv_text_columns
 from masking_lab.formats.fileio import write_text_atomic
 from masking_lab.formats.output_dir import staged_output
-from masking_lab.formats.shifts_csv import levels_told_apart, read_shifts_csv
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -186,8 +180,18 @@ def _analyze_into(
         # A large study's shift figures take seconds each and are drawn by two workers: the
         # second loads matplotlib while the logs are read, not after.
         figure_pool.widen(2)
-    # One read per log (hashed and parsed from the same bytes), in parallel for many logs.
-    results = list(read_logs(paths, data, est, progress=progress))
+    # One read per log (hashed and parsed from the same bytes), in parallel for many logs: the
+    # workers start at once, forked before the statistics' modules (pandas, SciPy) are loaded,
+    # and this process loads those while they read.
+    reading = read_logs(paths, data, est, progress=progress)
+    from masking_lab.analysis.experiment import analyze_shifts, result_warnings
+    from masking_lab.analysis.export import write_outputs
+    from masking_lab.analysis.report import LogsInput, build_report
+    from masking_lab.analysis.report_html import render_html
+    from masking_lab.analysis.report_text import render_text
+    from masking_lab.formats.shifts_csv import levels_told_apart
+
+    results = list(reading)
     copies = duplicate_sessions(results)
     for res in results:
         rel = res.rel
@@ -415,6 +419,11 @@ def run_fit(csv_path: str | Path, out_dir: str | Path, settings: AnalysisSetting
     --------
     >>> run_fit("shifts.csv", "fit_out", AnalysisSettings(pooling="paired"))  # doctest: +SKIP
     """
+    from masking_lab.analysis.experiment import analyze_shifts, result_warnings
+    from masking_lab.analysis.export import write_outputs
+    from masking_lab.analysis.report import ShiftsTableInput
+    from masking_lab.formats.shifts_csv import read_shifts_csv
+
     path = Path(csv_path)
     out = Path(out_dir)
     with staged_output(out, protect=[path]) as staging:

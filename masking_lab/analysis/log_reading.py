@@ -244,19 +244,46 @@ def read_logs(
     n = len(jobs)
     if workers is None:
         workers = (os.cpu_count() or 1) if n >= PARALLEL_FROM else 1
-    done = 0
     if workers <= 1 or n < 2:
-        for path, rel in jobs:
-            yield read_one(path, rel, settings)
-            done += 1
-            if progress:
-                progress(done, n)
-        return
+        return _read_here(jobs, settings, progress)
+    # Every chunk is handed to the workers now, not at the first result asked for: the caller
+    # loads the rest of the analysis while they read.
     chunks = [(jobs[i : i + _CHUNK], settings) for i in range(0, n, _CHUNK)]
-    with ProcessPoolExecutor(max_workers=min(workers, len(chunks))) as pool:
-        for results in pool.map(_read_chunk, chunks):
+    pool = ProcessPoolExecutor(max_workers=min(workers, len(chunks)))
+    try:
+        parts = pool.map(_read_chunk, chunks)
+    except BaseException:
+        pool.shutdown(wait=False, cancel_futures=True)
+        raise
+    return _gathered(pool, parts, n, progress)
+
+
+def _read_here(
+    jobs: list[tuple[Path, str]],
+    settings: EstimatorSettings,
+    progress: Callable[[int, int], None] | None,
+) -> Iterator[LogResult]:
+    for done, (path, rel) in enumerate(jobs, 1):
+        yield read_one(path, rel, settings)
+        if progress:
+            progress(done, len(jobs))
+
+
+def _gathered(
+    pool: ProcessPoolExecutor,
+    parts: Iterator[list[LogResult]],
+    n: int,
+    progress: Callable[[int, int], None] | None,
+) -> Iterator[LogResult]:
+    """The workers' results in order; the pool is shut down when they are all in, or, when the
+    caller stops early, once the chunks being read are done (the queued ones are cancelled)."""
+    done = 0
+    try:
+        for results in parts:
             for result in results:
                 yield result
                 done += 1
                 if progress:
                     progress(done, n)
+    finally:
+        pool.shutdown(wait=True, cancel_futures=done < n)

@@ -20,11 +20,13 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import pandas as pd
 from numpy.typing import NDArray
+
+if TYPE_CHECKING:
+    import pandas as pd
 
 __all__ = [
     "OUTLIER_RULE",
@@ -164,6 +166,7 @@ def status_matrix(sessions: Sequence[SessionInfo], thresholds: pd.DataFrame) -> 
     Examples
     --------
     >>> s = [SessionInfo("P1", "e1", "a.jsonl", ("A", "B"), True)]
+    >>> import pandas as pd
     >>> t = pd.DataFrame({"participant": ["P1"], "experiment": ["e1"], "set_id": ["A"],
     ...                   "status": ["completed"], "trials": [50], "log": ["a.jsonl"],
     ...                   "note": [None]})
@@ -210,6 +213,7 @@ def unmasked_als(thresholds: pd.DataFrame) -> dict[str, dict[str, float]]:
 
     Examples
     --------
+    >>> import pandas as pd
     >>> t = pd.DataFrame({"participant": ["P1"], "target": ["EV270"], "masker": [None],
     ...                   "status": ["completed"], "al_db_v": [-31.5]})
     >>> unmasked_als(t)
@@ -294,6 +298,7 @@ def outliers(thresholds: pd.DataFrame) -> list[Outlier]:
 
     Examples
     --------
+    >>> import pandas as pd
     >>> t = pd.DataFrame({"participant": [f"P{i}" for i in range(6)], "experiment": ["e"] * 6,
     ...     "target": ["EV270"] * 6, "masker": ["MV120"] * 6, "masker_level_db_sl": [10.0] * 6,
     ...     "status": ["completed"] * 6, "shift_db": [1.0, 1.2, 0.9, 1.1, 1.0, 9.0],

@@ -28,9 +28,8 @@ import math
 import operator
 import zlib
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import pandas as pd
 from msgspec import UNSET
 
 from masking_lab.analysis.procedure_estimates import places_masker, procedure_estimate
@@ -43,6 +42,9 @@ from masking_lab.formats.log_records import ATrial
 from masking_lab.formats.session_log import SessionLog, SetRecords
 from masking_lab.procedures.estimators import ESTIMATORS, ml_threshold, reversal_mean_al
 from masking_lab.procedures.staircase import implied_target_p_for
+
+if TYPE_CHECKING:
+    import pandas as pd
 
 ML_BOOTSTRAP = 200  # parametric-bootstrap refits behind an ML AL's SD and interval
 
@@ -510,6 +512,8 @@ def thresholds_table(
 
     ranked = sorted(range(n), key=sort_key)  # stable, like sorting the rows themselves
     # object dtype keeps None as None (pandas would turn missing strings into NaN)
+    import pandas as pd  # here: reading a log (this module, in every worker) needs no pandas
+
     return pd.DataFrame(
         {c: [col[c][i] for i in ranked] for c in COLUMNS}, columns=COLUMNS, dtype=object
     )
