@@ -360,6 +360,9 @@ _SESSION_MODULES = (
 # (trials.parquet) only when it first needs them: ~0.25 s of CPU on its critical path otherwise.
 _LATER_MODULES = (
     "masking_lab.analysis.batch",
+    # batch loads these only once its log reading has started (analyze's own start-up)
+    "masking_lab.analysis.experiment",
+    "masking_lab.analysis.export",
     "masking_lab.rendering.render",
     "scipy.optimize",
     "jinja2",
