@@ -39,6 +39,7 @@ from masking_lab.core.errors import ProcedureError
 from masking_lab.core.masking import ramp
 from masking_lab.core.psychometric import LEVITT_1U3D
 from masking_lab.procedures.base import ThresholdEstimate, settings_from_mapping
+from masking_lab.procedures.fused import nuisance_sums, wrong_and_totals
 from masking_lab.procedures.limits import grid_memory_problem, grid_points
 from masking_lab.procedures.quest_plus_model import PosteriorTrack, grid_db
 
@@ -310,13 +311,16 @@ def expected_entropy(t: RampTables, posterior: NDArray[np.float64]) -> NDArray[n
     """
     post = posterior.astype(np.float32)
     # m_c[a, s] = Σ_n post[a, n]·p_c[n, a, s]; the wrong answer's is the marginal minus it.
-    m_c = t.p_correct[0] * post[:, 0, None]
-    for n in range(1, post.shape[1]):
-        m_c += t.p_correct[n] * post[:, n, None]
-    m_w = np.maximum(post.sum(axis=1)[:, None] - m_c, np.float32(0.0))
+    m_c = nuisance_sums(t.p_correct, post[None])[0]
+    return _entropy_after(m_c, post.sum(axis=1))
+
+
+def _entropy_after(m_c: NDArray[np.float32], row_sums: NDArray[np.float32]) -> NDArray[np.float64]:
+    """Expected entropy per stimulus from the correct answer's joint table ``m_c`` (A, S) and
+    the posterior's (a, b) marginal ``row_sums`` (A,), nats."""
+    m_w, pk_c, pk_w = wrong_and_totals(m_c, row_sums)
     out = np.zeros(m_c.shape[1])
-    for m in (m_c, m_w):
-        pk = m.sum(axis=0, dtype=np.float64)
+    for m, pk in ((m_c, pk_c), (m_w, pk_w)):
         out += pk * np.log(np.maximum(pk, 1e-300)) - _xlogx_sum(m)
     return out
 
