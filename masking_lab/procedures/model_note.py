@@ -22,7 +22,7 @@ COVERAGE_DOC = 'docs/procedures.md, "Intervals when the observer is not the mode
 #: The note's opening words (``analyze`` finds its notes by them).
 STATED_MODEL = "95 % intervals assume the stated slope/lapse"
 #: Coverage of the known-slope QUEST+ protocol's intervals in the table's cells with twice the
-#: scale or lapse 0.08 (benchmarks/coverage.py, 200 tracks per cell, seed 0).
+#: scale or lapse 0.08 (benchmarks/interval_coverage.py, 200 tracks per cell, seed 0).
 KNOWN_COVERAGE = "52-87 %"
 
 

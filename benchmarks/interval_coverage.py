@@ -1,7 +1,7 @@
 """Coverage of the Bayesian procedures' 95 % intervals when the observer is not the model
 (the table in docs/procedures.md).
 
-    OMP_NUM_THREADS=1 python benchmarks/coverage.py [--tracks 200] [--seed 0] [--workers 2]
+    OMP_NUM_THREADS=1 python benchmarks/interval_coverage.py [--tracks 200] [--seed 0] [--workers 2]
         [--columns quest,known,functional] [--cells 0.75/0.02,3/0.08,...]
 
 Observers whose psychometric scale is the one the protocols assume (1.5 dB), half or twice it,
