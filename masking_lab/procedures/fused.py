@@ -28,7 +28,9 @@ def _loops() -> ModuleType | None:
         return None  # numba would run the loops as Python: far slower than numpy
     try:
         from masking_lab.procedures import jit_loops
-    except ImportError:
+    except (ImportError, RuntimeError, OSError):
+        # not installed, a numba too old or too new for this numpy, or no writable cache
+        # directory: the numpy route gives the same numbers
         return None
     return jit_loops
 
