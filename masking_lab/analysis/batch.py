@@ -40,7 +40,7 @@ from masking_lab.formats.output_dir import staged_output
 if TYPE_CHECKING:
     import pandas as pd
 
-    from masking_lab.analysis.lab_outputs import LabOutputs
+    from masking_lab.analysis.lab_outputs import LabOutputs, ShiftFigures
     from masking_lab.analysis.track_figures import TrackJob
     from masking_lab.formats.session_log import SessionLog
 
@@ -184,13 +184,8 @@ def _analyze_into(
     # workers start at once, forked before the statistics' modules (pandas, SciPy) are loaded,
     # and this process loads those while they read.
     reading = read_logs(paths, data, est, progress=progress)
-    from masking_lab.analysis.experiment import analyze_shifts, result_warnings
-    from masking_lab.analysis.export import write_outputs
-    from masking_lab.analysis.report import LogsInput, build_report
-    from masking_lab.analysis.report_html import render_html
-    from masking_lab.analysis.report_text import render_text
-    from masking_lab.formats.shifts_csv import levels_told_apart
-
+    if len(paths) >= PARALLEL_FROM:  # loaded while the workers read
+        _load_statistics()
     results = list(reading)
     copies = duplicate_sessions(results)
     for res in results:
@@ -241,6 +236,19 @@ def _analyze_into(
         track_files = draw_tracks(tracks, workers=min(4, os.cpu_count() or 1))
         files += track_files
     thresholds = thresholds_table(rows, unmasked_al=settings.unmasked_al, consume=True)
+    # The AL-shift figures need only the thresholds: their drawing starts before the
+    # statistics' modules load (a small study reads its logs here, with nothing to overlap).
+    from masking_lab.analysis.lab_outputs import start_shift_figures
+
+    shift_figures = start_shift_figures(thresholds, settings.figures, figure_pool)
+    _load_statistics()
+    from masking_lab.analysis.experiment import analyze_shifts, result_warnings
+    from masking_lab.analysis.export import write_outputs
+    from masking_lab.analysis.report import LogsInput, build_report
+    from masking_lab.analysis.report_html import render_html
+    from masking_lab.analysis.report_text import render_text
+    from masking_lab.formats.shifts_csv import levels_told_apart
+
     shifts = shifts_long(thresholds)
     created_utc = settings.created_utc or (max(created) if created else EPOCH_UTC)
     report_inputs = LogsInput(
@@ -273,6 +281,7 @@ def _analyze_into(
         fit_progress,
         sessions,
         figure_pool,
+        shift_figures,
     )
     files += lab.files
     warnings += lab.warnings
@@ -317,6 +326,16 @@ def _analyze_into(
     return RunSummary(out, files + ramp_files, warnings + ramp_problems)
 
 
+def _load_statistics() -> None:
+    """Import the statistics, export and report modules (pandas, the fits, the templates)."""
+    import masking_lab.analysis.experiment
+    import masking_lab.analysis.export
+    import masking_lab.analysis.report
+    import masking_lab.analysis.report_html
+    import masking_lab.analysis.report_text
+    import masking_lab.formats.shifts_csv  # noqa: F401
+
+
 def _cross_log_fields(header: dict[str, Any]) -> dict[str, Any]:
     """The header fields :func:`~masking_lab.analysis.log_checks.repeated_sessions` reads."""
     kept: dict[str, Any] = {
@@ -356,6 +375,7 @@ def _lab_outputs(
     fit_progress: Callable[[int, int], None] | None = None,
     sessions: list[Any] | None = None,
     figure_pool: FigurePool | None = None,
+    shift_figures: ShiftFigures | None = None,
 ) -> LabOutputs:
     """trials.csv, psychometric.csv, participants.tsv, the study status and their figures."""
     from dataclasses import replace
@@ -373,6 +393,7 @@ def _lab_outputs(
         progress=fit_progress,
         sessions=sessions,
         figure_pool=figure_pool,
+        shift_figures=shift_figures,
     )
     tracks = tuple(
         (p.relative_to(out).as_posix(), "staircase tracks of one session") for p in drawn
