@@ -20,6 +20,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
 
+from masking_lab.analysis import freed_memory
 from masking_lab.analysis.figure_pool import FigurePool
 from masking_lab.analysis.log_checks import duplicate_sessions, refused_sets, repeated_sessions
 from masking_lab.analysis.log_reading import PARALLEL_FROM, read_logs
@@ -33,8 +34,8 @@ from masking_lab.analysis.thresholds import (
     unpacked,
 )
 from masking_lab.core.errors import AnalysisError
-from masking_lab.formats.csv_table import csv_text, csv_text_columns
-from masking_lab.formats.fileio import write_text_atomic
+from masking_lab.formats.csv_table import csv_column_blocks, csv_text
+from masking_lab.formats.fileio import write_text_atomic, write_text_chunks_atomic
 from masking_lab.formats.output_dir import staged_output
 
 if TYPE_CHECKING:
@@ -186,6 +187,7 @@ def _analyze_into(
     reading = read_logs(paths, data, est, progress=progress)
     if len(paths) >= PARALLEL_FROM:  # loaded while the workers read
         _load_statistics()
+        freed_memory.return_early()  # after the workers are forked: only this process's
     results = list(reading)
     copies = duplicate_sessions(results)
     for res in results:
@@ -224,6 +226,7 @@ def _analyze_into(
         res.rows = []
         res.header = _cross_log_fields(res.header)
     problems += repeated_sessions([r for r in results if r.rel in analysed])
+    del results, reading  # each log's result (at 10,000 sessions ~10 MB): what is kept is above
     if not inputs:
         raise AnalysisError(
             f"{data}: none of the {len(paths)} log file(s) could be read; first problem: "
@@ -236,6 +239,7 @@ def _analyze_into(
         track_files = draw_tracks(tracks, workers=min(4, os.cpu_count() or 1))
         files += track_files
     thresholds = thresholds_table(rows, unmasked_al=settings.unmasked_al, consume=True)
+    freed_memory.trim()  # the rows' and the read results' memory, before the tables grow
     # The AL-shift figures need only the thresholds: their drawing starts before the
     # statistics' modules load (a small study reads its logs here, with nothing to overlap).
     from masking_lab.analysis.lab_outputs import start_shift_figures
@@ -261,10 +265,12 @@ def _analyze_into(
         ),
         rig_warnings=tuple(rig_changes(rigs)),
     )
-    # Formatted column-wise; the column lists are not kept (at 10,000 sessions ~25 MB).
-    text = csv_text_columns(THRESHOLD_COLUMNS, [thresholds[c].tolist() for c in THRESHOLD_COLUMNS])
-    files.append(write_text_atomic(out / "thresholds.csv", text))
-    del text
+    # Formatted column-wise and written a block of rows at a time; neither the column lists
+    # (at 10,000 sessions ~25 MB) nor the whole text (~21 MB, twice while encoded) is kept.
+    columns = [thresholds[c].tolist() for c in THRESHOLD_COLUMNS]
+    blocks = csv_column_blocks(THRESHOLD_COLUMNS, columns)
+    files.append(write_text_chunks_atomic(out / "thresholds.csv", blocks))
+    del columns, blocks
     files.append(
         write_text_atomic(out / "problems.csv", csv_text(["log", "problem", "action"], problems))
     )
@@ -306,6 +312,7 @@ def _analyze_into(
             "AL shift); see report.txt for the status of each set"
         )
     levels_told_apart(shifts, str(data))
+    freed_memory.trim()  # before the statistics' bootstrap
     experiments = analyze_shifts(shifts, settings, has_participants=True)
     files += write_outputs(
         out,

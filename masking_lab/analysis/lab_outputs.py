@@ -60,10 +60,10 @@ from masking_lab.formats.html_report import data_uri
 __all__ = [
     "PF_COLUMNS",
     "LabOutputs",
+    "ShiftFigures",
     "fit_all",
     "pf_job",
     "pf_row",
-    "ShiftFigures",
     "read_study",
     "start_shift_figures",
     "write_lab_outputs",
@@ -329,7 +329,7 @@ class ShiftFigures:
         self, thresholds: pd.DataFrame, flags: Sequence[Any], wanted: bool, pool: FigurePool
     ):
         self.flags = list(flags)
-        self.jobs: list[tuple[str, str, list[dict], set]] = []
+        self.jobs: list[tuple[str, str, dict[str, list], set]] = []
         self.results: list[Callable[[], bytes]] = []
         if not wanted:
             return
@@ -340,17 +340,22 @@ class ShiftFigures:
                 head, _, rest = o.what.partition(" @ ")
                 flagged.add((o.participant, head.split(" ", 1)[1], float(rest.split(" ")[0])))
         names = ["participant", "mv_stimulus", "target", "masker", "masker_level_db_sl", "shift_db"]
+        # Column lists, not a dict per set (at 10,000 sessions ~40 MB, left fragmented once
+        # freed); the worker makes the rows (lab_figures.shift_figure_png_columns).
         for e, g in done.groupby("experiment", sort=True):
-            shifts = [
-                {"participant": p, "mv_stimulus": mv, "pair": f"{t}|{m}",
-                 "masker_level_db_sl": lv, "shift_db": sh}
-                for p, mv, t, m, lv, sh in zip(*(g[c].tolist() for c in names), strict=True)
-            ]  # fmt: skip
-            self.jobs.append((str(e), f"Individual AL shifts: {e}", shifts, flagged))
+            p, mv, t, m, lv, sh = (g[c].tolist() for c in names)
+            pairs: dict[tuple[Any, Any], str] = {}
+            pair = [pairs.setdefault((a, b), f"{a}|{b}") for a, b in zip(t, m, strict=True)]
+            columns = {"participant": p, "mv_stimulus": mv, "pair": pair,
+                       "masker_level_db_sl": lv, "shift_db": sh}  # fmt: skip
+            self.jobs.append((str(e), f"Individual AL shifts: {e}", columns, flagged))
         if self.jobs:
-            from masking_lab.analysis.lab_figures import shift_figure_png
+            from masking_lab.analysis.lab_figures import shift_figure_png_columns
 
-            self.results = [pool.submit(shift_figure_png, *job[1:]) for job in self.jobs]
+            self.results = [pool.submit(shift_figure_png_columns, *job[1:]) for job in self.jobs]
+            # The figures' data is the pool's now, freed when drawn; only the experiments'
+            # names are kept here.
+            self.jobs = [(e, title, {}, set()) for e, title, *_ in self.jobs]
 
     def result(self) -> list[tuple[str, bytes]]:
         """(experiment, PNG bytes) per experiment, sorted by experiment."""
