@@ -240,3 +240,39 @@ def test_bootstrap_with_missing_cells_counts_unfittable_replicates():
     assert failed > 0
     assert a.size + failed == 200
     assert np.all(b >= 0)
+
+
+def _bootstrap_flat_count(x, data, n_boot, rng):
+    """participant_bootstrap as it counted before (int64 draws, one flat bincount per block)."""
+    import masking_lab.analysis.ramp_fit as rf
+
+    n_part = data.shape[0]
+    present = np.isfinite(data)
+    filled = np.where(present, data, 0.0)
+    present_f = present.astype(float)
+    counts = np.empty((n_boot, data.shape[1]))
+    sums = np.empty_like(counts)
+    block = max(1, 2_000_000 // max(1, n_part))
+    for lo in range(0, n_boot, block):
+        rows = min(block, n_boot - lo)
+        draws = rng.integers(0, n_part, size=(rows, n_part))
+        draws += (np.arange(rows) * n_part)[:, None]
+        weights = np.bincount(draws.ravel(), minlength=rows * n_part).reshape(rows, n_part)
+        weights = weights.astype(float)
+        counts[lo : lo + rows] = weights @ present_f
+        sums[lo : lo + rows] = weights @ filled
+    means = sums / counts
+    return rf.ramp_least_squares_batch(np.asarray(x, float), means)
+
+
+@pytest.mark.parametrize("n_part", [3, 40, 1001, 3334])
+def test_participant_bootstrap_draws_and_counts_as_before(n_part):
+    """The draws are counted a replicate at a time from int32 draws (less memory): the
+    replicates are bit for bit the flat int64 count's, blocks of several replicates included."""
+    rng = np.random.default_rng(n_part)
+    x = np.array([5.0, 10.0, 15.0])
+    data = rng.normal(2.0, 3.0, size=(n_part, 3)) * np.array([0.1, 1.0, 2.3])
+    a, b, failed = participant_bootstrap(x, data, n_boot=1500, rng=np.random.default_rng(3))
+    a0, b0 = _bootstrap_flat_count(x, data, 1500, np.random.default_rng(3))
+    assert failed == 0
+    assert a.tobytes() == a0.tobytes() and b.tobytes() == b0.tobytes()

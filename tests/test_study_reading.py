@@ -70,7 +70,7 @@ def test_only_logs_with_a_functional_set_are_parsed_again(tmp_path):
 
 def test_shift_figures_drawn_in_their_own_process_are_the_ones_drawn_in_process(logs):
     from masking_lab.analysis.figure_pool import FigurePool
-    from masking_lab.analysis.lab_outputs import _ShiftFigures
+    from masking_lab.analysis.lab_outputs import ShiftFigures
     from masking_lab.analysis.log_reading import read_logs
     from masking_lab.analysis.study_status import outliers
     from masking_lab.analysis.thresholds import EstimatorSettings, thresholds_table
@@ -83,9 +83,9 @@ def test_shift_figures_drawn_in_their_own_process_are_the_ones_drawn_in_process(
     pool = FigurePool()
     pool.widen(2)
     try:
-        here = _ShiftFigures(thresholds, flags, True, FigurePool(enabled=False)).result()
-        there = _ShiftFigures(thresholds, flags, True, pool).result()
-        assert _ShiftFigures(thresholds, flags, False, pool).result() == []
+        here = ShiftFigures(thresholds, flags, True, FigurePool(enabled=False)).result()
+        there = ShiftFigures(thresholds, flags, True, pool).result()
+        assert ShiftFigures(thresholds, flags, False, pool).result() == []
     finally:
         pool.close()
     assert [e for e, _ in here] == ["experiment1", "experiment2"]

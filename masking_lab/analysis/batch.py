@@ -20,6 +20,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
 
+from masking_lab.analysis import freed_memory
 from masking_lab.analysis.figure_pool import FigurePool
 from masking_lab.analysis.log_checks import duplicate_sessions, refused_sets, repeated_sessions
 from masking_lab.analysis.log_reading import PARALLEL_FROM, read_logs
@@ -33,14 +34,14 @@ from masking_lab.analysis.thresholds import (
     unpacked,
 )
 from masking_lab.core.errors import AnalysisError
-from masking_lab.formats.csv_table import csv_text, csv_text_columns
-from masking_lab.formats.fileio import write_text_atomic
+from masking_lab.formats.csv_table import csv_column_blocks, csv_text
+from masking_lab.formats.fileio import write_text_atomic, write_text_chunks_atomic
 from masking_lab.formats.output_dir import staged_output
 
 if TYPE_CHECKING:
     import pandas as pd
 
-    from masking_lab.analysis.lab_outputs import LabOutputs
+    from masking_lab.analysis.lab_outputs import LabOutputs, ShiftFigures
     from masking_lab.analysis.track_figures import TrackJob
     from masking_lab.formats.session_log import SessionLog
 
@@ -184,13 +185,9 @@ def _analyze_into(
     # workers start at once, forked before the statistics' modules (pandas, SciPy) are loaded,
     # and this process loads those while they read.
     reading = read_logs(paths, data, est, progress=progress)
-    from masking_lab.analysis.experiment import analyze_shifts, result_warnings
-    from masking_lab.analysis.export import write_outputs
-    from masking_lab.analysis.report import LogsInput, build_report
-    from masking_lab.analysis.report_html import render_html
-    from masking_lab.analysis.report_text import render_text
-    from masking_lab.formats.shifts_csv import levels_told_apart
-
+    if len(paths) >= PARALLEL_FROM:  # loaded while the workers read
+        _load_statistics()
+        freed_memory.return_early()  # after the workers are forked: only this process's
     results = list(reading)
     copies = duplicate_sessions(results)
     for res in results:
@@ -229,6 +226,7 @@ def _analyze_into(
         res.rows = []
         res.header = _cross_log_fields(res.header)
     problems += repeated_sessions([r for r in results if r.rel in analysed])
+    del results, reading  # each log's result (at 10,000 sessions ~10 MB): what is kept is above
     if not inputs:
         raise AnalysisError(
             f"{data}: none of the {len(paths)} log file(s) could be read; first problem: "
@@ -241,6 +239,20 @@ def _analyze_into(
         track_files = draw_tracks(tracks, workers=min(4, os.cpu_count() or 1))
         files += track_files
     thresholds = thresholds_table(rows, unmasked_al=settings.unmasked_al, consume=True)
+    freed_memory.trim()  # the rows' and the read results' memory, before the tables grow
+    # The AL-shift figures need only the thresholds: their drawing starts before the
+    # statistics' modules load (a small study reads its logs here, with nothing to overlap).
+    from masking_lab.analysis.lab_outputs import start_shift_figures
+
+    shift_figures = start_shift_figures(thresholds, settings.figures, figure_pool)
+    _load_statistics()
+    from masking_lab.analysis.experiment import analyze_shifts, result_warnings
+    from masking_lab.analysis.export import write_outputs
+    from masking_lab.analysis.report import LogsInput, build_report
+    from masking_lab.analysis.report_html import render_html
+    from masking_lab.analysis.report_text import render_text
+    from masking_lab.formats.shifts_csv import levels_told_apart
+
     shifts = shifts_long(thresholds)
     created_utc = settings.created_utc or (max(created) if created else EPOCH_UTC)
     report_inputs = LogsInput(
@@ -253,10 +265,12 @@ def _analyze_into(
         ),
         rig_warnings=tuple(rig_changes(rigs)),
     )
-    # Formatted column-wise; the column lists are not kept (at 10,000 sessions ~25 MB).
-    text = csv_text_columns(THRESHOLD_COLUMNS, [thresholds[c].tolist() for c in THRESHOLD_COLUMNS])
-    files.append(write_text_atomic(out / "thresholds.csv", text))
-    del text
+    # Formatted column-wise and written a block of rows at a time; neither the column lists
+    # (at 10,000 sessions ~25 MB) nor the whole text (~21 MB, twice while encoded) is kept.
+    columns = [thresholds[c].tolist() for c in THRESHOLD_COLUMNS]
+    blocks = csv_column_blocks(THRESHOLD_COLUMNS, columns)
+    files.append(write_text_chunks_atomic(out / "thresholds.csv", blocks))
+    del columns, blocks
     files.append(
         write_text_atomic(out / "problems.csv", csv_text(["log", "problem", "action"], problems))
     )
@@ -273,6 +287,7 @@ def _analyze_into(
         fit_progress,
         sessions,
         figure_pool,
+        shift_figures,
     )
     files += lab.files
     warnings += lab.warnings
@@ -297,6 +312,7 @@ def _analyze_into(
             "AL shift); see report.txt for the status of each set"
         )
     levels_told_apart(shifts, str(data))
+    freed_memory.trim()  # before the statistics' bootstrap
     experiments = analyze_shifts(shifts, settings, has_participants=True)
     files += write_outputs(
         out,
@@ -315,6 +331,16 @@ def _analyze_into(
     warnings += result_warnings(experiments)
     ramp_files, ramp_problems = _functional_ramps(out, analysed_logs, inputs, settings, created_utc)
     return RunSummary(out, files + ramp_files, warnings + ramp_problems)
+
+
+def _load_statistics() -> None:
+    """Import the statistics, export and report modules (pandas, the fits, the templates)."""
+    import masking_lab.analysis.experiment
+    import masking_lab.analysis.export
+    import masking_lab.analysis.report
+    import masking_lab.analysis.report_html
+    import masking_lab.analysis.report_text
+    import masking_lab.formats.shifts_csv  # noqa: F401
 
 
 def _cross_log_fields(header: dict[str, Any]) -> dict[str, Any]:
@@ -356,6 +382,7 @@ def _lab_outputs(
     fit_progress: Callable[[int, int], None] | None = None,
     sessions: list[Any] | None = None,
     figure_pool: FigurePool | None = None,
+    shift_figures: ShiftFigures | None = None,
 ) -> LabOutputs:
     """trials.csv, psychometric.csv, participants.tsv, the study status and their figures."""
     from dataclasses import replace
@@ -373,6 +400,7 @@ def _lab_outputs(
         progress=fit_progress,
         sessions=sessions,
         figure_pool=figure_pool,
+        shift_figures=shift_figures,
     )
     tracks = tuple(
         (p.relative_to(out).as_posix(), "staircase tracks of one session") for p in drawn

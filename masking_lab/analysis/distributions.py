@@ -4,16 +4,24 @@ The same numbers as ``scipy.stats`` (``t.sf``, ``t.ppf``, ``f.sf``, ``chi2.sf``)
 those call these very ``scipy.special`` functions and add only the edge rules reproduced
 here (invalid degrees of freedom or a NaN give NaN; at or below the support's lower end the
 survival function is 1). Importing ``scipy.stats`` costs about a second of every run of
-``analyze`` (it builds every distribution and its docstrings); ``scipy.special`` a tenth of it.
+``analyze`` (it builds every distribution and its docstrings); ``scipy.special`` a tenth of it,
+so that is imported only when a tail is first asked for (a study of one participant has no
+test to run).
 """
 
 from __future__ import annotations
 
 import math
-
-from scipy import special
+from typing import Any
 
 __all__ = ["chi2_sf", "f_sf", "t_ppf", "t_sf"]
+
+
+def _special() -> Any:
+    """``scipy.special``, imported at the first use."""
+    from scipy import special
+
+    return special
 
 
 def _valid_df(*dfs: float) -> bool:
@@ -36,7 +44,7 @@ def t_sf(x: float, df: float) -> float:
         return 1.0
     if x == math.inf:
         return 0.0
-    return float(special.stdtr(df, -x))
+    return float(_special().stdtr(df, -x))
 
 
 def t_ppf(q: float, df: float) -> float:
@@ -54,7 +62,7 @@ def t_ppf(q: float, df: float) -> float:
         return -math.inf
     if q == 1.0:
         return math.inf
-    return float(special.stdtrit(df, q) * 1.0 + 0.0)  # scipy's scale and loc, for -0.0
+    return float(_special().stdtrit(df, q) * 1.0 + 0.0)  # scipy's scale and loc, for -0.0
 
 
 def f_sf(x: float, dfn: float, dfd: float) -> float:
@@ -74,7 +82,7 @@ def f_sf(x: float, dfn: float, dfd: float) -> float:
         return 1.0
     if x == math.inf:
         return 0.0
-    return float(special.fdtrc(dfn, dfd, x))
+    return float(_special().fdtrc(dfn, dfd, x))
 
 
 def chi2_sf(x: float, df: float) -> float:
@@ -94,4 +102,4 @@ def chi2_sf(x: float, df: float) -> float:
         return 1.0
     if x == math.inf:
         return 0.0
-    return float(special.chdtrc(df, x))
+    return float(_special().chdtrc(df, x))

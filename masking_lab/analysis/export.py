@@ -19,7 +19,7 @@ from masking_lab import __version__
 from masking_lab.analysis.experiment import ExperimentResult
 from masking_lab.analysis.figure_pool import FigurePool
 from masking_lab.analysis.report import LogsInput, ShiftsTableInput, build_report
-from masking_lab.analysis.report_html import render_html
+from masking_lab.analysis.report_html import prepare_html, render_html
 from masking_lab.analysis.report_lab import LabSection
 from masking_lab.analysis.report_text import render_text
 from masking_lab.analysis.settings import AnalysisSettings
@@ -306,6 +306,8 @@ def write_outputs(
     figures: dict[str, bytes] = {}
     if settings.figures != "none":
         from masking_lab.analysis.figures import safe_stem
+
+        prepare_html()  # while the figures are drawn
 
         for r in results:
             figures[r.experiment] = drawing[r.experiment]()

@@ -21,7 +21,7 @@ import numpy as np
 from masking_lab.analysis.psychometric import PFFit, binned, pf_curve
 from masking_lab.formats.png_figure import legible, png_bytes
 
-__all__ = ["pf_figure_png", "shift_figure_png"]
+__all__ = ["pf_figure_png", "shift_figure_png", "shift_figure_png_columns"]
 
 _UNIT = {"db_sl": "dB SL", "db_v": "dB re 1 V"}
 
@@ -125,6 +125,27 @@ def _pf_panel(ax: Any, panel: Mapping[str, Any]) -> None:
     ax.xaxis.set_major_locator(MaxNLocator(5))
     ax.set_xlabel(f"level ({_UNIT.get(panel.get('unit', ''), 'dB')})")
     ax.set_ylabel("p(correct)")
+
+
+def shift_figure_png_columns(
+    title: str,
+    columns: Mapping[str, Sequence[Any]],
+    flagged: set[tuple[str, str, float]] | None = None,
+) -> bytes:
+    """:func:`shift_figure_png` of shifts given column by column (``columns``: the keys of a
+    shift → the values of every shift, in order): what a run hands its figure worker, a list
+    per column being a fraction of the memory of a dict per set.
+
+    Examples
+    --------
+    >>> png = shift_figure_png_columns("e1", {"participant": ["P1"], "mv_stimulus": ["MV120"],
+    ...     "pair": ["EV270|MV120"], "masker_level_db_sl": [10.0], "shift_db": [2.0]})
+    >>> png[:4]
+    b'\\x89PNG'
+    """
+    names = list(columns)
+    shifts = [dict(zip(names, row, strict=True)) for row in zip(*columns.values(), strict=True)]
+    return shift_figure_png(title, shifts, flagged)
 
 
 def shift_figure_png(

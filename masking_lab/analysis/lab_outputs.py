@@ -60,10 +60,12 @@ from masking_lab.formats.html_report import data_uri
 __all__ = [
     "PF_COLUMNS",
     "LabOutputs",
+    "ShiftFigures",
     "fit_all",
     "pf_job",
     "pf_row",
     "read_study",
+    "start_shift_figures",
     "write_lab_outputs",
 ]
 
@@ -132,6 +134,7 @@ def write_lab_outputs(
     trial_tables: bool = True,
     sessions: Sequence[tuple[SessionInfo, Mapping[str, Any] | None, list[dict]]] | None = None,
     figure_pool: FigurePool | None = None,
+    shift_figures: ShiftFigures | None = None,
 ) -> LabOutputs:
     """Write the per-trial and per-participant outputs of ``analyze`` into ``out``.
 
@@ -160,6 +163,9 @@ def write_lab_outputs(
     figure_pool : FigurePool, optional
         Where the shift figures are drawn (default: a worker of their own for a large study,
         else in-process).
+    shift_figures : ShiftFigures, optional
+        The thresholds' outlier flags and shift figures, already started
+        (:func:`start_shift_figures`; default: started here).
 
     Returns
     -------
@@ -171,7 +177,6 @@ def write_lab_outputs(
     if trial_tables:
         keys = [thresholds[c].tolist() for c in ("log", "set_id", "status")]
         status = {(str(log), str(sid)): str(st) for log, sid, st in zip(*keys, strict=True)}
-    flags = outliers(thresholds)
     # The shift figures need only the thresholds: they are drawn in a worker process while
     # the logs are read and fitted.
     own_pool = figure_pool is None
@@ -179,7 +184,8 @@ def write_lab_outputs(
         figure_pool = FigurePool(figures != "none" and len(logs) >= PARALLEL_FROM)
     if len(logs) >= PARALLEL_FROM:  # a shift figure of hundreds of participants takes seconds
         figure_pool.widen(2)
-    early = _ShiftFigures(thresholds, flags, figures != "none", figure_pool)
+    early = shift_figures or start_shift_figures(thresholds, figures, figure_pool)
+    flags = early.flags
     if trial_tables:
         trials_path = out / "trials.csv"
         parquet = ParquetSink(out / "trials.parquet")
@@ -306,13 +312,24 @@ def _draw(
     return drawn
 
 
-class _ShiftFigures:
-    """``figures/shifts_<experiment>.png`` of the thresholds, started in ``pool`` at once."""
+def start_shift_figures(
+    thresholds: pd.DataFrame, figures: str, pool: FigurePool | None
+) -> ShiftFigures:
+    """The thresholds' outlier flags, and their AL-shift figures started in ``pool`` at once
+    (drawn in-process when asked for without a pool)."""
+    wanted = figures != "none"
+    return ShiftFigures(thresholds, outliers(thresholds), wanted, pool or FigurePool(False))
+
+
+class ShiftFigures:
+    """``figures/shifts_<experiment>.png`` of the thresholds, started in ``pool`` at once;
+    ``flags``: the outliers (:func:`~masking_lab.analysis.study_status.outliers`)."""
 
     def __init__(
         self, thresholds: pd.DataFrame, flags: Sequence[Any], wanted: bool, pool: FigurePool
     ):
-        self.jobs: list[tuple[str, str, list[dict], set]] = []
+        self.flags = list(flags)
+        self.jobs: list[tuple[str, str, dict[str, list], set]] = []
         self.results: list[Callable[[], bytes]] = []
         if not wanted:
             return
@@ -323,17 +340,22 @@ class _ShiftFigures:
                 head, _, rest = o.what.partition(" @ ")
                 flagged.add((o.participant, head.split(" ", 1)[1], float(rest.split(" ")[0])))
         names = ["participant", "mv_stimulus", "target", "masker", "masker_level_db_sl", "shift_db"]
+        # Column lists, not a dict per set (at 10,000 sessions ~40 MB, left fragmented once
+        # freed); the worker makes the rows (lab_figures.shift_figure_png_columns).
         for e, g in done.groupby("experiment", sort=True):
-            shifts = [
-                {"participant": p, "mv_stimulus": mv, "pair": f"{t}|{m}",
-                 "masker_level_db_sl": lv, "shift_db": sh}
-                for p, mv, t, m, lv, sh in zip(*(g[c].tolist() for c in names), strict=True)
-            ]  # fmt: skip
-            self.jobs.append((str(e), f"Individual AL shifts: {e}", shifts, flagged))
+            p, mv, t, m, lv, sh = (g[c].tolist() for c in names)
+            pairs: dict[tuple[Any, Any], str] = {}
+            pair = [pairs.setdefault((a, b), f"{a}|{b}") for a, b in zip(t, m, strict=True)]
+            columns = {"participant": p, "mv_stimulus": mv, "pair": pair,
+                       "masker_level_db_sl": lv, "shift_db": sh}  # fmt: skip
+            self.jobs.append((str(e), f"Individual AL shifts: {e}", columns, flagged))
         if self.jobs:
-            from masking_lab.analysis.lab_figures import shift_figure_png
+            from masking_lab.analysis.lab_figures import shift_figure_png_columns
 
-            self.results = [pool.submit(shift_figure_png, *job[1:]) for job in self.jobs]
+            self.results = [pool.submit(shift_figure_png_columns, *job[1:]) for job in self.jobs]
+            # The figures' data is the pool's now, freed when drawn; only the experiments'
+            # names are kept here.
+            self.jobs = [(e, title, {}, set()) for e, title, *_ in self.jobs]
 
     def result(self) -> list[tuple[str, bytes]]:
         """(experiment, PNG bytes) per experiment, sorted by experiment."""

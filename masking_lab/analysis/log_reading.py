@@ -158,7 +158,7 @@ def read_one(path: Path, rel: str, settings: EstimatorSettings) -> LogResult:
         path,
         rel,
         sha256=digest,
-        header=header,
+        header=_analysis_header(header),
         rows=packed(rows or []),
         line_problems=list(log.problems),
         continuity=[*log.continuity_problems(), *played_level_problems(log.records, log.lines)],
@@ -197,6 +197,21 @@ def names_masker_placing_set(records: Sequence[Any]) -> bool:
     return False
 
 
+#: The header fields a run reads of every log after its read (skipping, the cross-log and rig
+#: checks, the creation time); of ``protocol``, only ``experiment``.
+HEADER_FIELDS = ("participant", "session_id", "created_utc", "kind", "rig", "protocol")
+
+
+def _analysis_header(header: dict[str, Any]) -> dict[str, Any]:
+    """The :data:`HEADER_FIELDS` of ``header``: the whole header (its protocol above all) of
+    every log at once was ~20 MB at 10,000 sessions."""
+    kept = {k: header[k] for k in HEADER_FIELDS if k in header}
+    protocol = kept.get("protocol")
+    if isinstance(protocol, dict):
+        kept["protocol"] = {k: protocol[k] for k in ("experiment",) if k in protocol}
+    return kept
+
+
 def _completed(log: SessionLog) -> bool:
     """Whether the log ends with ``session_end`` of status ``completed`` (nothing may follow
     it, so only the last record is looked at)."""
@@ -208,7 +223,31 @@ def _completed(log: SessionLog) -> bool:
 
 def _read_chunk(args: tuple[list[tuple[Path, str]], EstimatorSettings]) -> list[LogResult]:
     jobs, settings = args
-    return [read_one(path, rel, settings) for path, rel in jobs]
+    results = [read_one(path, rel, settings) for path, rel in jobs]
+    _share_values(results)
+    return results
+
+
+def _share_values(results: list[LogResult]) -> None:
+    """Make equal strings and equal floats in the results' rows one object each. Every log's
+    set, target and masker names and its quantised levels and ALs are decoded anew; shared,
+    pickle sends each once per chunk and the analysing process keeps one copy (at 10,000
+    sessions ~35 MB less). Values are unchanged: a float is shared only with an equal one of
+    the same bits (zeros, whose sign equality ignores, and NaN are left as they are)."""
+    strings: dict[str, str] = {}
+    floats: dict[float, float] = {}
+    share_str, share_float = strings.setdefault, floats.setdefault
+
+    def shared(v: Any) -> Any:
+        kind = type(v)
+        if kind is str:
+            return share_str(v, v)
+        if kind is float and v == v and v != 0.0:
+            return share_float(v, v)
+        return v
+
+    for res in results:
+        res.rows = [tuple([shared(v) for v in row]) for row in res.rows]
 
 
 def read_logs(

@@ -25,10 +25,19 @@ from dataclasses import dataclass
 from typing import Any
 
 from masking_lab.core.errors import ProcedureError
-from masking_lab.procedures.quest_plus_kind import posterior_summary
 from masking_lab.procedures.registry import kind_named
 
-__all__ = ["ProcedureEstimate", "posterior_summary", "procedure_estimate"]
+__all__ = ["ProcedureEstimate", "procedure_estimate"]
+
+
+def __getattr__(name: str) -> Any:
+    # ``posterior_summary`` (QUEST+'s, still importable from here) is imported when asked for:
+    # its module loads numpy and QUEST+, which a study of staircases never needs.
+    if name == "posterior_summary":
+        from masking_lab.procedures.quest_plus_kind import posterior_summary
+
+        return posterior_summary
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 @dataclass(frozen=True)

@@ -474,14 +474,20 @@ def participant_bootstrap(
     counts = np.empty((n_boot, present.shape[1]))  # participants drawn with data, per cell
     sums = np.empty_like(counts)
     block = max(1, 2_000_000 // max(1, n_part))
+    # One weights buffer for every block. The draws are int32 (the same 32-bit stream as
+    # int64, in half the memory) and counted a replicate at a time: only a block's draws and
+    # the weights exist at once (at 10,000 sessions 24 MB; a flat count held 48 MB).
+    buffer = np.empty((min(block, n_boot), n_part))
     for lo in range(0, n_boot, block):
         rows = min(block, n_boot - lo)
-        draws = rng.integers(0, n_part, size=(rows, n_part))
-        draws += (np.arange(rows) * n_part)[:, None]
-        weights = np.bincount(draws.ravel(), minlength=rows * n_part).reshape(rows, n_part)
-        weights = weights.astype(float)
+        draws = rng.integers(0, n_part, size=(rows, n_part), dtype=np.int32)
+        weights = buffer[:rows]
+        for r in range(rows):
+            weights[r] = np.bincount(draws[r], minlength=n_part)
+        del draws
         counts[lo : lo + rows] = weights @ present_f
         sums[lo : lo + rows] = weights @ filled
+    del buffer, weights
     with np.errstate(invalid="ignore", divide="ignore"):
         means = sums / counts
     complete = (counts > 0).all(axis=1)

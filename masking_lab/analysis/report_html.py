@@ -12,9 +12,14 @@ from __future__ import annotations
 from collections.abc import Mapping
 
 from masking_lab.analysis.report import LogsInput, ReportModel, experiment_heading
-from masking_lab.formats.html_report import data_uri, render_page
+from masking_lab.formats.html_report import data_uri, load_template, render_page
 
-__all__ = ["render_html"]
+__all__ = ["prepare_html", "render_html"]
+
+
+def prepare_html() -> None:
+    """Compile the page's template now (a run does it while its figures are being drawn)."""
+    load_template("analysis.html.j2")
 
 
 def render_html(model: ReportModel, figures: Mapping[str, bytes] | None = None) -> str:

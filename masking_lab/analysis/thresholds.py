@@ -512,11 +512,18 @@ def thresholds_table(
 
     ranked = sorted(range(n), key=sort_key)  # stable, like sorting the rows themselves
     # object dtype keeps None as None (pandas would turn missing strings into NaN)
+    import numpy as np
     import pandas as pd  # here: reading a log (this module, in every worker) needs no pandas
 
-    return pd.DataFrame(
-        {c: [col[c][i] for i in ranked] for c in COLUMNS}, columns=COLUMNS, dtype=object
-    )
+    # One object block filled a column at a time, each column list freed once copied: a
+    # frame built from lists held the lists, a reordered copy, an array per column and the
+    # consolidated block at once (at 10,000 sessions ~100 MB for a 23 MB table).
+    order_idx = np.fromiter(ranked, dtype=np.intp, count=n)
+    del ranked, order
+    table = np.empty((n, len(COLUMNS)), dtype=object)
+    for j, c in enumerate(COLUMNS):
+        table[:, j] = np.fromiter(col.pop(c), dtype=object, count=n)[order_idx]
+    return pd.DataFrame(table, columns=COLUMNS, dtype=object, copy=False)
 
 
 def shifts_long(thresholds: pd.DataFrame) -> pd.DataFrame:

@@ -9,12 +9,12 @@ from __future__ import annotations
 import csv
 import io
 import math
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from typing import Any
 
 import numpy as np
 
-__all__ = ["csv_text", "csv_text_columns", "csv_text_rows"]
+__all__ = ["csv_column_blocks", "csv_text", "csv_text_columns", "csv_text_rows"]
 
 
 def csv_text(columns: Sequence[str], rows: Iterable[Mapping[str, Any]]) -> str:
@@ -74,22 +74,39 @@ def csv_text_columns(columns: Sequence[str], data: Sequence[Sequence[Any]]) -> s
     >>> csv_text_columns(["a", "b"], [[1.0 / 3, True], [None, "x"]])
     'a,b\\n0.333333,\\ntrue,x\\n'
     """
+    return "".join(csv_column_blocks(columns, data))
+
+
+def csv_column_blocks(columns: Sequence[str], data: Sequence[Sequence[Any]]) -> Iterator[str]:
+    """The text of :func:`csv_text_columns` in pieces (the header, then a block of rows at a
+    time), to be written as they come: a large table's whole text is never held.
+
+    Examples
+    --------
+    >>> list(csv_column_blocks(["a", "b"], [[1.0, 2.0], ["x", "y"]]))
+    ['a,b\\n', '1,x\\n2,y\\n']
+    """
     if len(columns) != len(data):
         raise ValueError(f"{len(columns)} column names for {len(data)} columns")
+    return _column_blocks(columns, data)
+
+
+def _column_blocks(columns: Sequence[str], data: Sequence[Sequence[Any]]) -> Iterator[str]:
     buf = io.StringIO()
-    w = csv.writer(buf, lineterminator="\n")
-    w.writerow(columns)
+    csv.writer(buf, lineterminator="\n").writerow(columns)
+    yield buf.getvalue()
     n = len(data[0]) if data else 0
     # A block of rows at a time: the formatted cells of a whole large table at once would
     # hold millions of small strings.
     for start in range(0, n, _BLOCK_ROWS):
         cells = [_column_cells(values[start : start + _BLOCK_ROWS]) for values in data]
         if len(columns) < 2:  # csv quotes a lone empty field: leave such tables to it
-            w.writerows(zip(*cells, strict=True))
+            buf = io.StringIO()
+            csv.writer(buf, lineterminator="\n").writerows(zip(*cells, strict=True))
+            yield buf.getvalue()
             continue
         cells = [_quoted(col) for col in cells]
-        buf.write("".join(line + "\n" for line in map(",".join, zip(*cells, strict=True))))
-    return buf.getvalue()
+        yield "".join(line + "\n" for line in map(",".join, zip(*cells, strict=True)))
 
 
 _BLOCK_ROWS = 4096

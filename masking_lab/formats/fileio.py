@@ -12,6 +12,7 @@ from __future__ import annotations
 import os
 import signal
 import tempfile
+from collections.abc import Iterable
 from pathlib import Path
 from typing import BinaryIO
 
@@ -39,6 +40,12 @@ def write_bytes_atomic(path: str | Path, data: bytes) -> Path:
 
     A crash leaves either the old file or the new one, never a half-written file.
     """
+    return write_chunks_atomic(path, (data,))
+
+
+def write_chunks_atomic(path: str | Path, chunks: Iterable[bytes]) -> Path:
+    """:func:`write_bytes_atomic` of the concatenated ``chunks``, written as they come (a
+    large table need not be held whole)."""
     global _files_written
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
@@ -48,7 +55,8 @@ def write_bytes_atomic(path: str | Path, data: bytes) -> Path:
         # mkstemp makes the file 0600; give it the permissions a plain open() would.
         os.fchmod(fd, 0o666 & ~_umask())
         with os.fdopen(fd, "wb") as fh:
-            _write_data(fh, data)
+            for data in chunks:
+                _write_data(fh, data)
             fh.flush()
             os.fsync(fh.fileno())
         kill_point(f"file:{_files_written}")
@@ -90,3 +98,8 @@ def _umask() -> int:
 def write_text_atomic(path: str | Path, text: str) -> Path:
     """Text twin of :func:`write_bytes_atomic` (UTF-8, ``\\n`` line endings)."""
     return write_bytes_atomic(path, text.encode("utf-8"))
+
+
+def write_text_chunks_atomic(path: str | Path, texts: Iterable[str]) -> Path:
+    """Text twin of :func:`write_chunks_atomic` (UTF-8, ``\\n`` line endings)."""
+    return write_chunks_atomic(path, (t.encode("utf-8") for t in texts))
