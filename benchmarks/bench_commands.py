@@ -33,6 +33,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from timing_setup import compile_tree
+
 ROOT = Path(__file__).resolve().parents[1]
 PLAN_PROTOCOLS = (
     "baseline",
@@ -98,6 +100,8 @@ def main() -> None:
         if k.split()[0] in wanted and (k == "demo" or k.split()[1] in protocols)
     }
     stored = json.loads(args.baseline_json.read_text()) if args.baseline_json else {}
+    for tree in [ROOT, *([args.baseline_src] if args.baseline_src else [])]:
+        compile_tree(tree)  # as installed: bytecode present (benchmarks/timing_setup.py)
     load = ", ".join(f"{v:.1f}" for v in os.getloadavg())
     print(f"{os.cpu_count()} cores, load average {load}; median of {args.repeats} runs")
     print(f"{'command':<28}{'wall s':>8}{'cpu s':>8}{'base wall':>11}{'base cpu':>10}{'ratio':>8}")
