@@ -130,6 +130,10 @@ class Frame:
 
 
 def _to_number(raw: str, frame: Frame, key: str, what: str = "") -> float:
+    if _NUMBER.match(raw):  # the common case: a plain decimal (never "nan" or "inf" text)
+        value = float(raw)
+        if math.isfinite(value):
+            return value
     here = f"{frame.name} #{frame.seq}: {key}={raw[:20]!r}"
     if raw.strip("+-").lower() in ("nan", "inf", "infinity"):
         raise FrameError(f"{here} is not finite")
@@ -414,8 +418,11 @@ def parse_aborted(frame: Frame) -> Aborted:
     return Aborted(frame.integer("seq"), why)
 
 
-def check_event(frame: Frame) -> None:
+def check_event(frame: Frame) -> Done | Aborted | None:
     """Validate the fields of any event the host acts on (unknown events pass: newer firmware).
+
+    Returns the parsed DONE or ABORTED event (None for any other), so a caller needs no
+    second parse.
 
     Raises
     ------
@@ -428,15 +435,16 @@ def check_event(frame: Frame) -> None:
     >>> check_event(decode(encode_event(1, "WATCHDOG", {"quiet_ms": 510})))
     """
     if frame.name == "DONE":
-        parse_done(frame)
-    elif frame.name == "ABORTED":
-        parse_aborted(frame)
-    elif frame.name == "WATCHDOG" and "quiet_ms" in frame.fields:
+        return parse_done(frame)
+    if frame.name == "ABORTED":
+        return parse_aborted(frame)
+    if frame.name == "WATCHDOG" and "quiet_ms" in frame.fields:
         frame.integer("quiet_ms", 0, 10**9)
     elif frame.name == "FAULT" and not _WORD.match(frame.fields.get("code", "FRAME")):
         raise FrameError("FAULT: code is not a code word")
     elif frame.name == "INTERLOCK" and frame.fields.get("state") not in ("open", "closed"):
         raise FrameError("INTERLOCK: state must be open or closed")
+    return None
 
 
 def crc16(data: bytes) -> int:
@@ -545,7 +553,8 @@ def decode(line: bytes) -> Frame:
     fields: dict[str, str] = {}
     for tok in tokens[2:]:
         key, eq, value = tok.partition("=")
-        if not eq or not _KEY.match(key) or not _VALUE.match(value) or key in fields:
+        # the body is printable ASCII split at spaces: a value matches _VALUE unless empty
+        if not (eq and value and _KEY.match(key)) or key in fields:
             raise FrameError(f"bad field {tok!r} in {name} frame")
         fields[key] = value
     return Frame(kind, seq, name, fields)
@@ -566,12 +575,13 @@ def _fields(fields: Mapping[str, object] | None) -> str:
     for key, value in fields.items():
         if not _KEY.match(key):
             raise FrameError(f"bad field name {key!r}")
+        if isinstance(value, float):
+            parts.append(f"{key}={fmt_number(value)}")  # digits, '-' and '.': always valid
+            continue
         if isinstance(value, bool):
             text = "1" if value else "0"
         elif isinstance(value, int):
             text = str(value)
-        elif isinstance(value, float):
-            text = fmt_number(value)
         elif isinstance(value, (list, tuple)):
             text = ",".join(fmt_number(float(v)) for v in value)
         else:

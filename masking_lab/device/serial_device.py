@@ -37,7 +37,7 @@ from masking_lab.core.errors import (
 )
 from masking_lab.core.stimulus import Channel, Stimulus
 from masking_lab.device import protocol as proto
-from masking_lab.device import reply_checks, safety, serial_checks, serial_faults
+from masking_lab.device import reply_checks, safety, serial_checks, serial_faults, serial_link
 from masking_lab.device.base import DeviceIdentity, DeviceLimits, PlayResult, TrialPlan
 from masking_lab.device.config import DeviceConfig, default_device_config
 
@@ -94,6 +94,7 @@ class SerialDevice:
         # port (e.g. a runner killed mid-trial) cannot carry the number we are waiting for.
         self._seq = int.from_bytes(os.urandom(2), "little")
         self._buf = bytearray()
+        self._checked: tuple[proto.Frame | None, Any] = (None, None)  # last event, parsed
         self._garbage_run = 0
         self._last_garbage = b""
         self._done: dict[int, proto.Done] = {}
@@ -435,7 +436,8 @@ class SerialDevice:
             self.stale_replies += 1
             return
         if frame.name == "DONE":  # fields validated in _read_frame (proto.check_event)
-            done = proto.parse_done(frame)
+            parsed = self._checked[1] if self._checked[0] is frame else None
+            done = parsed if isinstance(parsed, proto.Done) else proto.parse_done(frame)
             self._done[done.seq] = done
             return
         if frame.name == "ABORTED":
@@ -480,7 +482,7 @@ class SerialDevice:
             self._garbage_run = 0
             if frame.kind == "event":
                 try:
-                    proto.check_event(frame)
+                    self._checked = (frame, proto.check_event(frame))
                 except proto.FrameError as exc:
                     # A valid checksum around a malformed field is not line noise: the
                     # firmware is wrong, so the session stops with a device fault.
@@ -511,7 +513,7 @@ class SerialDevice:
             try:
                 # pyserial returns b"" on timeout rather than raising: the deadline loop above
                 # turns a silent device into a timeout, never into an empty reply.
-                chunk = self._ser.read(max(1, self._ser.in_waiting))
+                chunk = serial_link.read_some(self._ser)
             except (serial.SerialException, OSError, TypeError) as exc:
                 raise self._disconnected("reading", exc) from exc
             self._buf += chunk
@@ -544,7 +546,7 @@ class SerialDevice:
 
     def _write(self, data: bytes) -> None:
         try:
-            self._ser.write(data)
+            serial_link.write_all(self._ser, data)
         except serial.SerialTimeoutException as exc:
             raise serial_faults.write_timeout_error(self.port, self._ser.write_timeout) from exc
         except (serial.SerialException, OSError, TypeError) as exc:

@@ -57,6 +57,9 @@ def encode_record(record: Mapping[str, Any]) -> str:
     return json.dumps(record, separators=(",", ":"), allow_nan=False, ensure_ascii=False)
 
 
+_KEPT = frozenset({int, str, bool, type(None)})  # exact types jsonable returns as they are
+
+
 def jsonable(value: Any) -> Any:
     """A JSON-safe copy of user content: mappings, sequences, finite numbers, strings.
 
@@ -68,6 +71,15 @@ def jsonable(value: Any) -> Any:
     >>> jsonable({"levels": (1.0, float("inf")), 3: None})
     {'levels': [1.0, 'inf'], '3': None}
     """
+    # The common exact types first (a trial's device details: a dict of numbers and lists),
+    # leaves kept without a call; subclasses and anything else take the general checks.
+    kind = type(value)
+    if kind is dict:
+        return {str(k): v if type(v) in _KEPT else jsonable(v) for k, v in value.items()}
+    if kind is list or kind is tuple:
+        return [v if type(v) in _KEPT else jsonable(v) for v in value]
+    if kind is float:
+        return value if math.isfinite(value) else str(value)
     if isinstance(value, Mapping):
         return {str(k): jsonable(v) for k, v in value.items()}
     if isinstance(value, list | tuple):
