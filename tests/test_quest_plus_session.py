@@ -288,13 +288,13 @@ def test_the_session_places_its_trials_on_one_blas_thread(tmp_path, monkeypatch)
     if not blas_threads():
         pytest.skip("this numpy has no BLAS thread pool")
     seen = []
-    original = quest_plus.expected_entropy
+    original = quest_plus.best_levels
 
     def spying(*args, **kwargs):
         seen.append(blas_threads())
         return original(*args, **kwargs)
 
-    monkeypatch.setattr(quest_plus, "expected_entropy", spying)
+    monkeypatch.setattr(quest_plus, "best_levels", spying)
     sets = [{"id": "A5", "masker": "MV120", "masker_level_db_sl": 5}]
     with threadpoolctl.threadpool_limits(limits=2, user_api="blas"):
         run(tmp_path, quest_protocol(tmp_path, sets=sets))

@@ -12,27 +12,38 @@ dependency; without it (or with ``NUMBA_DISABLE_JIT=1``) the numpy route runs, s
 from __future__ import annotations
 
 import functools
+import importlib
 import os
 from types import ModuleType
 
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["compiled", "nuisance_sums", "wrong_and_totals"]
+__all__ = ["compiled", "compiled_loops", "nuisance_sums", "wrong_and_totals"]
 
 
 @functools.cache
-def _loops() -> ModuleType | None:
-    """The compiled loops, or None when numba is missing or its JIT is disabled."""
+def compiled_loops(name: str) -> ModuleType | None:
+    """The module ``masking_lab.procedures.<name>`` of numba loops, or None when numba is
+    missing, too old or too new for this numpy, has no writable cache directory, or runs with
+    ``NUMBA_DISABLE_JIT=1`` (it would run the loops as Python, far slower than numpy).
+
+    Examples
+    --------
+    >>> compiled_loops("jit_loops") is None or hasattr(compiled_loops("jit_loops"), "nuisance_sums")
+    True
+    """
     if os.environ.get("NUMBA_DISABLE_JIT", "0") not in ("", "0"):
-        return None  # numba would run the loops as Python: far slower than numpy
-    try:
-        from masking_lab.procedures import jit_loops
-    except (ImportError, RuntimeError, OSError):
-        # not installed, a numba too old or too new for this numpy, or no writable cache
-        # directory: the numpy route gives the same numbers
         return None
-    return jit_loops
+    try:
+        return importlib.import_module(f"masking_lab.procedures.{name}")
+    except (ImportError, RuntimeError, OSError):
+        return None  # every caller has a numpy route
+
+
+def _loops() -> ModuleType | None:
+    """This module's compiled loops (None: the numpy route, the same numbers)."""
+    return compiled_loops("jit_loops")
 
 
 def compiled() -> bool:

@@ -40,6 +40,7 @@ from masking_lab.core.psychometric import LEVITT_1U3D
 from masking_lab.procedures.base import ThresholdEstimate, settings_from_mapping
 from masking_lab.procedures.base import replay as _replay
 from masking_lab.procedures.limits import grid_memory_problem, grid_points, normal_prior_problem
+from masking_lab.procedures.psi_screen import best_levels
 from masking_lab.procedures.quest_plus_model import (
     EntropyOver,
     PosteriorTrack,
@@ -54,6 +55,7 @@ __all__ = [
     "QuestPlus",
     "QuestPlusSettings",
     "Tables",
+    "best_levels",
     "expected_entropy",
     "replay",
     "stop_status",
@@ -512,8 +514,9 @@ class QuestPlus(PosteriorTrack):
         status = str(stop_status(self.settings, np.array([n]), mean, sd)[0])
         level = self.level_db
         if status == "running":
-            ee = expected_entropy(t, post[None], self.settings.entropy_over)[0]
-            level = float(t.levels_db[int(np.argmin(ee))])
+            level = float(
+                t.levels_db[int(best_levels(t, post[None], self.settings.entropy_over)[0])]
+            )
         return QuestPlus(
             self.settings,
             post,

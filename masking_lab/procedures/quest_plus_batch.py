@@ -1,9 +1,9 @@
 """Many QUEST+ / psi-marginal tracks at once: :mod:`masking_lab.procedures.quest_plus`,
 vectorised over replicates.
 
-All tracks advance one trial per iteration: one posterior update and one expected-entropy
-evaluation (:func:`~masking_lab.procedures.quest_plus.expected_entropy`, the function the
-scalar track uses) for every track still running, with the same stop rules
+All tracks advance one trial per iteration: one posterior update and one placement
+(:func:`~masking_lab.procedures.quest_plus.best_levels`, the function the scalar track uses)
+for every track still running, with the same stop rules
 (:func:`~masking_lab.procedures.quest_plus.stop_status`). Fed the same answers it yields the
 levels, posteriors and statuses of :class:`~masking_lab.procedures.quest_plus.QuestPlus`
 (tests/test_quest_plus_batch.py).
@@ -29,7 +29,7 @@ from masking_lab.core.psychometric import Psychometric
 from masking_lab.procedures.batch import TrackBatch
 from masking_lab.procedures.quest_plus import (
     QuestPlusSettings,
-    expected_entropy,
+    best_levels,
     stop_status,
     tables,
     threshold_moments,
@@ -154,7 +154,10 @@ def run_quest_plus(
     tb = tables(s)
     limit = trial_limit if trial_limit is not None else (s.max_trials or DEFAULT_TRIAL_LIMIT)
     first = int(np.searchsorted(tb.levels_db, tb.first_level_db))
+    # The running tracks' posteriors, in track order (rows leave as their tracks stop), and
+    # both answers' likelihoods in one table: a trial gathers each track's row once.
     post = np.repeat(tb.prior[None], n, axis=0)
+    answer_tables = np.stack((tb.p_wrong, tb.p_correct))
     idx = np.full(n, first, dtype=np.intp)
     shape = (n, limit)
     levels = np.full(shape, np.nan)
@@ -172,21 +175,19 @@ def run_quest_plus(
         c = np.asarray(respond(t, a, lv), dtype=bool)
         if c.shape != a.shape:
             raise ProcedureError(f"respond() gave {c.shape} answers for {a.size} running tracks")
-        like = np.where(c[:, None, None], tb.p_correct[idx[a]], tb.p_wrong[idx[a]])
-        p = post[a] * like
+        post *= answer_tables[c.astype(np.intp), idx[a]]
         # Normalised one track at a time, as QuestPlus.update does, so replays agree bit for bit.
-        p /= p.reshape(a.size, -1).sum(axis=1)[:, None, None]
-        post[a] = p
-        m, d = threshold_moments(tb, p)
+        post /= post.reshape(a.size, -1).sum(axis=1)[:, None, None]
+        m, d = threshold_moments(tb, post)
         levels[a, t], correct[a, t], mean[a, t], sd[a, t] = lv, c, m, d
         n_trials[a] = t + 1
         st = stop_status(s, n_trials[a], m, d)
         status[a] = st
         going = st == "running"
-        active = a[going]
+        if not going.all():
+            active, post = a[going], post[going]
         if active.size:
-            ee = expected_entropy(tb, p[going], s.entropy_over)
-            idx[active] = np.argmin(ee, axis=1)
+            idx[active] = best_levels(tb, post, s.entropy_over)
     width = int(n_trials.max()) if n else 0
     return SimulatedQuestPlus(
         settings=s,

@@ -1,0 +1,60 @@
+"""Compiled loops (numba) for the psi-marginal placement's screen and its float64 check.
+
+Imported only through :mod:`masking_lab.procedures.psi_screen`, which has numpy routes for
+both when numba is missing or disabled. Unlike :mod:`masking_lab.procedures.jit_loops`, these
+loops need not match numpy bit for bit: the screen only bounds the entropies, and the check's
+entropies choose among levels whose entropies differ by far more than their rounding.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+
+@numba.njit(cache=True, nogil=True)
+def column_sums(m, log_m, pk, h):
+    """``pk[r, s] = Σ_t m[t, r, s]`` and ``h[r, s] = Σ_t m·log_m``, accumulated in float64.
+
+    ``m`` and ``log_m`` are float32 arrays of shape (T, R, S); ``pk`` and ``h`` float64 (R, S).
+    """
+    n_t, n_r, n_s = m.shape
+    for r in range(n_r):
+        for s in range(n_s):
+            pk[r, s] = 0.0
+            h[r, s] = 0.0
+    for t in range(n_t):
+        for r in range(n_r):
+            for s in range(n_s):
+                x = np.float64(m[t, r, s])
+                pk[r, s] += x
+                h[r, s] += x * np.float64(log_m[t, r, s])
+
+
+@numba.njit(cache=True, nogil=True)
+def _answer_term(post, like, r, s):
+    """p·ln p of one answer's probability minus Σ_t m·ln m, m the joint (nats, float64)."""
+    n_t, n_n = post.shape[1], post.shape[2]
+    pk = 0.0
+    h = 0.0
+    for t in range(n_t):
+        m = 0.0
+        for n in range(n_n):
+            m += post[r, t, n] * like[s, t, n]
+        pk += m
+        if m > 0.0:
+            h += m * math.log(m)
+    return (pk * math.log(pk) if pk > 0.0 else 0.0) - h
+
+
+@numba.njit(cache=True, nogil=True)
+def pair_entropies(post, p_correct, p_wrong, rows, levels, out):
+    """``out[k]``: expected entropy of track ``rows[k]`` after a trial at level ``levels[k]``.
+
+    ``post`` has shape (R, T, N) and the tables (S, T, N), all float64.
+    """
+    for k in range(rows.size):
+        r, s = rows[k], levels[k]
+        out[k] = _answer_term(post, p_correct, r, s) + _answer_term(post, p_wrong, r, s)

@@ -1,0 +1,245 @@
+"""The QUEST+ placement: the level of least expected entropy, the psi-marginal one screened in
+float32 and settled in float64.
+
+The psi-marginal's expected entropy (:func:`~masking_lab.procedures.quest_plus_model.
+expected_entropy`) needs, per track and level, the joint probability of each answer and each
+threshold: two (T × N) · (N × S) products and 2·T·S logarithms per trial, 131 × 28 × 131 on the
+shipped grid. Only the level with the least entropy matters, and usually no other level comes
+close. So :func:`best_levels`
+
+1. computes every level's entropy in float32 (single-precision products and logarithms, half
+   the memory traffic of float64) together with a bound on its error (:func:`screen`),
+2. keeps the levels whose lower bound is below the least upper bound, one or a few per track:
+   the level of least float64 entropy is always among them,
+3. computes those levels' entropies in float64, term by term as the full computation does, and
+   returns the least (the lowest level of equal ones, as :func:`numpy.argmin` does).
+
+The result is the argmin of the float64 entropies, not an approximation of it: two levels
+whose float64 entropies differ by less than their rounding (~1e-15 nats) may come out either
+way, as they already do between a batch of tracks and one track alone (BLAS sums a product's
+row in an order that depends on the number of rows).
+
+The error bound (nats): a float32 product of N positive terms, each rounded once on input, is
+within (N + 4)·u of the exact sum (u = 2⁻²⁴, any summation order); ln in float32 is within 4
+ulp (8·u) of ln; so each m·ln m is within (N + 14)·u·m·(|ln m| + 1) of its exact value and each
+p·ln p within (N + 14)·u·p·(|ln p| + 1). Summed over thresholds and answers, with m ≤ 1, that is
+(N + 14)·u · Σ_answers (H_answer + p + p·(|ln p| + 1)), H = −Σ m·ln m, computed from the
+float32 values themselves; :data:`SAFETY` doubles it. Posterior and table cells below
+:data:`FLUSH` are set to 0 before the products, which keeps float32 out of its subnormal range
+(slow on x86); the change they make, ≤ N·FLUSH per m, is added as an absolute term.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import TYPE_CHECKING
+
+import numpy as np
+from numpy.typing import NDArray
+
+from masking_lab.procedures.fused import compiled_loops
+from masking_lab.procedures.quest_plus_model import EntropyOver, expected_entropy
+
+if TYPE_CHECKING:
+    from masking_lab.procedures.quest_plus import Tables
+
+__all__ = ["FLUSH", "SAFETY", "best_levels", "screen"]
+
+#: Posterior and likelihood cells below this are 0 in the float32 screen.
+FLUSH = 1e-19
+#: Factor on the screen's error bound (the bound holds at 1; measured errors are ~30× below it).
+SAFETY = 2.0
+#: Tracks per float32 screen pass: its two (T, tracks, S) float32 buffers stay within ~1 MB.
+_TRACKS_PER_PASS = 16
+#: Fewer tracks than this (a session's one) take the numpy routes: the compiled loops gain
+#: little there, and loading numba costs ~0.5 s and a BLAS pool of its own (scipy's) that a
+#: session's one-thread limit (session/blas_threads.py) would not cover.
+_COMPILED_FROM = 4
+_U32 = 2.0**-24
+_TINY32 = np.float32(np.finfo(np.float32).tiny)
+
+
+def best_levels(
+    t: Tables, posterior: NDArray[np.float64], entropy_over: EntropyOver = "threshold"
+) -> NDArray[np.intp]:
+    """Index of the level of least expected posterior entropy, per track.
+
+    Parameters
+    ----------
+    t : Tables
+        From :func:`masking_lab.procedures.quest_plus.tables`.
+    posterior : ndarray, shape (R, T, N)
+        Current posteriors of R tracks (each summing to 1).
+    entropy_over : {"threshold", "all"}
+        The threshold's marginal entropy (psi-marginal; screened in float32, settled in
+        float64) or the joint one (two matrix products: computed in float64 directly).
+
+    Returns
+    -------
+    ndarray of intp, shape (R,)
+        Indices into ``t.levels_db``: ``argmin(expected_entropy(t, posterior, entropy_over),
+        axis=1)`` (to the rounding of the float64 entropies).
+
+    Examples
+    --------
+    >>> from masking_lab.procedures.quest_plus import QuestPlusSettings, tables
+    >>> t = tables(QuestPlusSettings(0.0, 20.0, max_trials=5))
+    >>> post = t.prior * t.p_correct[30]          # one correct answer at 15 dB
+    >>> post = (post / post.sum())[None]
+    >>> bool(best_levels(t, post)[0] == np.argmin(expected_entropy(t, post)[0]))
+    True
+    """
+    r, _n_t, n_n = posterior.shape
+    if n_n == 1 or entropy_over == "all":
+        return np.argmin(expected_entropy(t, posterior, entropy_over), axis=1)
+    if r < _COMPILED_FROM:
+        low, high = screen(t, posterior, use_compiled=False)
+        return _settle(t, posterior, low <= high.min(axis=1)[:, None], use_compiled=False)
+    if r <= _TRACKS_PER_PASS:
+        low, high = screen(t, posterior)
+        return _settle(t, posterior, low <= high.min(axis=1)[:, None])
+    out = np.empty(r, dtype=np.intp)
+    # Tracks with nearby posteriors share a pass, so that the thresholds they all rule out
+    # (which a pass skips) are many.
+    order = np.argsort(posterior.sum(axis=2) @ np.arange(_n_t), kind="stable")
+    for a in range(0, r, _TRACKS_PER_PASS):
+        rows = order[a : a + _TRACKS_PER_PASS]
+        part = posterior[rows]
+        low, high = screen(t, part)
+        out[rows] = _settle(t, part, low <= high.min(axis=1)[:, None])
+    return out
+
+
+def screen(
+    t: Tables, posterior: NDArray[np.float64], *, use_compiled: bool = True
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Lower and upper bounds of each level's psi-marginal expected entropy, from float32.
+
+    Parameters
+    ----------
+    t : Tables
+        From :func:`masking_lab.procedures.quest_plus.tables`.
+    posterior : ndarray, shape (R, T, N)
+        Current posteriors (float64, each summing to 1).
+    use_compiled : bool
+        False forces the numpy route for the column sums (the tests compare the two).
+
+    Returns
+    -------
+    low, high : ndarray, shape (R, S)
+        Bounds (nats) that hold the float64 :func:`expected_entropy` of every level.
+
+    Examples
+    --------
+    >>> from masking_lab.procedures.quest_plus import QuestPlusSettings, tables
+    >>> t = tables(QuestPlusSettings(0.0, 20.0, max_trials=5))
+    >>> low, high = screen(t, t.prior[None])
+    >>> exact = expected_entropy(t, t.prior[None])
+    >>> bool(np.all((low <= exact) & (exact <= high)))
+    True
+    """
+    r, n_t, n_n = posterior.shape
+    tables32 = _float32_tables(t)
+    p32 = np.ascontiguousarray(posterior.transpose(1, 0, 2), dtype=np.float32)  # (T, R, N)
+    p32[p32 < FLUSH] = 0.0
+    # Thresholds where every track's posterior is 0 add nothing: a track's tails die as it
+    # narrows (about a third of the grid late in a track), so only the span between the first
+    # and last live threshold is multiplied.
+    live = np.flatnonzero(p32.reshape(n_t, -1).any(axis=1))
+    lo, hi = (int(live[0]), int(live[-1]) + 1) if live.size else (0, 1)
+    p32 = p32[lo:hi]
+    n_s = t.levels_db.size
+    m = np.empty((hi - lo, r, n_s), dtype=np.float32)
+    log_m = np.empty_like(m)
+    loops = compiled_loops("psi_loops") if use_compiled else None
+    entropy = np.zeros((r, n_s))
+    spread = np.zeros((r, n_s))
+    for like32 in tables32:
+        np.matmul(p32, like32[lo:hi], out=m)
+        np.maximum(m, _TINY32, out=m)  # an m that underflowed: ln stays finite, error ≤ tiny
+        np.log(m, out=log_m)
+        if loops is not None:
+            pk, h = np.empty((r, n_s)), np.empty((r, n_s))
+            loops.column_sums(m, log_m, pk, h)
+        else:
+            pk = m.sum(axis=0, dtype=np.float64)
+            h = np.multiply(m, log_m, dtype=np.float64).sum(axis=0)
+        log_pk = np.log(pk)
+        entropy += pk * log_pk - h
+        spread += -h + pk * (2.0 - log_pk)
+    rel = (n_n + 14) * _U32
+    flushed = n_n * FLUSH
+    floor = 8 * n_t * flushed * (1.0 - np.log(flushed)) + 1e-12
+    spread = SAFETY * (rel * spread + floor)
+    return entropy - spread, entropy + spread
+
+
+@functools.lru_cache(maxsize=8)
+def _float32_tables(t: Tables) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+    """p(correct), p(wrong) as (T, N, S) float32, cells below :data:`FLUSH` set to 0."""
+    out = []
+    for like in (t.p_correct, t.p_wrong):
+        a = np.ascontiguousarray(like.transpose(1, 2, 0), dtype=np.float32)
+        a[a < FLUSH] = 0.0
+        a.flags.writeable = False
+        out.append(a)
+    return out[0], out[1]
+
+
+def _settle(
+    t: Tables,
+    posterior: NDArray[np.float64],
+    keep: NDArray[np.bool_],
+    *,
+    use_compiled: bool = True,
+) -> NDArray[np.intp]:
+    """Per track, the kept level of least float64 entropy (``keep``: (R, S), ≥ 1 per row)."""
+    best = np.argmax(keep, axis=1)  # the only kept level, where there is one
+    count = keep.sum(axis=1)
+    several = np.flatnonzero(count > 1)
+    if several.size:
+        local, levels = np.nonzero(keep[several])
+        entropy = pair_entropies(t, posterior, several[local], levels, use_compiled=use_compiled)
+        full = np.full((several.size, keep.shape[1]), np.inf)
+        full[local, levels] = entropy
+        best[several] = np.argmin(full, axis=1)
+    lost = np.flatnonzero(count == 0)  # only if a bound were NaN; never seen, still handled
+    if lost.size:
+        best[lost] = np.argmin(expected_entropy(t, posterior[lost]), axis=1)
+    return best
+
+
+def pair_entropies(
+    t: Tables,
+    posterior: NDArray[np.float64],
+    rows: NDArray[np.intp],
+    levels: NDArray[np.intp],
+    *,
+    use_compiled: bool = True,
+) -> NDArray[np.float64]:
+    """Psi-marginal expected entropy (nats, float64) of track ``rows[k]`` at level ``levels[k]``.
+
+    The terms of :func:`expected_entropy` for the given (track, level) pairs only.
+
+    Examples
+    --------
+    >>> from masking_lab.procedures.quest_plus import QuestPlusSettings, tables
+    >>> t = tables(QuestPlusSettings(0.0, 20.0, max_trials=5))
+    >>> e = pair_entropies(t, t.prior[None], np.array([0, 0]), np.array([3, 20]))
+    >>> np.allclose(e, expected_entropy(t, t.prior[None])[0, [3, 20]], rtol=1e-13, atol=0)
+    True
+    """
+    loops = compiled_loops("psi_loops") if use_compiled else None
+    post = np.ascontiguousarray(posterior)
+    out = np.zeros(rows.size)
+    if loops is not None:
+        loops.pair_entropies(post, t.p_correct, t.p_wrong, rows, levels, out)
+        return out
+    for like in (t.p_correct, t.p_wrong):
+        m = np.einsum("ktn,ktn->kt", post[rows], like[levels])
+        pk = m.sum(axis=1)
+        xlogx = np.zeros_like(m)
+        np.log(m, out=xlogx, where=m > 0)
+        xlogx *= m
+        out += np.where(pk > 0, pk * np.log(np.where(pk > 0, pk, 1.0)), 0.0) - xlogx.sum(axis=1)
+    return out
