@@ -15,16 +15,12 @@ import numpy as np
 
 
 @numba.njit(cache=True, nogil=True)
-def column_sums(m, log_m, pk, h):
-    """``pk[r, s] = Σ_t m[t, r, s]`` and ``h[r, s] = Σ_t m·log_m``, accumulated in float64.
+def add_column_sums(m, log_m, pk, h):
+    """``pk[r, s] += Σ_t m[t, r, s]`` and ``h[r, s] += Σ_t m·log_m``, accumulated in float64.
 
     ``m`` and ``log_m`` are float32 arrays of shape (T, R, S); ``pk`` and ``h`` float64 (R, S).
     """
     n_t, n_r, n_s = m.shape
-    for r in range(n_r):
-        for s in range(n_s):
-            pk[r, s] = 0.0
-            h[r, s] = 0.0
     for t in range(n_t):
         for r in range(n_r):
             for s in range(n_s):

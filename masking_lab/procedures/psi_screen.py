@@ -49,8 +49,10 @@ __all__ = ["FLUSH", "SAFETY", "best_levels", "screen"]
 FLUSH = 1e-19
 #: Factor on the screen's error bound (the bound holds at 1; measured errors are ~30× below it).
 SAFETY = 2.0
-#: Tracks per float32 screen pass: its two (T, tracks, S) float32 buffers stay within ~1 MB.
-_TRACKS_PER_PASS = 16
+#: Tracks per float32 screen pass (sorted by posterior mean, so that they share dead tails).
+_TRACKS_PER_PASS = 32
+#: Thresholds per block of a pass: its two (block, tracks, 2S) float32 buffers take ~0.5 MB.
+_THRESHOLDS_PER_BLOCK = 8
 #: Fewer tracks than this (a session's one) take the numpy routes: the compiled loops gain
 #: little there, and loading numba costs ~0.5 s and a BLAS pool of its own (scipy's) that a
 #: session's one-thread limit (session/blas_threads.py) would not cover.
@@ -139,7 +141,8 @@ def screen(
     True
     """
     r, n_t, n_n = posterior.shape
-    tables32 = _float32_tables(t)
+    n_s = t.levels_db.size
+    both = _float32_tables(t)  # (T, N, 2S): p(correct) then p(wrong)
     p32 = np.ascontiguousarray(posterior.transpose(1, 0, 2), dtype=np.float32)  # (T, R, N)
     p32[p32 < FLUSH] = 0.0
     # Thresholds where every track's posterior is 0 add nothing: a track's tails die as it
@@ -147,26 +150,29 @@ def screen(
     # and last live threshold is multiplied.
     live = np.flatnonzero(p32.reshape(n_t, -1).any(axis=1))
     lo, hi = (int(live[0]), int(live[-1]) + 1) if live.size else (0, 1)
-    p32 = p32[lo:hi]
-    n_s = t.levels_db.size
-    m = np.empty((hi - lo, r, n_s), dtype=np.float32)
-    log_m = np.empty_like(m)
     loops = compiled_loops("psi_loops") if use_compiled else None
-    entropy = np.zeros((r, n_s))
-    spread = np.zeros((r, n_s))
-    for like32 in tables32:
-        np.matmul(p32, like32[lo:hi], out=m)
+    pk = np.zeros((r, 2 * n_s))
+    h = np.zeros((r, 2 * n_s))
+    # A block of thresholds at a time: its joint probabilities and their logarithms stay in
+    # cache from the product to the sums (the whole (T, R, 2S) array would not).
+    block = np.empty((min(_THRESHOLDS_PER_BLOCK, hi - lo), r, 2 * n_s), dtype=np.float32)
+    log_m = np.empty_like(block)
+    for a in range(lo, hi, _THRESHOLDS_PER_BLOCK):
+        b = min(a + _THRESHOLDS_PER_BLOCK, hi)
+        m, lm = block[: b - a], log_m[: b - a]
+        np.matmul(p32[a:b], both[a:b], out=m)
         np.maximum(m, _TINY32, out=m)  # an m that underflowed: ln stays finite, error ≤ tiny
-        np.log(m, out=log_m)
+        np.log(m, out=lm)
         if loops is not None:
-            pk, h = np.empty((r, n_s)), np.empty((r, n_s))
-            loops.column_sums(m, log_m, pk, h)
+            loops.add_column_sums(m, lm, pk, h)
         else:
-            pk = m.sum(axis=0, dtype=np.float64)
-            h = np.multiply(m, log_m, dtype=np.float64).sum(axis=0)
-        log_pk = np.log(pk)
-        entropy += pk * log_pk - h
-        spread += -h + pk * (2.0 - log_pk)
+            pk += m.sum(axis=0, dtype=np.float64)
+            h += np.multiply(m, lm, dtype=np.float64).sum(axis=0)
+    log_pk = np.log(pk)
+    terms = pk * log_pk
+    entropy = terms[:, :n_s] + terms[:, n_s:] - h[:, :n_s] - h[:, n_s:]
+    spread = -h + pk * (2.0 - log_pk)
+    spread = spread[:, :n_s] + spread[:, n_s:]
     rel = (n_n + 14) * _U32
     flushed = n_n * FLUSH
     floor = 8 * n_t * flushed * (1.0 - np.log(flushed)) + 1e-12
@@ -175,15 +181,14 @@ def screen(
 
 
 @functools.lru_cache(maxsize=8)
-def _float32_tables(t: Tables) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
-    """p(correct), p(wrong) as (T, N, S) float32, cells below :data:`FLUSH` set to 0."""
-    out = []
-    for like in (t.p_correct, t.p_wrong):
-        a = np.ascontiguousarray(like.transpose(1, 2, 0), dtype=np.float32)
-        a[a < FLUSH] = 0.0
-        a.flags.writeable = False
-        out.append(a)
-    return out[0], out[1]
+def _float32_tables(t: Tables) -> NDArray[np.float32]:
+    """p(correct) and p(wrong) side by side, shape (T, N, 2S), float32, cells below
+    :data:`FLUSH` set to 0."""
+    a = np.concatenate([t.p_correct.transpose(1, 2, 0), t.p_wrong.transpose(1, 2, 0)], axis=2)
+    a = np.ascontiguousarray(a, dtype=np.float32)
+    a[a < FLUSH] = 0.0
+    a.flags.writeable = False
+    return a
 
 
 def _settle(
