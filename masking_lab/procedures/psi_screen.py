@@ -91,7 +91,7 @@ def best_levels(
     >>> bool(best_levels(t, post)[0] == np.argmin(expected_entropy(t, post)[0]))
     True
     """
-    r, _n_t, n_n = posterior.shape
+    r, n_t, n_n = posterior.shape
     if n_n == 1 or entropy_over == "all":
         return np.argmin(expected_entropy(t, posterior, entropy_over), axis=1)
     if r < _COMPILED_FROM:
@@ -103,7 +103,7 @@ def best_levels(
     out = np.empty(r, dtype=np.intp)
     # Tracks with nearby posteriors share a pass, so that the thresholds they all rule out
     # (which a pass skips) are many.
-    order = np.argsort(posterior.sum(axis=2) @ np.arange(_n_t), kind="stable")
+    order = np.argsort(posterior.sum(axis=2) @ np.arange(n_t), kind="stable")
     for a in range(0, r, _TRACKS_PER_PASS):
         rows = order[a : a + _TRACKS_PER_PASS]
         part = posterior[rows]
