@@ -356,8 +356,8 @@ def quest_tasks(
     >>> s = PlanSettings((StopRule(11, 8),), (Schedule((4.0, 2.0)),), replicates=5)
     >>> tasks = quest_tasks(p, s, np.full((15, 5), 5.0), quest_replicates=5)
     >>> fn, args = tasks[0]
-    >>> len(tasks), fn(*args).sd_db.shape[0]  # one chunk in 5 parts of 3 sets × 5 tracks
-    (5, 15)
+    >>> len(tasks), fn(*args).sd_db.shape[0]  # one chunk in 15 parts of 1 set × 5 tracks
+    (15, 5)
     >>> len(quest_tasks(p, s, np.full((15, 500), 5.0), quest_replicates=400))  # 4 chunks
     4
     """
@@ -384,7 +384,9 @@ def quest_tasks(
 #: chunks (the psi-marginal's 40 tracks per set are one chunk): its tracks are split by sets
 #: into parts that run anywhere (each draws the chunk's random numbers and keeps its own
 #: tracks', so the parts are the chunk's tracks), which spreads a long chunk over the cores.
-QUEST_PART_SETS = 3
+#: One set per part: the parts come last on the workers, and 15 short ones leave less of a
+#: tail on one core than 5 long ones (the same tables either way).
+QUEST_PART_SETS = 1
 QUEST_SPLIT_BELOW = 4
 
 
