@@ -242,11 +242,18 @@ def run_demo(
     say("analysing the logs ...")
     from masking_lab.analysis.batch import run_analyze
 
-    summary = run_analyze(out / "data", out / "analysis", analysis_settings)
-    t_analyse = time.perf_counter() - t_start - t_collect
-
-    say("rendering the bump-with-rough-texture scene ...")
-    rendering_summary = _render(out)
+    scene = _SceneRender(out)
+    try:
+        # The scene is rendered in a worker from the exported parameters while the analysis
+        # writes its per-trial outputs and psychometric fits.
+        summary = run_analyze(
+            out / "data", out / "analysis", analysis_settings, on_params=scene.start
+        )
+        t_analyse = time.perf_counter() - t_start - t_collect
+        say("rendering the bump-with-rough-texture scene ...")
+        rendering_summary = scene.result()
+    finally:
+        scene.close()
     total = time.perf_counter() - t_start
 
     from masking_lab.formats.masking_params import read_masking_params
@@ -396,7 +403,57 @@ def _progress(k: int, total: int, s: SessionDone) -> str:
     )
 
 
-def _render(out: Path) -> dict[str, Any]:
+class _SceneRender:
+    """The scene rendered in a worker process from ``masking_params.json``'s text, handed over
+    by the analysis (``run_analyze(on_params=...)``) before that file is written.
+
+    :meth:`result` waits for the worker, or renders here from the written file when the
+    analysis never handed the text over. Either way the same bytes are written.
+    """
+
+    def __init__(self, out: Path) -> None:
+        self.out = out
+        self.pool: ProcessPoolExecutor | None = None
+        self.pending: Future[dict[str, Any]] | None = None
+
+    def start(self, params_text: str) -> None:
+        """Start rendering from the text of ``masking_params.json`` (JSON)."""
+        if self.pending is not None:
+            return
+        try:
+            self.pool = ProcessPoolExecutor(max_workers=1)
+            self.pending = self.pool.submit(_render, self.out, params_text)
+        except (OSError, NotImplementedError, RuntimeError):  # no processes: render later
+            self.close()
+
+    def result(self) -> dict[str, Any]:
+        """The rendering's summary (``summarize`` plus the strategies and files written)."""
+        if self.pending is None:
+            return _render(self.out)
+        return self.pending.result()
+
+    def close(self) -> None:
+        """Wait for the worker to end (a failed analysis still waits for its files)."""
+        if self.pool is not None:
+            self.pool.shutdown(wait=True)
+        self.pool = None
+
+
+def _params_from_text(text: str, source: str) -> dict[str, Any]:
+    """A masking_params document from its JSON text, checked as
+    :func:`~masking_lab.formats.masking_params.read_masking_params` checks the file."""
+    from masking_lab.formats.masking_params import MaskingParamsError, validate_masking_params
+    from masking_lab.formats.reader import parse_document
+
+    doc = parse_document(text.encode("utf-8"), source, fmt="json", error=MaskingParamsError)
+    validate_masking_params(doc.data, doc.source, doc.lines)
+    data: dict[str, Any] = doc.data
+    return data
+
+
+def _render(out: Path, params_text: str | None = None) -> dict[str, Any]:
+    """Render the scene into ``out/render`` from ``out/analysis/masking_params.json``, or from
+    ``params_text``, that file's text before it is written."""
     from masking_lab.device.rig_limits import max_level_db_sl
     from masking_lab.formats.masking_params import read_masking_params
     from masking_lab.rendering.outputs import write_rendering
@@ -411,7 +468,10 @@ def _render(out: Path) -> dict[str, Any]:
 
     scene = load_scene(str(shipped("protocols", f"scenes/{SCENE}.yaml")))
     params_path = out / "analysis" / "masking_params.json"
-    params = read_masking_params(params_path)
+    if params_text is None:
+        params = read_masking_params(params_path)
+    else:
+        params = _params_from_text(params_text, str(params_path))
     ((mv, ev),) = needed_pairs(scene)
     pair = pair_from_params(params, mv=mv, ev=ev, source=str(params_path))
     limits = max_level_db_sl(None)
