@@ -285,11 +285,16 @@ def _analyze_into(
     )
     warnings = [f"{p['log']}: {p['problem']} ({p['action']})" for p in problems]
     warnings += report_inputs.rig_warnings
-    experiments = None
+    experiments = masking_figures = params_json = None
     if on_params is not None and not shifts.empty:
-        # The export first, for the caller to use while the per-trial outputs are written.
+        # The export first, for the caller to use while the per-trial outputs are written;
+        # the masking-function figures are drawn meanwhile too.
+        from masking_lab.analysis.export import start_masking_figures
+
         experiments = _statistics(shifts, data, settings)
-        on_params(_params_text(experiments, settings, inputs, skipped, created_utc))
+        masking_figures = start_masking_figures(experiments, settings, figure_pool)
+        params_json = _params_text(experiments, settings, inputs, skipped, created_utc)
+        on_params(params_json)
     # Only the track figures are listed as such (files also holds thresholds.csv, problems.csv).
     lab = _lab_outputs(
         data,
@@ -340,6 +345,8 @@ def _analyze_into(
         lab=lab.section,
         figure_pool=figure_pool,
         lab_embedded=lambda: lab.finished().embedded,
+        masking_figures=masking_figures,
+        params_json=params_json,
     )
     warnings += result_warnings(experiments)
     ramp_files, ramp_problems = _functional_ramps(out, analysed_logs, inputs, settings, created_utc)
