@@ -10,7 +10,9 @@ Sessions run in parallel worker processes (one emulator each). A participant's t
 experiments need the baseline's calibration, so they start when that baseline has finished,
 and then run side by side. Every session has its own seed, so the logs do not depend on the
 order or the number of workers. While the workers run, this process imports what the analysis
-and the scene need.
+and the scene need. The analysis hands over the text of ``masking_params.json`` as soon as the
+ramp fits are done, and the scene is rendered from it in a worker while the analysis writes
+its per-trial outputs and psychometric fits.
 """
 
 from __future__ import annotations
