@@ -254,8 +254,10 @@ def run_demo(
         t_analyse = time.perf_counter() - t_start - t_collect
         say("rendering the bump-with-rough-texture scene ...")
         rendering_summary = scene.result()
-    finally:
-        scene.close()
+    except BaseException:
+        scene.close(discard=True)  # no scene beside a failed analysis, as before
+        raise
+    scene.close()
     total = time.perf_counter() - t_start
 
     from masking_lab.formats.masking_params import read_masking_params
@@ -439,11 +441,16 @@ class _SceneRender:
             return _render(self.out)
         return self.pending.result()
 
-    def close(self) -> None:
-        """Wait for the worker to end (a failed analysis still waits for its files)."""
+    def close(self, discard: bool = False) -> None:
+        """Wait for the worker to end; with ``discard`` (the analysis failed), remove the
+        ``render/`` folder it wrote."""
         if self.pool is not None:
-            self.pool.shutdown(wait=True)
+            self.pool.shutdown(wait=True, cancel_futures=True)
         self.pool = None
+        if discard and self.pending is not None:
+            import shutil
+
+            shutil.rmtree(self.out / "render", ignore_errors=True)
 
 
 def _params_from_text(text: str, source: str) -> dict[str, Any]:

@@ -79,3 +79,11 @@ def test_a_broken_export_text_is_refused_as_the_file_would_be(analysed, tmp_path
     del doc["functions"]
     with pytest.raises(MaskingParamsError):
         _render(tmp_path, json.dumps(doc))
+
+
+def test_a_failed_analysis_leaves_no_scene_behind(analysed, tmp_path):
+    _, handed = analysed
+    scene = _SceneRender(tmp_path)
+    scene.start(handed[0])
+    scene.close(discard=True)  # waits for the worker, then removes what it wrote
+    assert not (tmp_path / "render").exists()
