@@ -10,7 +10,9 @@ Sessions run in parallel worker processes (one emulator each). A participant's t
 experiments need the baseline's calibration, so they start when that baseline has finished,
 and then run side by side. Every session has its own seed, so the logs do not depend on the
 order or the number of workers. While the workers run, this process imports what the analysis
-and the scene need.
+and the scene need. The analysis hands over the text of ``masking_params.json`` as soon as the
+ramp fits are done, and the scene is rendered from it in a worker while the analysis writes
+its per-trial outputs and psychometric fits.
 """
 
 from __future__ import annotations
@@ -242,11 +244,20 @@ def run_demo(
     say("analysing the logs ...")
     from masking_lab.analysis.batch import run_analyze
 
-    summary = run_analyze(out / "data", out / "analysis", analysis_settings)
-    t_analyse = time.perf_counter() - t_start - t_collect
-
-    say("rendering the bump-with-rough-texture scene ...")
-    rendering_summary = _render(out)
+    scene = _SceneRender(out)
+    try:
+        # The scene is rendered in a worker from the exported parameters while the analysis
+        # writes its per-trial outputs and psychometric fits.
+        summary = run_analyze(
+            out / "data", out / "analysis", analysis_settings, on_params=scene.start
+        )
+        t_analyse = time.perf_counter() - t_start - t_collect
+        say("rendering the bump-with-rough-texture scene ...")
+        rendering_summary = scene.result()
+    except BaseException:
+        scene.close(discard=True)  # no scene beside a failed analysis, as before
+        raise
+    scene.close()
     total = time.perf_counter() - t_start
 
     from masking_lab.formats.masking_params import read_masking_params
@@ -379,7 +390,8 @@ def _session_imports() -> None:
 
 
 def _warm_imports() -> None:
-    """Import the analysis, figure and rendering modules (errors surface where they are used)."""
+    """Import the analysis, figure and rendering modules and compile the report's template
+    (errors surface where they are used)."""
     for name in _LATER_MODULES:
         with contextlib.suppress(Exception):  # e.g. pyarrow, an optional dependency
             importlib.import_module(name)
@@ -387,6 +399,10 @@ def _warm_imports() -> None:
         from masking_lab.formats.png_figure import pyplot
 
         pyplot()
+    with contextlib.suppress(Exception):  # report.html's template, compiled (~0.1 s of CPU)
+        from masking_lab.analysis.report_html import prepare_html
+
+        prepare_html()
 
 
 def _progress(k: int, total: int, s: SessionDone) -> str:
@@ -396,7 +412,62 @@ def _progress(k: int, total: int, s: SessionDone) -> str:
     )
 
 
-def _render(out: Path) -> dict[str, Any]:
+class _SceneRender:
+    """The scene rendered in a worker process from ``masking_params.json``'s text, handed over
+    by the analysis (``run_analyze(on_params=...)``) before that file is written.
+
+    :meth:`result` waits for the worker, or renders here from the written file when the
+    analysis never handed the text over. Either way the same bytes are written.
+    """
+
+    def __init__(self, out: Path) -> None:
+        self.out = out
+        self.pool: ProcessPoolExecutor | None = None
+        self.pending: Future[dict[str, Any]] | None = None
+
+    def start(self, params_text: str) -> None:
+        """Start rendering from the text of ``masking_params.json`` (JSON)."""
+        if self.pending is not None:
+            return
+        try:
+            self.pool = ProcessPoolExecutor(max_workers=1)
+            self.pending = self.pool.submit(_render, self.out, params_text)
+        except (OSError, NotImplementedError, RuntimeError):  # no processes: render later
+            self.close()
+
+    def result(self) -> dict[str, Any]:
+        """The rendering's summary (``summarize`` plus the strategies and files written)."""
+        if self.pending is None:
+            return _render(self.out)
+        return self.pending.result()
+
+    def close(self, discard: bool = False) -> None:
+        """Wait for the worker to end; with ``discard`` (the analysis failed), remove the
+        ``render/`` folder it wrote."""
+        if self.pool is not None:
+            self.pool.shutdown(wait=True, cancel_futures=True)
+        self.pool = None
+        if discard and self.pending is not None:
+            import shutil
+
+            shutil.rmtree(self.out / "render", ignore_errors=True)
+
+
+def _params_from_text(text: str, source: str) -> dict[str, Any]:
+    """A masking_params document from its JSON text, checked as
+    :func:`~masking_lab.formats.masking_params.read_masking_params` checks the file."""
+    from masking_lab.formats.masking_params import MaskingParamsError, validate_masking_params
+    from masking_lab.formats.reader import parse_document
+
+    doc = parse_document(text.encode("utf-8"), source, fmt="json", error=MaskingParamsError)
+    validate_masking_params(doc.data, doc.source, doc.lines)
+    data: dict[str, Any] = doc.data
+    return data
+
+
+def _render(out: Path, params_text: str | None = None) -> dict[str, Any]:
+    """Render the scene into ``out/render`` from ``out/analysis/masking_params.json``, or from
+    ``params_text``, that file's text before it is written."""
     from masking_lab.device.rig_limits import max_level_db_sl
     from masking_lab.formats.masking_params import read_masking_params
     from masking_lab.rendering.outputs import write_rendering
@@ -411,7 +482,10 @@ def _render(out: Path) -> dict[str, Any]:
 
     scene = load_scene(str(shipped("protocols", f"scenes/{SCENE}.yaml")))
     params_path = out / "analysis" / "masking_params.json"
-    params = read_masking_params(params_path)
+    if params_text is None:
+        params = read_masking_params(params_path)
+    else:
+        params = _params_from_text(params_text, str(params_path))
     ((mv, ev),) = needed_pairs(scene)
     pair = pair_from_params(params, mv=mv, ev=ev, source=str(params_path))
     limits = max_level_db_sl(None)

@@ -91,6 +91,7 @@ def run_analyze(
     progress: Callable[[int, int], None] | None = None,
     fit_progress: Callable[[int, int], None] | None = None,
     figure_pool: FigurePool | None = None,
+    on_params: Callable[[str], None] | None = None,
 ) -> RunSummary:
     """Analyse every session log under ``data_dir`` and write every output into ``out_dir``.
 
@@ -114,6 +115,12 @@ def run_analyze(
         The worker drawing the summary figures, started early by the caller so that it loads
         matplotlib while this process loads the analysis (default: started here); closed
         when the run ends.
+    on_params : callable, optional
+        Called once with the text of ``masking_params.json`` (the bytes the run will write)
+        as soon as the ramp fits are done, before the per-trial outputs and the psychometric
+        fits: the demo renders its scene from it while the rest is written. With it, the
+        statistics run before those outputs rather than after (the same numbers either way:
+        every bootstrap has its own seed). Not called when there is no masked set to export.
 
     Returns
     -------
@@ -137,7 +144,9 @@ def run_analyze(
         figure_pool = FigurePool(settings.figures != "none")
     try:
         with staged_output(out, protect=[data]) as staging:
-            summary = _analyze_into(data, staging, settings, progress, fit_progress, figure_pool)
+            summary = _analyze_into(
+                data, staging, settings, progress, fit_progress, figure_pool, on_params
+            )
     except BaseException:  # a failed run does not wait for its figures
         figure_pool.close(cancel=True)
         raise
@@ -158,6 +167,7 @@ def _analyze_into(
     progress: Callable[[int, int], None] | None,
     fit_progress: Callable[[int, int], None] | None = None,
     figure_pool: FigurePool | None = None,
+    on_params: Callable[[str], None] | None = None,
 ) -> RunSummary:
     """The analysis of :func:`run_analyze`, writing into ``out`` (the staging folder)."""
     from masking_lab.formats.session_log import read_log
@@ -246,12 +256,11 @@ def _analyze_into(
 
     shift_figures = start_shift_figures(thresholds, settings.figures, figure_pool)
     _load_statistics()
-    from masking_lab.analysis.experiment import analyze_shifts, result_warnings
+    from masking_lab.analysis.experiment import result_warnings
     from masking_lab.analysis.export import write_outputs
     from masking_lab.analysis.report import LogsInput, build_report
     from masking_lab.analysis.report_html import render_html
     from masking_lab.analysis.report_text import render_text
-    from masking_lab.formats.shifts_csv import levels_told_apart
 
     shifts = shifts_long(thresholds)
     created_utc = settings.created_utc or (max(created) if created else EPOCH_UTC)
@@ -276,6 +285,16 @@ def _analyze_into(
     )
     warnings = [f"{p['log']}: {p['problem']} ({p['action']})" for p in problems]
     warnings += report_inputs.rig_warnings
+    experiments = masking_figures = params_json = None
+    if on_params is not None and not shifts.empty:
+        # The export first, for the caller to use while the per-trial outputs are written;
+        # the masking-function figures are drawn meanwhile too.
+        from masking_lab.analysis.export import start_masking_figures
+
+        experiments = _statistics(shifts, data, settings)
+        masking_figures = start_masking_figures(experiments, settings, figure_pool)
+        params_json = _params_text(experiments, settings, inputs, skipped, created_utc)
+        on_params(params_json)
     # Only the track figures are listed as such (files also holds thresholds.csv, problems.csv).
     lab = _lab_outputs(
         data,
@@ -311,9 +330,8 @@ def _analyze_into(
             f"{data}: no completed masked set to analyse ({len(thresholds)} sets, none with an "
             "AL shift); see report.txt for the status of each set"
         )
-    levels_told_apart(shifts, str(data))
-    freed_memory.trim()  # before the statistics' bootstrap
-    experiments = analyze_shifts(shifts, settings, has_participants=True)
+    if experiments is None:
+        experiments = _statistics(shifts, data, settings)
     files += write_outputs(
         out,
         experiments,
@@ -327,10 +345,41 @@ def _analyze_into(
         lab=lab.section,
         figure_pool=figure_pool,
         lab_embedded=lambda: lab.finished().embedded,
+        masking_figures=masking_figures,
+        params_json=params_json,
     )
     warnings += result_warnings(experiments)
     ramp_files, ramp_problems = _functional_ramps(out, analysed_logs, inputs, settings, created_utc)
     return RunSummary(out, files + ramp_files, warnings + ramp_problems)
+
+
+def _statistics(shifts: pd.DataFrame, data: Path, settings: AnalysisSettings) -> list[Any]:
+    """The per-experiment statistics and ramp fits of the AL shifts (dB)."""
+    from masking_lab.analysis.experiment import analyze_shifts
+    from masking_lab.formats.shifts_csv import levels_told_apart
+
+    levels_told_apart(shifts, str(data))
+    freed_memory.trim()  # before the statistics' bootstrap
+    return analyze_shifts(shifts, settings, has_participants=True)
+
+
+def _params_text(
+    experiments: list[Any],
+    settings: AnalysisSettings,
+    inputs: list[dict[str, str]],
+    skipped: list[dict[str, str]],
+    created_utc: str,
+) -> str:
+    """The text of ``masking_params.json``, as :func:`~masking_lab.analysis.export.write_outputs`
+    writes it."""
+    from masking_lab.analysis.export import masking_params_document
+    from masking_lab.formats.masking_params import masking_params_json
+
+    doc, _ = masking_params_document(
+        experiments, settings, source="analyze", inputs=inputs, skipped=skipped,
+        created_utc=created_utc,
+    )  # fmt: skip
+    return masking_params_json(doc)
 
 
 def _load_statistics() -> None:

@@ -37,7 +37,7 @@ from masking_lab.formats.csv_table import csv_text
 from masking_lab.formats.fileio import write_bytes_atomic, write_text_atomic
 from masking_lab.formats.masking_params import draws_field, masking_params_json
 
-__all__ = ["determination", "masking_params_document", "write_outputs"]
+__all__ = ["determination", "masking_params_document", "start_masking_figures", "write_outputs"]
 
 
 # A fitted ramp is "poorly determined" when its slope interval reaches 0 (masking not shown to
@@ -199,6 +199,38 @@ def _joint_uncertainty(
     return out
 
 
+def start_masking_figures(
+    results: Sequence[ExperimentResult],
+    settings: AnalysisSettings,
+    figure_pool: FigurePool | None = None,
+) -> dict[str, Callable[[], bytes]]:
+    """Start drawing each experiment's masking-function figure (``figures/masking_<e>.png``).
+
+    Parameters
+    ----------
+    results : sequence of ExperimentResult
+        Per-experiment results.
+    settings : AnalysisSettings
+        ``figures`` = ``"none"`` draws nothing (an empty mapping).
+    figure_pool : FigurePool, optional
+        Where they are drawn (default: in-process, when asked for).
+
+    Returns
+    -------
+    dict
+        Experiment id → a callable giving the figure's PNG bytes (waits for its worker).
+    """
+    if settings.figures == "none":
+        return {}
+    from masking_lab.analysis.figures import experiment_figure_data, masking_function_png
+
+    pool = figure_pool or FigurePool(enabled=False)
+    return {
+        r.experiment: pool.submit(masking_function_png, **experiment_figure_data(r))
+        for r in results
+    }
+
+
 def write_outputs(
     out: Path,
     results: Sequence[ExperimentResult],
@@ -213,6 +245,8 @@ def write_outputs(
     lab: LabSection | None = None,
     figure_pool: FigurePool | None = None,
     lab_embedded: Callable[[], tuple[tuple[str, str], ...]] | None = None,
+    masking_figures: Mapping[str, Callable[[], bytes]] | None = None,
+    params_json: str | None = None,
 ) -> list[Path]:
     """Write the statistics tables, ``masking_params.json``, the reports and the figures.
 
@@ -246,6 +280,12 @@ def write_outputs(
         Gives the ``lab`` section's embedded figures, (path, data URI) pairs, when
         ``report.html`` is rendered (:meth:`~masking_lab.analysis.lab_outputs.LabOutputs.finished`:
         the AL-shift figures are still being drawn while the statistics are written).
+    masking_figures : mapping, optional
+        The masking-function figures, already started by :func:`start_masking_figures` for
+        these ``results`` and ``settings`` (default: started here).
+    params_json : str, optional
+        The text of ``masking_params.json`` for these arguments, already made (``analyze``
+        hands it to its caller early; default: made here).
 
     Returns
     -------
@@ -259,15 +299,9 @@ def write_outputs(
     ...     created_utc="1970-01-01T00:00:00Z", report_inputs=table, thresholds=None,
     ... )
     """
-    drawing: dict[str, Callable[[], bytes]] = {}
-    if settings.figures != "none":
-        from masking_lab.analysis.figures import experiment_figure_data, masking_function_png
-
-        pool = figure_pool or FigurePool(enabled=False)
-        drawing = {
-            r.experiment: pool.submit(masking_function_png, **experiment_figure_data(r))
-            for r in results
-        }
+    drawing = masking_figures
+    if drawing is None:
+        drawing = start_masking_figures(results, settings, figure_pool)
     doc, export_notes = masking_params_document(
         results, settings, source=source, inputs=inputs, skipped=skipped, created_utc=created_utc
     )
@@ -301,7 +335,9 @@ def write_outputs(
         ("ramp_fits.csv", FIT_COLUMNS, fit_rows(results)),
     ]
     files = [write_text_atomic(out / name, csv_text(cols, rows)) for name, cols, rows in tables]
-    files.append(write_text_atomic(out / "masking_params.json", masking_params_json(doc)))
+    if params_json is None:
+        params_json = masking_params_json(doc)
+    files.append(write_text_atomic(out / "masking_params.json", params_json))
     files.append(write_text_atomic(out / "report.txt", render_text(report)))
     figures: dict[str, bytes] = {}
     if settings.figures != "none":
