@@ -24,6 +24,8 @@ from masking_lab.formats.png_figure import legible, png_bytes
 __all__ = ["pf_figure_png", "shift_figure_png", "shift_figure_png_columns"]
 
 _UNIT = {"db_sl": "dB SL", "db_v": "dB re 1 V"}
+# A participant's line in the AL-shift figure (widths in points).
+_PERSON: dict[str, Any] = {"linewidth": 0.9, "markersize": 3.5, "alpha": 0.7}
 
 
 def _grid(n: int) -> tuple[int, int]:
@@ -172,6 +174,10 @@ def shift_figure_png(
     >>> png[:4]
     b'\\x89PNG'
     """
+    from matplotlib.lines import Line2D  # here: the main process imports this module
+
+    from masking_lab.analysis.line_bundle import LineBundle, bundle_supported
+
     flagged = flagged or set()
     levels = sorted({str(s["mv_stimulus"]) for s in shifts})
     rows, cols = _grid(len(levels))
@@ -183,6 +189,8 @@ def shift_figure_png(
         )  # fmt: skip
         for ax in axes.ravel()[len(levels) :]:
             ax.set_visible(False)
+        template = Line2D([], [], marker="o", linestyle="-", **_PERSON)  # participants' lines
+        bundle = bundle_supported(template)
         for ax, lv in zip(axes.ravel(), levels, strict=False):
             mine = [s for s in shifts if s["mv_stimulus"] == lv]
             pair = str(mine[0]["pair"])
@@ -190,19 +198,26 @@ def shift_figure_png(
             by_person: dict[Any, list[Mapping[str, Any]]] = {}
             for s in mine:
                 by_person.setdefault(s["participant"], []).append(s)
+            # The first participant's line is a Line2D (the legend's handle); the others, in
+            # the same order and style, one LineBundle (the same pixels, a fraction of the time).
+            bundled: list[tuple[np.ndarray, str]] = []
             for i, p in enumerate(people):
                 pts = sorted(
                     (float(s["masker_level_db_sl"]), float(s["shift_db"]))
                     for s in by_person.get(p, ())
                 )
-                if pts:
+                if pts and (i == 0 or not bundle):
                     xs, ys = zip(*pts, strict=True)
-                    ax.plot(xs, ys, "o-", lw=0.9, ms=3.5, alpha=0.7, color=f"C{i % 10}",
+                    ax.plot(xs, ys, "o-", **_PERSON, color=f"C{i % 10}",
                             label="participants" if i == 0 else None)  # fmt: skip
+                elif pts:
+                    bundled.append((np.array(pts, dtype=float), f"C{i % 10}"))
                 for x, y in pts:
                     if (p, pair, x) in flagged:
                         ax.scatter([x], [y], s=140, facecolors="none", edgecolors="red",
                                    linewidths=1.5, zorder=4, label="outlier")  # fmt: skip
+            if bundled:
+                LineBundle(ax, template, bundled)
             xs_all = sorted({float(s["masker_level_db_sl"]) for s in mine})
             at_level: dict[float, list[float]] = {}
             for s in mine:
