@@ -14,10 +14,9 @@ the float64 check had to settle, and whether both chose the same levels (they mu
 from __future__ import annotations
 
 import argparse
-import time
-from collections.abc import Callable
 
 import numpy as np
+from bench_simulate import best_of  # shortest of n calls, s
 
 from masking_lab.core.psychometric import Psychometric
 from masking_lab.procedures.psi_screen import best_levels, screen
@@ -44,16 +43,6 @@ def posteriors(n_tracks: int, seed: int = 1) -> dict[int, np.ndarray]:
             out[trial] = post.copy()
         idx = best_levels(t, post)
     return out
-
-
-def best_of(fn: Callable[[], object], repeats: int) -> float:
-    """Shortest of ``repeats`` calls, s."""
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return min(times)
 
 
 def main() -> None:
