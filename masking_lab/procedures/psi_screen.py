@@ -38,7 +38,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from masking_lab.procedures.fused import compiled_loops
-from masking_lab.procedures.quest_plus_model import EntropyOver, expected_entropy
+from masking_lab.procedures.quest_plus_model import EntropyOver, expected_entropy, xlogx
 
 if TYPE_CHECKING:
     from masking_lab.procedures.quest_plus import Tables
@@ -94,22 +94,25 @@ def best_levels(
     r, n_t, n_n = posterior.shape
     if n_n == 1 or entropy_over == "all":
         return np.argmin(expected_entropy(t, posterior, entropy_over), axis=1)
-    if r < _COMPILED_FROM:
-        low, high = screen(t, posterior, use_compiled=False)
-        return _settle(t, posterior, low <= high.min(axis=1)[:, None], use_compiled=False)
     if r <= _TRACKS_PER_PASS:
-        low, high = screen(t, posterior)
-        return _settle(t, posterior, low <= high.min(axis=1)[:, None])
+        return _place(t, posterior, use_compiled=r >= _COMPILED_FROM)
     out = np.empty(r, dtype=np.intp)
     # Tracks with nearby posteriors share a pass, so that the thresholds they all rule out
     # (which a pass skips) are many.
     order = np.argsort(posterior.sum(axis=2) @ np.arange(n_t), kind="stable")
     for a in range(0, r, _TRACKS_PER_PASS):
         rows = order[a : a + _TRACKS_PER_PASS]
-        part = posterior[rows]
-        low, high = screen(t, part)
-        out[rows] = _settle(t, part, low <= high.min(axis=1)[:, None])
+        out[rows] = _place(t, posterior[rows])
     return out
+
+
+def _place(
+    t: Tables, posterior: NDArray[np.float64], *, use_compiled: bool = True
+) -> NDArray[np.intp]:
+    """:func:`best_levels` of one pass: screen every level, settle the ones left."""
+    low, high = screen(t, posterior, use_compiled=use_compiled)
+    keep = low <= high.min(axis=1)[:, None]
+    return _settle(t, posterior, keep, use_compiled=use_compiled)
 
 
 def screen(
@@ -242,9 +245,5 @@ def pair_entropies(
         return out
     for like in (t.p_correct, t.p_wrong):
         m = np.einsum("ktn,ktn->kt", post[rows], like[levels])
-        pk = m.sum(axis=1)
-        xlogx = np.zeros_like(m)
-        np.log(m, out=xlogx, where=m > 0)
-        xlogx *= m
-        out += np.where(pk > 0, pk * np.log(np.where(pk > 0, pk, 1.0)), 0.0) - xlogx.sum(axis=1)
+        out += xlogx(m.sum(axis=1)) - xlogx(m).sum(axis=1)
     return out

@@ -125,7 +125,7 @@ def expected_entropy(
         # Σ j·log j over the grid with j = post·L is linear in post·log post and in post, so the
         # entropies for all levels come from two matrix products (no (R, S, P) array).
         flat = posterior.reshape(r, -1)
-        plogp = _xlogx(flat)
+        plogp = xlogx(flat)
         for like, llogl in zip((t.p_correct, t.p_wrong), t.xlogx_tables, strict=True):
             lf = like.reshape(like.shape[0], -1)
             pk = flat @ lf.T
@@ -139,12 +139,18 @@ def expected_entropy(
         for like in (t.p_correct, t.p_wrong):
             m = post_t @ like.transpose(1, 2, 0)  # (T, R, S): Σ_n post·L
             pk = m.sum(axis=0)
-            out[a : a + per_row] += pk * np.log(pk) - _xlogx(m).sum(axis=0)
+            out[a : a + per_row] += pk * np.log(pk) - xlogx(m).sum(axis=0)
     return out
 
 
-def _xlogx(a: NDArray[np.float64]) -> NDArray[np.float64]:
-    """a·log a with 0·log 0 = 0 (posterior cells that underflowed)."""
+def xlogx(a: NDArray[np.float64]) -> NDArray[np.float64]:
+    """a·ln a (nats) element by element, with 0·ln 0 = 0 (posterior cells that underflowed).
+
+    Examples
+    --------
+    >>> xlogx(np.array([0.0, 1.0, 0.5])).tolist() == [0.0, 0.0, 0.5 * np.log(0.5)]
+    True
+    """
     if a.size and a.min() > 0:
         # The usual case, no cell underflowed: a plain log, the same values as the masked one
         # below (element by element) in about two thirds of its time, on the hot path of
