@@ -206,3 +206,49 @@ def test_tracks_place_alike_with_numba_disabled():
     import hashlib
 
     assert hashlib.sha256(here.levels_db.tobytes()).hexdigest() == out["0"][1]
+
+
+def _tailed_posterior(t, tail_mass: float, spread_over: int) -> np.ndarray:
+    """A narrow posterior near the middle of the threshold grid whose two tails hold
+    ``tail_mass`` each, spread evenly over the outermost ``spread_over`` thresholds."""
+    n_t, n_n = t.prior.shape
+    post = np.zeros((n_t, n_n))
+    mid = n_t // 2
+    post[mid - 3 : mid + 4] = t.prior[mid - 3 : mid + 4]
+    post *= (1.0 - 2 * tail_mass) / post.sum()
+    for rows in (slice(0, spread_over), slice(n_t - spread_over, n_t)):
+        post[rows] = tail_mass / (spread_over * n_n)
+    return post
+
+
+@pytest.mark.parametrize("use_compiled", [True, False])
+@pytest.mark.parametrize("spread_over", [1, 40])
+def test_tails_left_out_stay_within_the_bound(use_compiled, spread_over):
+    t = tables(SHIPPED)
+    loops = compiled_loops("psi_loops") if use_compiled else None
+    # just under a side's budget: the tails are left out; over it, as many of their
+    # thresholds as the budget holds
+    n_t, mid = t.prior.shape[0], t.prior.shape[0] // 2
+    for scale, left_out in ((0.99, True), (1.5, False)):
+        post = _tailed_posterior(t, scale * psi_screen.TAIL / 4, spread_over)[None]
+        p32, lo, hi = psi_screen._float32_posterior(post, loops)
+        kept = int(spread_over / scale)
+        assert (lo, hi) == ((mid - 3, mid + 4) if left_out else (kept, n_t - kept))
+        assert bool(p32[:spread_over].any()) is not left_out
+        low, high = psi_screen.screen(t, post, use_compiled=use_compiled)
+        exact = expected_entropy(t, post)
+        assert np.all((low <= exact) & (exact <= high))
+        assert psi_screen.best_levels(t, post)[0] == np.argmin(exact[0])
+
+
+def test_the_compiled_and_numpy_routes_leave_out_the_same_tails():
+    t = tables(SHIPPED)
+    loops = compiled_loops("psi_loops")
+    spans = []
+    for post in list(_tracks(SHIPPED, 24, 150, seed=8))[::25]:
+        a, lo_a, hi_a = psi_screen._float32_posterior(post, loops)
+        b, lo_b, hi_b = psi_screen._float32_posterior(post, None)
+        assert (lo_a, hi_a) == (lo_b, hi_b)
+        np.testing.assert_array_equal(a, b)
+        spans.append(hi_a - lo_a)
+    assert spans[-1] < spans[0] == t.prior.shape[0]  # late in a track tails are left out

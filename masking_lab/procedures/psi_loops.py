@@ -30,6 +30,47 @@ def add_column_sums(m, log_m, pk, h):
 
 
 @numba.njit(cache=True, nogil=True)
+def trimmed_float32(post, flush, tail, out):
+    """``out[t, r, n]`` = ``post[r, t, n]`` in float32, 0 where that is below ``flush`` and at
+    the thresholds of track r's two tails that hold at most ``tail`` of its mass each; returns
+    (first, stop) of the thresholds where some track's value is not 0 ((0, 0) if none).
+
+    ``post`` is float64 of shape (R, T, N), ``out`` float32 of shape (T, R, N).
+    """
+    n_r, n_t, n_n = post.shape
+    lo, hi = n_t, 0
+    cut = np.float32(flush)
+    out[:] = 0.0
+    for r in range(n_r):
+        first, held = 0, 0.0
+        while first < n_t:
+            mass = 0.0
+            for n in range(n_n):
+                mass += post[r, first, n]
+            if held + mass > tail:
+                break
+            held += mass
+            first += 1
+        stop, held = n_t, 0.0
+        while stop > first:
+            mass = 0.0
+            for n in range(n_n):
+                mass += post[r, stop - 1, n]
+            if held + mass > tail:
+                break
+            held += mass
+            stop -= 1
+        for t in range(first, stop):
+            for n in range(n_n):
+                v = np.float32(post[r, t, n])
+                if v >= cut:
+                    out[t, r, n] = v
+                    lo = min(lo, t)
+                    hi = max(hi, t + 1)
+    return (lo, hi) if hi > 0 else (0, 0)
+
+
+@numba.njit(cache=True, nogil=True)
 def _answer_term(post, like, r, s):
     """p·ln p of one answer's probability minus Σ_t m·ln m, m the joint (nats, float64)."""
     n_t, n_n = post.shape[1], post.shape[2]
