@@ -87,6 +87,7 @@ __all__ = [
     "default_schedules",
     "default_stop_rules",
     "efficiency_fields",
+    "error_summary",
     "ladder_rules",
     "parse_ratios",
     "parse_schedules",
@@ -98,6 +99,7 @@ __all__ = [
     "protocol_stop_rule",
     "run_plan",
     "summarize",
+    "summarize_sets",
     "trial_duration_s",
     "true_thresholds_db",
 ]
@@ -137,28 +139,81 @@ def summarize(
         and, over sessions with an estimate, ``n_al``, ``bias_db`` (mean of estimate − true),
         ``sd_db`` (SD, ddof 1), ``rmse_db``.
     """
-    n = int(n_trials.size)
-    med, p90 = (float(v) for v in np.percentile(n_trials, [50, 90]))
-    out: dict[str, float] = {
-        "sessions": n,
-        "completed": float(np.mean(status_code == COMPLETED)),
-        "ceiling": float(np.mean(status_code == CEILING)),
-        "floor": float(np.mean(status_code == FLOOR)),
-        "trial_cap": float(np.mean(status_code == TRIAL_CAP)),
-        "unfinished": float(np.mean(status_code == RUNNING)),
-        "trials_median": med,
-        "trials_p90": p90,
-        "trials_mean": float(np.mean(n_trials)),
-        "minutes_median": med * trial_s / 60.0,
-        "minutes_p90": p90 * trial_s / 60.0,
+    return summarize_sets(
+        n_trials[None],
+        status_code[None],
+        None if estimate_db is None else estimate_db[None],
+        true_db[None],
+        trial_s,
+    )[0]
+
+
+def summarize_sets(
+    n_trials: NDArray[np.int64],
+    status_code: NDArray[np.int8],
+    estimate_db: NDArray[np.float64] | None,
+    true_db: NDArray[np.float64],
+    trial_s: float,
+) -> list[dict[str, float]]:
+    """:func:`summarize` of each row of 2-D arrays (one row per set, shape (sets, R)).
+
+    The percentiles and fractions of all rows come from one numpy call each (a plan asks for
+    ~3,000 summaries); every number is the one :func:`summarize` gives for that row alone.
+
+    Examples
+    --------
+    >>> n = np.array([[10, 20, 30], [40, 50, 60]])
+    >>> rows = summarize_sets(n, np.zeros((2, 3), np.int8), None, np.zeros((2, 3)), 6.0)
+    >>> [r["trials_median"] for r in rows], rows[1]["minutes_p90"]
+    ([20.0, 50.0], 5.8)
+    """
+    n = int(n_trials.shape[1])
+    q = np.percentile(n_trials, [50, 90], axis=1)
+    fractions = {
+        key: np.mean(status_code == code, axis=1)
+        for key, code in (
+            ("completed", COMPLETED),
+            ("ceiling", CEILING),
+            ("floor", FLOOR),
+            ("trial_cap", TRIAL_CAP),
+            ("unfinished", RUNNING),
+        )
     }
-    if estimate_db is not None:
-        err = (estimate_db - true_db)[np.isfinite(estimate_db)]
-        out["n_al"] = int(err.size)
-        out["bias_db"] = float(err.mean()) if err.size else math.nan
-        out["sd_db"] = float(err.std(ddof=1)) if err.size > 1 else math.nan
-        out["rmse_db"] = float(np.sqrt(np.mean(err**2))) if err.size else math.nan
-    return out
+    means = np.mean(n_trials, axis=1)
+    rows = []
+    for j in range(n_trials.shape[0]):
+        med, p90 = float(q[0, j]), float(q[1, j])
+        out: dict[str, float] = {"sessions": n}
+        out |= {key: float(f[j]) for key, f in fractions.items()}
+        out |= {
+            "trials_median": med,
+            "trials_p90": p90,
+            "trials_mean": float(means[j]),
+            "minutes_median": med * trial_s / 60.0,
+            "minutes_p90": p90 * trial_s / 60.0,
+        }
+        if estimate_db is not None:
+            out |= error_summary(estimate_db[j], true_db[j])
+        rows.append(out)
+    return rows
+
+
+def error_summary(estimate_db: NDArray[np.float64], true_db: NDArray[np.float64]) -> dict:
+    """``n_al``, ``bias_db``, ``sd_db`` (ddof 1) and ``rmse_db`` of the AL estimates (dB, NaN
+    where a session has none) against the true thresholds (dB), as :func:`summarize` has them.
+
+    Examples
+    --------
+    >>> error_summary(np.array([1.0, np.nan, 3.0]), np.array([0.0, 0.0, 2.0]))
+    {'n_al': 2, 'bias_db': 1.0, 'sd_db': 0.0, 'rmse_db': 1.0}
+    """
+    err = (estimate_db - true_db)[np.isfinite(estimate_db)]
+    return {
+        "n_al": int(err.size),
+        "bias_db": float(err.mean()) if err.size else math.nan,
+        "sd_db": float(err.std(ddof=1)) if err.size > 1 else math.nan,
+        "rmse_db": float(np.sqrt(np.mean(err**2))) if err.size else math.nan,
+    }
 
 
 def pool(per_set: Sequence[dict[str, float]], trials: NDArray[np.int64], trial_s: float) -> dict:
@@ -411,19 +466,15 @@ def _schedule_part(
         if ml_als is not None:
             estimates["ml"] = (ml_als[i], ml_part, ml_own)
         # Session cost comes from the full sample whatever the estimator.
-        costs = [summarize(out.n_trials[w], out.status_code[w], None, thr, trial_s) for w in whole]
+        costs = summarize_sets(
+            out.n_trials.reshape(n_sets, reps), out.status_code.reshape(n_sets, reps), None,
+            thr.reshape(n_sets, reps), trial_s,
+        )  # fmt: skip
         for est, (al, rows, own) in estimates.items():
             sets_rows = []
             for j, spec in enumerate(protocol.sets):
                 row = dict(costs[j])
-                err = summarize(
-                    out.n_trials[rows[j]],
-                    out.status_code[rows[j]],
-                    al[own[j]],
-                    thr[rows[j]],
-                    trial_s,
-                )
-                row.update({key: err[key] for key in ("n_al", "bias_db", "sd_db", "rmse_db")})
+                row.update(error_summary(al[own[j]], thr[rows[j]]))
                 sets_rows.append(row)
                 per_set.append(_label(row, sched, rule, est, spec.id))
             pooled = pool(sets_rows, out.n_trials, trial_s)
@@ -438,10 +489,10 @@ def _schedule_part(
 
     ladder = []
     for rung, out in zip(rungs, rung_outs, strict=True):
-        sets_rows = [
-            summarize(out.n_trials[w], out.status_code[w], out.al_db[w], thr[w], trial_s)
-            for w in whole
-        ]
+        sets_rows = summarize_sets(
+            out.n_trials.reshape(n_sets, reps), out.status_code.reshape(n_sets, reps),
+            out.al_db.reshape(n_sets, reps), thr.reshape(n_sets, reps), trial_s,
+        )  # fmt: skip
         row = _label(pool(sets_rows, out.n_trials, trial_s), sched, rung, "reversal_mean")
         row["half_width_db"] = settings.z * row["worst_sd_db"]
         row |= efficiency_fields(row["sd_db"], row["trials_mean"], obs)
