@@ -15,7 +15,7 @@ from masking_lab.formats.protocol import load_protocol
 from masking_lab.planning import plan as P
 from masking_lab.planning.figures import png_bytes, speed_accuracy
 from masking_lab.planning.report import answer_text
-from masking_lab.procedures.staircase_batch import COMPLETED, TRIAL_CAP, Observer, simulate
+from masking_lab.procedures.staircase_batch import COMPLETED, RUNNING, TRIAL_CAP, Observer, simulate
 from masking_lab.simulation.observer import load_ground_truth
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -158,6 +158,36 @@ def test_summarize_reports_cost_ends_and_error():
     assert s["bias_db"] == pytest.approx(0.5)  # errors −1, 0, 1, 2
     assert s["sd_db"] == pytest.approx(math.sqrt(5 / 3))
     assert s["rmse_db"] == pytest.approx(math.sqrt(6 / 4))
+
+
+@pytest.mark.parametrize("reps", [1, 2, 7, 500, 2000])
+def test_summarize_sets_gives_each_row_the_numbers_of_numpy_on_that_row_alone(reps):
+    # the plan's tables must not change: every number equals the one-row numpy call, bit for bit
+    rng = np.random.default_rng(reps)
+    n_trials = rng.integers(10, 300, size=(6, reps))
+    status = rng.choice([COMPLETED, TRIAL_CAP, RUNNING], size=(6, reps)).astype(np.int8)
+    est = np.where(rng.random((6, reps)) < 0.2, np.nan, rng.normal(0.0, 1.3, (6, reps)))
+    true = rng.normal(0.0, 2.0, (6, reps))
+    rows = P.summarize_sets(n_trials, status, est, true, trial_s=9.3)
+    for j, row in enumerate(rows):
+        med, p90 = np.percentile(n_trials[j], [50, 90])
+        err = (est[j] - true[j])[np.isfinite(est[j])]
+        expected = {
+            "sessions": reps,
+            "completed": float(np.mean(status[j] == COMPLETED)),
+            "trial_cap": float(np.mean(status[j] == TRIAL_CAP)),
+            "unfinished": float(np.mean(status[j] == RUNNING)),
+            "trials_median": float(med),
+            "trials_p90": float(p90),
+            "trials_mean": float(np.mean(n_trials[j])),
+            "minutes_p90": float(p90) * 9.3 / 60.0,
+            "n_al": err.size,
+            "bias_db": float(err.mean()) if err.size else math.nan,
+            "sd_db": float(err.std(ddof=1)) if err.size > 1 else math.nan,
+            "rmse_db": float(np.sqrt(np.mean(err**2))) if err.size else math.nan,
+        }
+        for key, value in expected.items():
+            assert row[key] == value or (math.isnan(row[key]) and math.isnan(value)), key
 
 
 def test_pool_uses_root_mean_square_within_set_sd_and_the_worst_set():
