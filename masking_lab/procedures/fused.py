@@ -19,7 +19,12 @@ from types import ModuleType
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["compiled", "compiled_loops", "nuisance_sums", "wrong_and_totals"]
+__all__ = ["COMPILED_FROM", "compiled", "compiled_loops", "nuisance_sums", "wrong_and_totals"]
+
+#: Fewer QUEST+ tracks than this (a session's one) take the numpy routes: the compiled loops
+#: gain little there, and loading numba costs ~0.5 s and a BLAS pool of its own (scipy's) that
+#: a session's one-thread limit (session/blas_threads.py) would not cover.
+COMPILED_FROM = 4
 
 
 @functools.cache

@@ -41,7 +41,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import NDArray
 
-from masking_lab.procedures.fused import compiled_loops
+from masking_lab.procedures.fused import COMPILED_FROM, compiled_loops
 from masking_lab.procedures.quest_plus_model import EntropyOver, expected_entropy, xlogx
 
 if TYPE_CHECKING:
@@ -60,10 +60,6 @@ SAFETY = 2.0
 _TRACKS_PER_PASS = 32
 #: Thresholds per block of a pass: its two (block, tracks, 2S) float32 buffers take ~0.5 MB.
 _THRESHOLDS_PER_BLOCK = 8
-#: Fewer tracks than this (a session's one) take the numpy routes: the compiled loops gain
-#: little there, and loading numba costs ~0.5 s and a BLAS pool of its own (scipy's) that a
-#: session's one-thread limit (session/blas_threads.py) would not cover.
-_COMPILED_FROM = 4
 _U32 = 2.0**-24
 _TINY32 = np.float32(np.finfo(np.float32).tiny)
 
@@ -102,7 +98,7 @@ def best_levels(
     if n_n == 1 or entropy_over == "all":
         return np.argmin(expected_entropy(t, posterior, entropy_over), axis=1)
     if r <= _TRACKS_PER_PASS:
-        return _place(t, posterior, use_compiled=r >= _COMPILED_FROM)
+        return _place(t, posterior, use_compiled=r >= COMPILED_FROM)
     out = np.empty(r, dtype=np.intp)
     # Tracks with nearby posteriors share a pass, so that the thresholds they all rule out
     # (which a pass skips) are many.

@@ -27,6 +27,7 @@ from numpy.typing import ArrayLike, NDArray
 from masking_lab.core.errors import ProcedureError
 from masking_lab.core.psychometric import Psychometric
 from masking_lab.procedures.batch import TrackBatch
+from masking_lab.procedures.fused import COMPILED_FROM, compiled_loops
 from masking_lab.procedures.quest_plus import (
     QuestPlusSettings,
     best_levels,
@@ -167,6 +168,8 @@ def run_quest_plus(
     n_trials = np.zeros(n, dtype=np.int64)
     status = np.full(n, "running", dtype="<U9")
     active = np.arange(n)
+    # Many tracks: one compiled pass per track (numpy's numbers); a few: numpy (no numba load).
+    loops = compiled_loops("update_loops") if n >= COMPILED_FROM else None
     for t in range(limit):
         if active.size == 0:
             break
@@ -175,9 +178,12 @@ def run_quest_plus(
         c = np.asarray(respond(t, a, lv), dtype=bool)
         if c.shape != a.shape:
             raise ProcedureError(f"respond() gave {c.shape} answers for {a.size} running tracks")
-        post *= answer_tables[c.astype(np.intp), idx[a]]
         # Normalised one track at a time, as QuestPlus.update does, so replays agree bit for bit.
-        post /= post.reshape(a.size, -1).sum(axis=1)[:, None, None]
+        if loops is not None:
+            loops.update_posteriors(post, answer_tables, c.astype(np.intp), idx[a])
+        else:
+            post *= answer_tables[c.astype(np.intp), idx[a]]
+            post /= post.reshape(a.size, -1).sum(axis=1)[:, None, None]
         m, d = threshold_moments(tb, post)
         levels[a, t], correct[a, t], mean[a, t], sd[a, t] = lv, c, m, d
         n_trials[a] = t + 1
