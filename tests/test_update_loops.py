@@ -41,16 +41,20 @@ def test_the_update_is_numpys_bit_for_bit():
     np.testing.assert_array_equal(post, expected)
 
 
-@pytest.mark.parametrize("entropy_over", ["threshold", "all"])
-def test_lockstep_tracks_run_alike_compiled_and_with_numpy(monkeypatch, entropy_over):
-    s = QuestPlusSettings(-20.0, 45.0, target_sd_db=0.8, max_trials=80, entropy_over=entropy_over)
+def test_lockstep_tracks_run_alike_compiled_and_with_numpy(monkeypatch):
+    s = QuestPlusSettings(-20.0, 45.0, target_sd_db=0.8, max_trials=80)
     thr = np.random.default_rng(3).uniform(0.0, 25.0, 12)
 
     def run():
         return simulate_quest_plus(s, thr, rng=np.random.default_rng(11))
 
-    compiled = run()
     real = quest_plus_batch.compiled_loops
+    asked = []
+    monkeypatch.setattr(
+        quest_plus_batch, "compiled_loops", lambda name: asked.append(name) or real(name)
+    )
+    compiled = run()
+    assert asked == ["update_loops"]
     monkeypatch.setattr(
         quest_plus_batch,
         "compiled_loops",
@@ -59,3 +63,17 @@ def test_lockstep_tracks_run_alike_compiled_and_with_numpy(monkeypatch, entropy_
     numpy_route = run()
     for name in ("levels_db", "mean_db", "sd_db", "n_trials"):
         np.testing.assert_array_equal(getattr(compiled, name), getattr(numpy_route, name))
+
+
+@pytest.mark.parametrize(
+    "s",
+    [
+        QuestPlusSettings(0.0, 20.0, max_trials=5, entropy_over="all"),  # joint entropy
+        QuestPlusSettings(0.0, 20.0, scales_db=1.5, lapses=0.02, max_trials=5),  # slope known
+    ],
+)
+def test_tracks_placed_without_the_screen_update_with_numpy(monkeypatch, s):
+    # their placement loads no numba, so neither does their update
+    monkeypatch.setattr(quest_plus_batch, "compiled_loops", lambda name: pytest.fail(name))
+    sim = simulate_quest_plus(s, np.full(8, 10.0), rng=np.random.default_rng(0))
+    assert sim.n_trials.tolist() == [5] * 8

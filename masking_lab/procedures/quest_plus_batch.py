@@ -168,8 +168,10 @@ def run_quest_plus(
     n_trials = np.zeros(n, dtype=np.int64)
     status = np.full(n, "running", dtype="<U9")
     active = np.arange(n)
-    # Many tracks: one compiled pass per track (numpy's numbers); a few: numpy (no numba load).
-    loops = compiled_loops("update_loops") if n >= COMPILED_FROM else None
+    # One compiled pass per track (numpy's numbers) where the placement is compiled too (the
+    # screened psi-marginal, many tracks); elsewhere loading numba would cost what it saves.
+    screened = s.entropy_over == "threshold" and tb.prior.shape[1] > 1
+    loops = compiled_loops("update_loops") if screened and n >= COMPILED_FROM else None
     for t in range(limit):
         if active.size == 0:
             break
