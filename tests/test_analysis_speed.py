@@ -51,3 +51,30 @@ def test_fit_runs_its_statistics_on_one_blas_thread(seen_threads, tmp_path):
         assert main([*argv, "--n-boot", "100"]) == 0
         assert _blas_threads() == {2}
     assert seen_threads == [{1}]
+
+
+def test_analyze_freezes_what_it_read_and_thaws_it_after(tmp_path, monkeypatch):
+    """The read results are frozen out of the cyclic collector for the run, and nothing stays
+    frozen after it (a caller running analyze in-process keeps its collector whole)."""
+    import gc
+
+    from masking_lab.analysis import batch
+
+    frozen: list[int] = []
+    real = batch.duplicate_sessions
+
+    def spy(results):
+        frozen.append(gc.get_freeze_count())
+        return real(results)
+
+    monkeypatch.setattr(batch, "duplicate_sessions", spy)
+    simulate_study(tmp_path / "data", n_participants=2, seed=3)
+    argv = ["--quiet", "--figures", "none", "--no-trial-tables", "--n-boot", "100"]
+    assert gc.get_freeze_count() == 0
+    assert main(["analyze", str(tmp_path / "data"), "--out", str(tmp_path / "out"), *argv]) == 0
+    assert frozen[-1] > 0 and gc.get_freeze_count() == 0
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    (bad / "x.jsonl").write_text("not a log\n")
+    assert main(["analyze", str(bad), "--out", str(tmp_path / "out2"), *argv]) == 2
+    assert len(frozen) == 2 and frozen[-1] > 0 and gc.get_freeze_count() == 0

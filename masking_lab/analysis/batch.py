@@ -13,6 +13,7 @@ formats, seeded bootstrap with a seed per experiment and group, no wall-clock ti
 
 from __future__ import annotations
 
+import gc
 import hashlib
 import os
 from collections.abc import Callable, Iterator
@@ -151,6 +152,8 @@ def run_analyze(
     except BaseException:  # a failed run does not wait for its figures
         figure_pool.close(cancel=True)
         raise
+    finally:  # what the run froze is collectable again for a caller that goes on
+        gc.unfreeze()
     figure_pool.close()
     return _moved(summary, staging, out)
 
@@ -199,7 +202,9 @@ def _analyze_into(
     if len(paths) >= PARALLEL_FROM:  # loaded while the workers read
         _load_statistics()
         freed_memory.return_early()  # after the workers are forked: only this process's
+        gc.freeze()  # the modules' objects live to the end: no collection need visit them
     results = list(reading)
+    gc.freeze()  # nor the read results' (at 10,000 sessions ~0.2 s of collections after this)
     copies = duplicate_sessions(results)
     for res in results:
         rel = res.rel
