@@ -1,0 +1,80 @@
+"""How `analyze` and `fit` run their statistics (issue 22): on one BLAS thread."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy  # noqa: F401  (loads the BLAS pool that threadpoolctl lists)
+import pytest
+
+from masking_lab.analysis import experiment
+from masking_lab.commands.cli import main
+from masking_lab.simulation.synthetic_logs import simulate_study
+
+threadpoolctl = pytest.importorskip("threadpoolctl")
+
+TABLE2 = Path(__file__).resolve().parents[1] / "data_schema" / "shifts.csv"
+
+
+def _blas_threads() -> set[int]:
+    return {p["num_threads"] for p in threadpoolctl.threadpool_info() if p["user_api"] == "blas"}
+
+
+@pytest.fixture
+def seen_threads(monkeypatch):
+    """The BLAS thread counts each analyze_shifts call ran with."""
+    if not _blas_threads():
+        pytest.skip("no BLAS pool that threadpoolctl can see")
+    seen: list[set[int]] = []
+    real = experiment.analyze_shifts
+
+    def spy(*args, **kwargs):
+        seen.append(_blas_threads())
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(experiment, "analyze_shifts", spy)
+    return seen
+
+
+def test_analyze_runs_its_statistics_on_one_blas_thread(seen_threads, tmp_path):
+    simulate_study(tmp_path / "data", n_participants=2, seed=3)
+    argv = ["analyze", str(tmp_path / "data"), "--out", str(tmp_path / "out"), "--quiet"]
+    with threadpoolctl.threadpool_limits(limits=2, user_api="blas"):
+        assert main([*argv, "--figures", "none", "--no-trial-tables", "--n-boot", "100"]) == 0
+        assert _blas_threads() == {2}  # the caller's limit is back
+    assert seen_threads == [{1}]
+
+
+def test_fit_runs_its_statistics_on_one_blas_thread(seen_threads, tmp_path):
+    argv = ["fit", str(TABLE2), "--out", str(tmp_path / "out"), "--quiet", "--figures", "none"]
+    with threadpoolctl.threadpool_limits(limits=2, user_api="blas"):
+        assert main([*argv, "--n-boot", "100"]) == 0
+        assert _blas_threads() == {2}
+    assert seen_threads == [{1}]
+
+
+def test_analyze_freezes_what_it_read_and_thaws_it_after(tmp_path, monkeypatch):
+    """The read results are frozen out of the cyclic collector for the run, and nothing stays
+    frozen after it (a caller running analyze in-process keeps its collector whole)."""
+    import gc
+
+    from masking_lab.analysis import batch
+
+    frozen: list[int] = []
+    real = batch.duplicate_sessions
+
+    def spy(results):
+        frozen.append(gc.get_freeze_count())
+        return real(results)
+
+    monkeypatch.setattr(batch, "duplicate_sessions", spy)
+    simulate_study(tmp_path / "data", n_participants=2, seed=3)
+    argv = ["--quiet", "--figures", "none", "--no-trial-tables", "--n-boot", "100"]
+    assert gc.get_freeze_count() == 0
+    assert main(["analyze", str(tmp_path / "data"), "--out", str(tmp_path / "out"), *argv]) == 0
+    assert frozen[-1] > 0 and gc.get_freeze_count() == 0
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    (bad / "x.jsonl").write_text("not a log\n")
+    assert main(["analyze", str(bad), "--out", str(tmp_path / "out2"), *argv]) == 2
+    assert len(frozen) == 2 and frozen[-1] > 0 and gc.get_freeze_count() == 0
