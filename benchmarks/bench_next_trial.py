@@ -10,7 +10,7 @@ Watson's joint entropy (10 scales × 4 lapses) and the shipped functional (ramp)
 (experiment1_functional.yaml), each
 
 * idle, and with every other core saturated by busy processes this benchmark starts,
-* as the session runs it (one BLAS thread, ``session.blas_threads``, and each update at the
+* as the session runs it (one BLAS thread, ``core.blas_threads``, and each update at the
   lowest real-time priority, ``session.priority``, when the system permits it), beside the
   same at normal priority and the library's default thread pools (the session before BLAS was
   pinned),
@@ -38,12 +38,12 @@ from contextlib import contextmanager, nullcontext
 
 import numpy as np
 
+from masking_lab.core.blas_threads import one_blas_thread
 from masking_lab.core.masking import ramp
 from masking_lab.core.psychometric import Psychometric
 from masking_lab.formats.protocol import load_protocol
 from masking_lab.formats.resources import shipped
 from masking_lab.procedures.quest_plus import QuestPlusSettings, tables
-from masking_lab.session.blas_threads import one_blas_thread
 from masking_lab.session.priority import placement_priority, placement_priority_note
 
 BUDGET_MS = 10.0

@@ -1,5 +1,5 @@
 """One BLAS thread inside a session and a plan, the process's own limit restored afterwards
-(session/blas_threads.py; the session itself is checked in tests/test_quest_plus_session.py)."""
+(core/blas_threads.py; the session itself is checked in tests/test_quest_plus_session.py)."""
 
 from __future__ import annotations
 
@@ -22,7 +22,7 @@ def _needs_blas():
 
 
 def test_one_blas_thread_inside_the_block_and_the_limit_back_after_an_error():
-    from masking_lab.session.blas_threads import one_blas_thread
+    from masking_lab.core.blas_threads import one_blas_thread
 
     with threadpoolctl.threadpool_limits(limits=2, user_api="blas"):
         with pytest.raises(RuntimeError, match="inside"), one_blas_thread():

@@ -16,8 +16,7 @@ from __future__ import annotations
 import gc
 import hashlib
 import os
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
@@ -35,6 +34,7 @@ from masking_lab.analysis.thresholds import (
     thresholds_table,
     unpacked,
 )
+from masking_lab.core.blas_threads import one_blas_thread
 from masking_lab.core.errors import AnalysisError
 from masking_lab.formats.csv_table import csv_column_blocks, csv_text
 from masking_lab.formats.fileio import write_text_atomic, write_text_chunks_atomic
@@ -368,31 +368,6 @@ def _statistics(shifts: pd.DataFrame, data: Path, settings: AnalysisSettings) ->
     freed_memory.trim()  # before the statistics' bootstrap
     with one_blas_thread():
         return analyze_shifts(shifts, settings, has_participants=True)
-
-
-@contextmanager
-def one_blas_thread() -> Iterator[None]:
-    """Run the block with every loaded BLAS pool limited to one thread.
-
-    The statistics' products (the bootstrap's weights × shifts, the ramps' pseudo-inverses) are
-    small: with the other core busy (the figure workers, other jobs) a second OpenBLAS thread
-    spin-waits: at 10,000 sessions on two cores, one thread took the main process's work after
-    the read from 5.3 to 3.5 s of CPU. Each element of a product is summed by one thread in
-    one order either way, so the numbers do not change; only OpenBLAS's dot product of more
-    than 10,000 terms is no longer split into per-thread partial sums, which made its last
-    bit depend on the machine's number of cores.
-
-    Examples
-    --------
-    >>> from threadpoolctl import threadpool_info
-    >>> with one_blas_thread():
-    ...     {p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"} <= {1}
-    True
-    """
-    from threadpoolctl import threadpool_limits
-
-    with threadpool_limits(limits=1, user_api="blas"):
-        yield
 
 
 def _params_text(

@@ -270,7 +270,7 @@ def _masking_function_plan(args: argparse.Namespace, protocol: object, out: Path
 
 
 def run(args: argparse.Namespace) -> int:
-    from masking_lab.session.blas_threads import one_blas_thread
+    from masking_lab.core.blas_threads import one_blas_thread
 
     # The batch products ((tracks × 131) · (131 × 131)) gain little from a second BLAS thread
     # and lose 3× CPU to its spin-waits whenever another program holds a core.

@@ -23,7 +23,7 @@ __all__ = ["COMPILED_FROM", "compiled", "compiled_loops", "nuisance_sums", "wron
 
 #: Fewer QUEST+ tracks than this (a session's one) take the numpy routes: the compiled loops
 #: gain little there, and loading numba costs ~0.5 s and a BLAS pool of its own (scipy's) that
-#: a session's one-thread limit (session/blas_threads.py) would not cover.
+#: a session's one-thread limit (core/blas_threads.py) would not cover.
 COMPILED_FROM = 4
 
 

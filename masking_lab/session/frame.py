@@ -26,13 +26,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol, TextIO, TypeVar
 
+from masking_lab.core.blas_threads import one_blas_thread
 from masking_lab.core.clock import Clock, RealClock, VirtualClock
 from masking_lab.core.errors import DeviceTimeModeError, LogError, MaskingLabError
 from masking_lab.device import registry
 from masking_lab.device.base import Device
 from masking_lab.formats.log_lock import LogLock, RunnerLock
 from masking_lab.formats.session_log import SessionLog, SessionLogWriter, read_log
-from masking_lab.session.blas_threads import one_blas_thread
 from masking_lab.session.opening import (
     DeviceOpener,
     ResponderContext,
@@ -510,5 +510,5 @@ def _run(plan: SessionPlan[ResultT], opening: Opening, opened: Opened, spec: str
         opened.out.message(placement_priority_note())
     session = plan.session(opening, opened)
     session.resume_command = resume_command(opened.writer.path, spec, opening.device_config)
-    with one_blas_thread():  # a busy core must not stall a trial's placement (blas_threads)
+    with one_blas_thread():  # a busy core must not stall a trial's placement (core/blas_threads)
         return session.run()

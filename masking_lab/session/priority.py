@@ -2,7 +2,7 @@
 
 Between a participant's answer and the next stimulus the session updates the procedure: for
 QUEST+ and the functional procedure a posterior update and an entropy placement of 1–8 ms of
-CPU. One BLAS thread (:mod:`masking_lab.session.blas_threads`) keeps a busy core from stalling
+CPU. One BLAS thread (:mod:`masking_lab.core.blas_threads`) keeps a busy core from stalling
 that product, but the time-sharing scheduler still hands the core to whatever else is runnable:
 on a two-core machine shared with a figure, a browser or an analysis, the 99th percentile of
 the step measured 14–23 ms for 3 ms of CPU. Linux's autogroups make ``nice`` useless against
