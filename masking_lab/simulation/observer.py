@@ -8,6 +8,8 @@ p(correct) = ψ(target level − masked AL), ψ from :mod:`masking_lab.core.psyc
 
 from __future__ import annotations
 
+import copy
+import functools
 import hashlib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -19,7 +21,7 @@ import numpy as np
 from masking_lab.core.errors import ProtocolError
 from masking_lab.core.masking import MaskingFunction
 from masking_lab.core.psychometric import GUESS_3IFC, Psychometric
-from masking_lab.formats.reader import load_document
+from masking_lab.formats.reader import parse_document, read_limited
 from masking_lab.formats.resources import shipped
 from masking_lab.formats.schemas import (
     first_problem,
@@ -210,12 +212,21 @@ def read_ground_truth(path: str | Path | None = None) -> tuple[Any, str]:
     """
     if path is None:
         source = "protocols/simulation/ground_truth.yaml"
-        doc = load_document(str(shipped("protocols", "simulation/ground_truth.yaml")), what="x")
+        file, what = Path(str(shipped("protocols", "simulation/ground_truth.yaml"))), "x"
     else:
-        source = str(path)
-        doc = load_document(path, what="ground truth")
+        source, file, what = str(path), Path(path), "ground truth"
+    # Read every time, parsed and validated once per content (a demo worker opens 15 sessions
+    # on the same file); each caller gets its own copy of the plain data.
+    raw = read_limited(file, what=what)
+    fmt = "json" if file.suffix.lower() == ".json" else "yaml"
+    return copy.deepcopy(_checked_truth(raw, str(file), fmt, source)), source
+
+
+@functools.lru_cache(maxsize=8)
+def _checked_truth(raw: bytes, file: str, fmt: str, source: str) -> Any:
+    doc = parse_document(raw, file, fmt=fmt)
     ground_truth_from_dict(doc.data, source, doc.lines)
-    return doc.data, source
+    return doc.data
 
 
 def load_ground_truth(path: str | Path | None = None) -> GroundTruth:
