@@ -43,6 +43,10 @@ FrameKind = Literal["command", "reply", "event"]
 
 _WORD = re.compile(r"^[A-Z][A-Z0-9_]*$")
 _KEY = re.compile(r"^[a-z][a-z0-9_]*$")
+# The field names of every trial's frames (PLAY, its OK and DONE): looked up, not matched.
+_TRIAL_KEYS = frozenset({"tch", "tcar", "tenv", "tamp", "ti", "mch", "mcar", "menv", "mamp",
+                         "stim", "gap", "lead", "n", "at", "tatt", "matt", "start", "seq", "on",
+                         "end"})  # fmt: skip
 _VALUE = re.compile(r"^[!-~]+$")  # printable, no space
 _SEQ = re.compile(r"^(0|[1-9][0-9]{0,4})$")
 _HEX4 = re.compile(r"^[0-9A-F]{4}$")
@@ -554,7 +558,7 @@ def decode(line: bytes) -> Frame:
     for tok in tokens[2:]:
         key, eq, value = tok.partition("=")
         # the body is printable ASCII split at spaces: a value matches _VALUE unless empty
-        if not (eq and value and _KEY.match(key)) or key in fields:
+        if not (eq and value and (key in _TRIAL_KEYS or _KEY.match(key))) or key in fields:
             raise FrameError(f"bad field {tok!r} in {name} frame")
         fields[key] = value
     return Frame(kind, seq, name, fields)
@@ -573,16 +577,15 @@ def _fields(fields: Mapping[str, object] | None) -> str:
         return ""
     parts = []
     for key, value in fields.items():
-        if not _KEY.match(key):
+        if key not in _TRIAL_KEYS and not _KEY.match(key):
             raise FrameError(f"bad field name {key!r}")
         if isinstance(value, float):
             parts.append(f"{key}={fmt_number(value)}")  # digits, '-' and '.': always valid
             continue
-        if isinstance(value, bool):
-            text = "1" if value else "0"
-        elif isinstance(value, int):
-            text = str(value)
-        elif isinstance(value, (list, tuple)):
+        if isinstance(value, int):  # a bool as 1 or 0; digits and '-': always valid
+            parts.append(f"{key}={int(value)}")
+            continue
+        if isinstance(value, (list, tuple)):
             text = ",".join(fmt_number(float(v)) for v in value)
         else:
             text = str(value)

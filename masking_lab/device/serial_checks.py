@@ -9,12 +9,14 @@ the session were made for the config's converter.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from typing import Any
 
 from masking_lab.core.errors import DeviceProtocolError, DeviceTimeModeError, SafetyLimitError
+from masking_lab.core.stimulus import Stimulus
 from masking_lab.core.trial import TrialPlan
 from masking_lab.device import protocol as proto
 from masking_lab.device import serial_faults
@@ -160,11 +162,36 @@ def choose_steps(plan: TrialPlan, converters: Mapping[str, Converter], where: st
         An amplitude that no step renders within 1 dB, or a channel's amplitudes beyond the
         output's linear range at every step (nothing is sent).
     """
-    amps: dict[str, list[float]] = {"EV": [], "MV": []}
-    amps[plan.target.channel].append(plan.target_amplitude_v)
     masker_v = plan.masker_amplitude_v if plan.masker is not None else 0.0
-    if plan.masker is not None:
-        amps[plan.masker.channel].append(masker_v)
+    # Every trial is checked; a refusal is an exception, which the cache never keeps.
+    return _choose_steps(
+        plan.target,
+        plan.target_amplitude_v,
+        plan.masker,
+        masker_v,
+        converters["EV"],
+        converters["MV"],
+        where,
+    )
+
+
+# Pure in its arguments (frozen stimuli and converters, amplitudes); a staircase revisits the
+# same levels, so most trials of a session ask again what an earlier one asked.
+@functools.lru_cache(maxsize=4096)
+def _choose_steps(
+    target: Stimulus,
+    target_v: float,
+    masker: Stimulus | None,
+    masker_v: float,
+    ev: Converter,
+    mv: Converter,
+    where: str,
+) -> Steps:
+    converters = {"EV": ev, "MV": mv}
+    amps: dict[str, list[float]] = {"EV": [], "MV": []}
+    amps[target.channel].append(target_v)
+    if masker is not None:
+        amps[masker.channel].append(masker_v)
     step = {ch: converters[ch].pick_step(a) for ch, a in amps.items()}
     for ch, a in amps.items():
         conv = converters[ch]
@@ -177,8 +204,8 @@ def choose_steps(plan: TrialPlan, converters: Mapping[str, Converter], where: st
             )
     played: dict[str, float] = {}
     for what, stim, amp in (
-        ("target", plan.target, plan.target_amplitude_v),
-        ("masker", plan.masker, masker_v),
+        ("target", target, target_v),
+        ("masker", masker, masker_v),
     ):
         if stim is None:
             played[what] = 0.0
@@ -193,8 +220,8 @@ def choose_steps(plan: TrialPlan, converters: Mapping[str, Converter], where: st
                 f"dB: plays {played[what]:.6g} V); nothing was sent. Raise the level floor or add "
                 "an attenuator step"
             )
-    t_att = step[plan.target.channel]
-    m_att = step[plan.masker.channel] if plan.masker is not None else 0.0
+    t_att = step[target.channel]
+    m_att = step[masker.channel] if masker is not None else 0.0
     return Steps(t_att, m_att, played["target"], played["masker"])
 
 
