@@ -19,17 +19,9 @@ REF = Converter(12, 10.0, (0.0, 20.0, 40.0), linear_codes=1798)
 
 
 def _fresh_steps(plan: TrialPlan, converters: dict[str, Converter]) -> serial_checks.Steps:
-    # the memo's function itself, past its cache: what the first trial at a level computes
-    masker_v = plan.masker_amplitude_v if plan.masker is not None else 0.0
-    return serial_checks._choose_steps.__wrapped__(
-        plan.target,
-        plan.target_amplitude_v,
-        plan.masker,
-        masker_v,
-        converters["EV"],
-        converters["MV"],
-        "here",
-    )
+    """What the first trial at a level computes: the memo emptied first."""
+    serial_checks._choose_steps.cache_clear()
+    return serial_checks.choose_steps(plan, converters, "here")
 
 
 def test_steps_asked_again_are_the_steps_computed_afresh() -> None:
