@@ -6,12 +6,11 @@ from pathlib import Path
 
 import numpy  # noqa: F401  (loads the BLAS pool that threadpoolctl lists)
 import pytest
+import threadpoolctl
 
 from masking_lab.analysis import experiment
 from masking_lab.commands.cli import main
 from masking_lab.simulation.synthetic_logs import simulate_study
-
-threadpoolctl = pytest.importorskip("threadpoolctl")
 
 TABLE2 = Path(__file__).resolve().parents[1] / "data_schema" / "shifts.csv"
 
