@@ -453,23 +453,11 @@ class _SceneRender:
             shutil.rmtree(self.out / "render", ignore_errors=True)
 
 
-def _params_from_text(text: str, source: str) -> dict[str, Any]:
-    """A masking_params document from its JSON text, checked as
-    :func:`~masking_lab.formats.masking_params.read_masking_params` checks the file."""
-    from masking_lab.formats.masking_params import MaskingParamsError, validate_masking_params
-    from masking_lab.formats.reader import parse_document
-
-    doc = parse_document(text.encode("utf-8"), source, fmt="json", error=MaskingParamsError)
-    validate_masking_params(doc.data, doc.source, doc.lines)
-    data: dict[str, Any] = doc.data
-    return data
-
-
 def _render(out: Path, params_text: str | None = None) -> dict[str, Any]:
     """Render the scene into ``out/render`` from ``out/analysis/masking_params.json``, or from
     ``params_text``, that file's text before it is written."""
     from masking_lab.device.rig_limits import max_level_db_sl
-    from masking_lab.formats.masking_params import read_masking_params
+    from masking_lab.formats.masking_params import parse_masking_params, read_masking_params
     from masking_lab.rendering.outputs import write_rendering
     from masking_lab.rendering.render import (
         compare_strategies,
@@ -485,7 +473,7 @@ def _render(out: Path, params_text: str | None = None) -> dict[str, Any]:
     if params_text is None:
         params = read_masking_params(params_path)
     else:
-        params = _params_from_text(params_text, str(params_path))
+        params = parse_masking_params(params_text, str(params_path))
     ((mv, ev),) = needed_pairs(scene)
     pair = pair_from_params(params, mv=mv, ev=ev, source=str(params_path))
     limits = max_level_db_sl(None)

@@ -20,7 +20,7 @@ from typing import Any
 from masking_lab.core.errors import AnalysisError, ProtocolError
 from masking_lab.core.masking import MaskingFunction
 from masking_lab.formats.fileio import write_text_atomic
-from masking_lab.formats.reader import load_document
+from masking_lab.formats.reader import load_document, parse_document
 from masking_lab.formats.schemas import (
     first_problem,
 )
@@ -190,6 +190,29 @@ def read_masking_params(path: str | Path) -> dict[str, Any]:
     doc = load_document(path, what="file", fmt="json", error=MaskingParamsError)
     validate_masking_params(doc.data, doc.source, doc.lines)
     return doc.data
+
+
+def parse_masking_params(text: str, source: str) -> dict[str, Any]:
+    """A masking_params document from its JSON text, checked as :func:`read_masking_params`
+    checks the file (``source`` names it in messages).
+
+    Raises
+    ------
+    MaskingParamsError
+        If the text is not JSON or breaks the schema.
+
+    Examples
+    --------
+    >>> try:
+    ...     parse_masking_params("{", "params.json")
+    ... except MaskingParamsError as exc:
+    ...     print(str(exc).split(" (")[0])
+    params.json: line 1: not valid JSON
+    """
+    doc = parse_document(text.encode("utf-8"), source, fmt="json", error=MaskingParamsError)
+    validate_masking_params(doc.data, doc.source, doc.lines)
+    data: dict[str, Any] = doc.data
+    return data
 
 
 def load_masking_params(path: str | Path) -> dict[tuple[str, str], MaskingParamsEntry]:

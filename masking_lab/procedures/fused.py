@@ -7,6 +7,9 @@ numpy makes one pass over the 22 MB float32 table per nuisance point; the compil
 :mod:`masking_lab.procedures.jit_loops` read it once, with the same float32 operations in the
 same order, so both routes give the same numbers bit for bit (tests/test_fused.py). numba is a
 dependency; without it (or with ``NUMBA_DISABLE_JIT=1``) the numpy route runs, slower.
+
+:func:`compiled_loops` loads any such module of compiled loops (the QUEST+ screen's and update's
+too), and :data:`COMPILED_FROM` says how many tracks make loading numba worth it.
 """
 
 from __future__ import annotations
