@@ -296,7 +296,12 @@ def test_open_tty_reads_the_named_terminal(pty_pair):
 
 CHILD = textwrap.dedent(
     """
-    import json, os, sys
+    import json, os, signal, sys
+    # As launched from a terminal's shell: Ctrl-C raises KeyboardInterrupt. A test process can
+    # inherit SIGINT ignored (exec keeps an ignored signal ignored; Python then installs no
+    # handler), and then the child would never see the Ctrl-C typed below.
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
     from masking_lab.core.trial import PlayResult, TrialPlan
     from masking_lab.core.errors import ResponderError
     from masking_lab.responders.base import TrialPresentation
@@ -347,7 +352,7 @@ def test_ctrl_c_interrupts_and_restores_the_terminal():
             participant.type(b"\x03")  # Ctrl-C → SIGINT to the child
             # The exit status, not the child's "INTERRUPTED", says the interrupt was handled:
             # raising SIGINT, the line discipline also flushes the terminal's queues, which
-            # can drop what the child wrote before the flush ran (seen on a loaded machine).
+            # can drop what the child wrote before the flush ran.
             assert wait_exit(pid) == 130  # sys.exit(130) in its KeyboardInterrupt handler
             assert lflag(watcher) & termios.ICANON  # the terminal it left behind
             assert lflag(watcher) & termios.ECHO
