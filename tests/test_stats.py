@@ -186,6 +186,23 @@ def test_participants_with_missing_cells_are_dropped_and_listed():
     assert design.dropped == (("S03", "no value for F1@10.0"),)
 
 
+def test_many_participants_with_gaps_are_each_listed_with_every_missing_cell_in_order():
+    df = _generated(n=40)
+    gone = {"S07": [("F1", 10.0)], "S22": [("F0", 0.0), ("F2", 20.0)], "S39": [("F2", 0.0)]}
+    for subject, cells in gone.items():
+        for a, b in cells:
+            df = df[~((df["participant"] == subject) & (df["a"] == a) & (df["b"] == b))]
+    design = rm_design(df, subject="participant", factor_a="a", factor_b="b", dv="y")
+    assert design.dropped == (
+        ("S07", "no value for F1@10.0"),
+        ("S22", "no value for F0@0.0, F2@20.0"),
+        ("S39", "no value for F2@0.0"),
+    )
+    assert len(design.subjects) == 37 and not set(gone) & set(design.subjects)
+    full = df[df["participant"].isin(design.subjects)].sort_values(["participant", "a", "b"])
+    assert design.data.ravel().tolist() == full["y"].tolist()
+
+
 def test_too_few_complete_participants_is_refused():
     df = _generated(n=2)
     df = df[~((df["participant"] == "S01") & (df["a"] == "F0") & (df["b"] == 0.0))]
