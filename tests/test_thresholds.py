@@ -291,3 +291,24 @@ def test_rows_are_sorted_deterministically(tmp_path):
     assert json.dumps(table.to_dict("records"), default=str) == json.dumps(
         thresholds_table(_rows(logs[::-1])).to_dict("records"), default=str
     )
+
+
+def test_each_pair_gets_its_own_frequency_columns_however_the_rows_interleave():
+    # The pairs' columns are worked out once per (target, masker): rows of experiment I (the
+    # masker is the MV stimulus) and II (the target is) interleaved must each get their own.
+    pairs = [("EV270", "MV120"), ("MV180", "EV270"), ("EV270", "MV120"), ("MV270", "EV270")]
+    rows = [
+        {"participant": f"P{k}", "experiment": "e", "set_id": f"S{k}", "target": t, "masker": m,
+         "masker_level_db_sl": 10.0, "status": "completed", "al_db_v": -20.0, "log": f"{k}.jsonl"}
+        for k, (t, m) in enumerate(pairs)
+    ]  # fmt: skip
+    table = thresholds_table(rows, unmasked_al="calibration")
+    got = table[["target", "masker_frequency_hz", "mv_stimulus", "mv_frequency_hz"]]
+    assert got.values.tolist() == [
+        ["EV270", 120.0, "MV120", 120.0],
+        ["MV180", 270.0, "MV180", 180.0],
+        ["EV270", 120.0, "MV120", 120.0],
+        ["MV270", 270.0, "MV270", 270.0],
+    ]
+    with pytest.raises(Exception, match="stimulus"):  # a malformed name fails as before
+        thresholds_table([{**rows[0], "masker": "XX9"}])

@@ -463,15 +463,27 @@ def thresholds_table(
         if status[i] == "completed" and masker[i] is None and al_db_v[i] is not None:
             baseline[(participant[i], target[i])] = float(al_db_v[i])
 
+    # A study has a handful of (target, masker) pairs, named on ~10⁵ rows: each is parsed once.
+    pairs: dict[tuple[str, str], tuple[Any, str, Any]] = {}
+    masker_hz, mv_name, mv_hz = (
+        col["masker_frequency_hz"],
+        col["mv_stimulus"],
+        col["mv_frequency_hz"],
+    )
     for i in range(n):
         if masker[i] is None or target[i] is None:
             continue
-        t_stim, m_stim = _stimulus(target[i]), _stimulus(masker[i])
-        # The ANOVA's frequency factor is the MV stimulus of the pair (paper Table 2).
-        mv = m_stim if m_stim.channel == "MV" or t_stim.channel != "MV" else t_stim
-        col["masker_frequency_hz"][i] = m_stim.carrier_hz
-        col["mv_stimulus"][i] = mv.name
-        col["mv_frequency_hz"][i] = mv.carrier_hz
+        pair = (target[i], masker[i])
+        cacheable = type(pair[0]) is str and type(pair[1]) is str  # others fail as they did
+        known = pairs.get(pair) if cacheable else None
+        if known is None:
+            t_stim, m_stim = _stimulus(target[i]), _stimulus(masker[i])
+            # The ANOVA's frequency factor is the MV stimulus of the pair (paper Table 2).
+            mv = m_stim if m_stim.channel == "MV" or t_stim.channel != "MV" else t_stim
+            known = (m_stim.carrier_hz, mv.name, mv.carrier_hz)
+            if cacheable:
+                pairs[pair] = known
+        masker_hz[i], mv_name[i], mv_hz[i] = known
         if status[i] != "completed":
             continue
         from_base = baseline.get((participant[i], target[i]))
