@@ -181,7 +181,7 @@ def rm_design(
     wide = wide.reindex(columns=pd.MultiIndex.from_product([levels_a, levels_b]))
     wide = wide.sort_index()
     missing = wide.isna().to_numpy()
-    partial = missing.any(axis=1)
+    partial: NDArray[np.bool_] = np.asarray(missing.any(axis=1), dtype=bool)
     cells_ab = list(itertools.product(levels_a, levels_b))  # the columns, in order
     # Only the participants with a gap are visited (a row-by-row scan of thousands cost ~0.3 s).
     dropped = []
