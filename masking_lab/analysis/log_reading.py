@@ -159,6 +159,16 @@ def read_one(path: Path, rel: str, settings: EstimatorSettings) -> LogResult:
             return LogResult(path, rel, error=str(exc))
         rows = session_rows(log, rel, settings)
     header = log.header if isinstance(log.header, dict) else {}
+    layout = log.intact_layout
+    if layout is None:
+        played = played_level_problems(log.records, log.lines)
+        may_hold_functional = names_masker_placing_set(log.records)
+    else:
+        # An intact typed log: its one pass found whether any trial reports a played level
+        # (most do not: nothing to compare), and its set_starts are at the spans' starts.
+        played = played_level_problems(log.records, log.lines) if layout.played else []
+        starts = [log.records[a] for a, _ in layout.spans]
+        may_hold_functional = names_masker_placing_set(starts)
     return LogResult(
         path,
         rel,
@@ -166,12 +176,12 @@ def read_one(path: Path, rel: str, settings: EstimatorSettings) -> LogResult:
         header=_analysis_header(header),
         rows=packed(rows or []),
         line_problems=list(log.problems),
-        continuity=[*log.continuity_problems(), *played_level_problems(log.records, log.lines)],
+        continuity=[*log.continuity_problems(), *played],
         value_problems=list(log.value_problems),
         n_bytes=len(raw),
         completed=_completed(log),
         session=session_of(header, rel, log.ended),
-        may_hold_functional=names_masker_placing_set(log.records),
+        may_hold_functional=may_hold_functional,
     )
 
 

@@ -24,6 +24,7 @@ shift and enter the statistics.
 from __future__ import annotations
 
 import functools
+import itertools
 import math
 import operator
 import zlib
@@ -262,6 +263,7 @@ def _stimulus(name: Any) -> Stimulus:
 _CORRECT = operator.attrgetter("correct")
 _REVERSAL = operator.attrgetter("reversal")
 _TRIAL_INDEX = operator.attrgetter("trial_index")
+_TRUE = itertools.repeat(True)  # flags compared by identity: `is True`, as JSON true decodes
 
 
 def _trial_columns(
@@ -277,8 +279,9 @@ def _trial_columns(
         levels = list(map(operator.attrgetter(unit_key), trials))
         correct = list(map(_CORRECT, trials))
         if None not in levels and UNSET not in levels and UNSET not in correct:
-            flags = map(_REVERSAL, trials)
-            flagged = [v for v, flag in zip(levels, flags, strict=True) if flag is True]
+            flagged = list(
+                itertools.compress(levels, map(operator.is_, map(_REVERSAL, trials), _TRUE))
+            )
             # An absent index (UNSET) differs from every int, as None does for dicts.
             return levels, correct, flagged, list(map(_TRIAL_INDEX, trials))
     levels = [float(t[unit_key]) for t in trials]
