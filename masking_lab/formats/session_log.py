@@ -81,11 +81,15 @@ class SetRecords:
         Its ``trial`` records in order.
     end : dict or None
         Its ``set_end`` record, or None if the set did not finish.
+    counted : bool
+        The trials are known to be typed trial records whose ``trial_index`` counts 0, 1,
+        2, … (an intact typed log's layout says so; the estimator need not check again).
     """
 
     start: Any
     trials: list[Any] = field(default_factory=list)
     end: Any | None = None
+    counted: bool = False
 
 
 @dataclass
@@ -141,7 +145,7 @@ class SessionLog:
             for (a, b), ended in zip(layout.spans, layout.ended, strict=True):
                 sid = recs[a].set_id
                 out_typed[None if sid is unset else sid] = SetRecords(
-                    recs[a], recs[a + 1 : b], recs[b] if ended else None
+                    recs[a], recs[a + 1 : b], recs[b] if ended else None, counted=True
                 )
             return out_typed
         out: dict[str, SetRecords] = {}
