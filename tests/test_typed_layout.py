@@ -141,3 +141,20 @@ def test_read_one_gives_the_old_route_s_result(logs, tmp_path, monkeypatch):
             m.setattr(SessionLog, "intact_layout", property(lambda self: None))
             old = read_one(path, path.name, settings)
         assert dataclasses.astuple(new) == dataclasses.astuple(old)
+
+
+def test_shared_row_values_are_the_same_values():
+    from types import SimpleNamespace
+
+    from masking_lab.analysis.log_reading import _share_values
+
+    nan = float("nan")
+    rows = [("P1", 1.5, -0.0, nan, None, 3, True), ("P" + "1", 1.5, 0.0, nan, "x", 3.0, False)]
+    results = [SimpleNamespace(rows=[rows[0]]), SimpleNamespace(rows=[rows[1]])]
+    _share_values(results)
+    a, b = results[0].rows[0], results[1].rows[0]
+    assert [type(v) for v in a] == [type(v) for v in rows[0]]
+    assert [type(v) for v in b] == [type(v) for v in rows[1]]
+    assert repr(a) == repr(rows[0]) and repr(b) == repr(rows[1])  # -0.0 and NaN kept
+    assert a[0] is b[0] and a[1] is b[1]  # equal strings and floats: one object
+    assert a[2] is not b[2]  # zeros of either sign are left alone

@@ -258,17 +258,21 @@ def _share_values(results: list[LogResult]) -> None:
     strings: dict[str, str] = {}
     floats: dict[float, float] = {}
     share_str, share_float = strings.setdefault, floats.setdefault
-
-    def shared(v: Any) -> Any:
-        kind = type(v)
-        if kind is str:
-            return share_str(v, v)
-        if kind is float and v == v and v != 0.0:
-            return share_float(v, v)
-        return v
-
     for res in results:
-        res.rows = [tuple([shared(v) for v in row]) for row in res.rows]
+        # inline, not a function call per value: ~300 values per log
+        res.rows = [
+            tuple(
+                [
+                    share_str(v, v)
+                    if type(v) is str
+                    else share_float(v, v)
+                    if type(v) is float and v == v and v != 0.0
+                    else v
+                    for v in row
+                ]
+            )
+            for row in res.rows
+        ]
 
 
 def read_logs(
