@@ -24,6 +24,7 @@ shift and enter the statistics.
 from __future__ import annotations
 
 import functools
+import itertools
 import math
 import operator
 import zlib
@@ -135,7 +136,7 @@ def estimate_set(records: SetRecords, settings: EstimatorSettings) -> SetEstimat
     status = str(end.get("status"))
     unit_key = "level_db_sl" if start.get("level_unit") == "db_sl" else "level_db_v"
     try:
-        levels, correct, flagged, index = _trial_columns(trials, unit_key)
+        levels, correct, flagged, index = _trial_columns(trials, unit_key, records.counted)
     except (KeyError, TypeError, ValueError, OverflowError) as exc:
         return SetEstimate(
             None, "invalid", n_trials, 0, f"a trial record lacks a usable {exc} value"
@@ -160,7 +161,7 @@ def estimate_set(records: SetRecords, settings: EstimatorSettings) -> SetEstimat
         # The set_end list is the staircase's own record; flags can miss a skipped line.
         reversals = [float(v) for v in logged_reversals]
         notes.append("trial reversal flags disagree with set_end; used set_end's reversals")
-    if index != list(range(n_trials)):
+    if index is not None and index != list(range(n_trials)):
         notes.append("trial indices are not 0..n-1 (lines lost or repeated)")
     if status != "completed":
         reason = end.get("reason")
@@ -262,25 +263,29 @@ def _stimulus(name: Any) -> Stimulus:
 _CORRECT = operator.attrgetter("correct")
 _REVERSAL = operator.attrgetter("reversal")
 _TRIAL_INDEX = operator.attrgetter("trial_index")
+_TRUE = itertools.repeat(True)  # flags compared by identity: `is True`, as JSON true decodes
 
 
 def _trial_columns(
-    trials: list[Any], unit_key: str
-) -> tuple[list[float], list[bool], list[float], list[Any]]:
+    trials: list[Any], unit_key: str, counted: bool = False
+) -> tuple[list[float], list[bool], list[float], list[Any] | None]:
     """Levels (dB in the set's unit), answers, levels of flagged reversals and trial indices.
 
     Typed trial records (the analysis view of :mod:`masking_lab.formats.log_records`) are read
     by attribute; anything else, or a typed record lacking a value, by key, which raises
-    ``KeyError``/``TypeError``/``ValueError`` for a missing or unusable value.
+    ``KeyError``/``TypeError``/``ValueError`` for a missing or unusable value. ``counted``:
+    the trials are typed and their indices count 0..n-1 (:class:`SetRecords`), so neither is
+    looked at again and the indices come back as None.
     """
-    if trials and set(map(type, trials)) == {ATrial}:
+    if trials and (counted or set(map(type, trials)) == {ATrial}):
         levels = list(map(operator.attrgetter(unit_key), trials))
         correct = list(map(_CORRECT, trials))
         if None not in levels and UNSET not in levels and UNSET not in correct:
-            flags = map(_REVERSAL, trials)
-            flagged = [v for v, flag in zip(levels, flags, strict=True) if flag is True]
+            flagged = list(
+                itertools.compress(levels, map(operator.is_, map(_REVERSAL, trials), _TRUE))
+            )
             # An absent index (UNSET) differs from every int, as None does for dicts.
-            return levels, correct, flagged, list(map(_TRIAL_INDEX, trials))
+            return levels, correct, flagged, None if counted else list(map(_TRIAL_INDEX, trials))
     levels = [float(t[unit_key]) for t in trials]
     correct = [bool(t["correct"]) for t in trials]
     flagged = [float(t[unit_key]) for t in trials if t.get("reversal")]

@@ -20,6 +20,7 @@ reported in :attr:`SessionLog.problems` (never skipped silently).
 from __future__ import annotations
 
 import contextlib
+import functools
 import json
 import operator
 import os
@@ -58,6 +59,7 @@ from masking_lab.formats.log_records import (
     view_keys,
 )
 from masking_lab.formats.records import encode_record
+from masking_lab.formats.typed_layout import Layout, intact_layout
 
 __all__ = ["SessionLog", "SessionLogWriter", "SetRecords", "SyncPolicy", "parse_log", "read_log"]
 
@@ -79,11 +81,15 @@ class SetRecords:
         Its ``trial`` records in order.
     end : dict or None
         Its ``set_end`` record, or None if the set did not finish.
+    counted : bool
+        The trials are known to be typed trial records whose ``trial_index`` counts 0, 1,
+        2, … (an intact typed log's layout says so; the estimator need not check again).
     """
 
     start: Any
     trials: list[Any] = field(default_factory=list)
     end: Any | None = None
+    counted: bool = False
 
 
 @dataclass
@@ -131,7 +137,17 @@ class SessionLog:
         scratch; a repeated ``set_start`` just replaces the start record).
         """
         if self.records and isinstance(self.records[0], msgspec.Struct):
-            return _typed_sets(self.records)
+            layout = self.intact_layout
+            if layout is None:
+                return _typed_sets(self.records)
+            recs, unset = self.records, msgspec.UNSET
+            out_typed: dict[Any, SetRecords] = {}
+            for (a, b), ended in zip(layout.spans, layout.ended, strict=True):
+                sid = recs[a].set_id
+                out_typed[None if sid is unset else sid] = SetRecords(
+                    recs[a], recs[a + 1 : b], recs[b] if ended else None, counted=True
+                )
+            return out_typed
         out: dict[str, SetRecords] = {}
         for rec in self.records:
             kind = rec.get("record")
@@ -165,7 +181,11 @@ class SessionLog:
                 self.header.get("seq") == self.header_line
                 and list(map(_SEQ, self.records)) == self.lines
             )
-            if intact and not interleaved(self.header) and _typed_structure_intact(self.records):
+            if (
+                intact
+                and not interleaved(self.header)
+                and (self.intact_layout is not None or _typed_structure_intact(self.records))
+            ):
                 return []
             # The keys only for a log the shortcut cannot clear (they cost more than the check).
             keys = [(self.header_line, *record_key(self.header))]
@@ -175,6 +195,18 @@ class SessionLog:
             )
         entries = [(self.header_line, self.header), *zip(self.lines, self.records, strict=True)]
         return continuity_problems(entries)
+
+    @functools.cached_property
+    def intact_layout(self) -> Layout | None:
+        """Where the sets of a typed log of the common intact shape lie, else None.
+
+        Found once (:func:`~masking_lab.formats.typed_layout.intact_layout`) for
+        :meth:`sets`, :meth:`continuity_problems` and the played-level check alike; None
+        for a log of dicts (the general reader's).
+        """
+        if self.records and isinstance(self.records[0], msgspec.Struct):
+            return intact_layout(self.records)
+        return None
 
 
 _NO_SET = object()  # no set open (distinct from a set whose id is missing)

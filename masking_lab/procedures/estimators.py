@@ -41,13 +41,13 @@ def reversal_mean_al(reversal_levels_db: Sequence[float], k: int) -> float:
     """
     if k < 1:
         raise AnalysisError(f"reversals averaged must be ≥ 1, got {k}")
-    levels = [float(v) for v in reversal_levels_db]
+    levels = list(map(float, reversal_levels_db))
     if len(levels) < k:
         raise AnalysisError(
             f"only {len(levels)} reversals logged, cannot average the last {k}; "
             "lower --reversals or use --estimator ml"
         )
-    if not all(math.isfinite(v) for v in levels[-k:]):
+    if not all(map(math.isfinite, levels[-k:])):
         raise AnalysisError("a reversal level is not a finite number of dB")
     return math.fsum(levels[-k:]) / k
 
