@@ -17,7 +17,7 @@ import pytest
 from masking_lab.analysis.log_reading import fast_parse
 from masking_lab.formats.log_integrity import problems_of_keys, record_key
 from masking_lab.formats.log_records import view_keys
-from masking_lab.formats.session_log import _typed_structure_intact
+from masking_lab.formats.typed_layout import typed_structure_intact
 from masking_lab.simulation.synthetic_logs import simulate_study
 
 
@@ -52,7 +52,7 @@ def _damage(records, rng):
 
 def test_intact_logs_take_the_fast_path_and_the_full_check_agrees(logs):
     for log in logs:
-        assert _typed_structure_intact(log.records)
+        assert typed_structure_intact(log.records)
         assert _full_check(log, log.records) == []
         assert log.continuity_problems() == []
 
@@ -64,7 +64,7 @@ def test_the_fast_path_never_passes_a_log_the_full_check_faults(logs):
         log = rng.choice(logs)
         damaged = _damage(log.records, rng)
         problems = _full_check(log, damaged)
-        if _typed_structure_intact(damaged):
+        if typed_structure_intact(damaged):
             assert problems == [], problems
         faulted += bool(problems)
     assert faulted > 300  # the damage was real most of the time

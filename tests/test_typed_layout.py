@@ -2,7 +2,7 @@
 
 :func:`masking_lab.formats.typed_layout.intact_layout` stands in, for intact typed logs, for
 three loops over the records: grouping by set (``_typed_sets``), the structural continuity
-shortcut (``_typed_structure_intact``) and the played-level check. Real logs of a simulated
+shortcut (``typed_structure_intact``) and the played-level check. Real logs of a simulated
 study, intact and damaged at random (records deleted, repeated, swapped, moved; ids, indices,
 counts and played levels changed; faults, headers and session ends inserted), must give the
 same sets, continuity problems, played-level notes and read results by both routes. The old
@@ -21,8 +21,8 @@ from masking_lab.analysis.log_reading import fast_parse, read_one
 from masking_lab.analysis.played_levels import played_level_problems
 from masking_lab.analysis.thresholds import EstimatorSettings, session_rows
 from masking_lab.formats.log_records import ANALYSIS_DECODER, AFault, ATrial
-from masking_lab.formats.session_log import SessionLog, _typed_sets, _typed_structure_intact
-from masking_lab.formats.typed_layout import intact_layout
+from masking_lab.formats.session_log import SessionLog, _typed_sets
+from masking_lab.formats.typed_layout import intact_layout, typed_structure_intact
 from masking_lab.simulation.synthetic_logs import simulate_study
 
 
@@ -108,7 +108,7 @@ def test_damaged_logs_give_the_same_answers_by_both_routes(logs, seed):
         layout = intact_layout(recs)
         if layout is not None:
             with_layout += 1
-            assert _typed_structure_intact(recs)  # never passes what the old shortcut refuses
+            assert typed_structure_intact(recs)  # never passes what the old shortcut refuses
             if not layout.played:
                 assert played_level_problems(recs) == []
         new, old = _log(base, recs), _log(base, recs, layout=False)

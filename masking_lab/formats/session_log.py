@@ -48,18 +48,14 @@ from masking_lab.formats.log_integrity import (
 )
 from masking_lab.formats.log_lock import LogLock
 from masking_lab.formats.log_records import (
-    AFault,
-    AResume,
-    ASessionEnd,
     ASetEnd,
     ASetStart,
     ATrial,
-    AUsertestTrial,
     check_record,
     view_keys,
 )
 from masking_lab.formats.records import encode_record
-from masking_lab.formats.typed_layout import Layout, intact_layout
+from masking_lab.formats.typed_layout import Layout, intact_layout, typed_structure_intact
 
 __all__ = ["SessionLog", "SessionLogWriter", "SetRecords", "SyncPolicy", "parse_log", "read_log"]
 
@@ -184,7 +180,7 @@ class SessionLog:
             if (
                 intact
                 and not interleaved(self.header)
-                and (self.intact_layout is not None or _typed_structure_intact(self.records))
+                and (self.intact_layout is not None or typed_structure_intact(self.records))
             ):
                 return []
             # The keys only for a log the shortcut cannot clear (they cost more than the check).
@@ -207,52 +203,6 @@ class SessionLog:
         if self.records and isinstance(self.records[0], msgspec.Struct):
             return intact_layout(self.records)
         return None
-
-
-_NO_SET = object()  # no set open (distinct from a set whose id is missing)
-
-
-def _typed_structure_intact(records: list[Any]) -> bool:
-    """True only if :func:`~masking_lab.formats.log_integrity.problems_of_keys` would find no
-    structural problem in these typed view records of a non-interleaved log.
-
-    The common case, answered in one tight pass (about a sixth of the cost of building the
-    keys); anything unusual (a set started twice, a set open while another starts, a second
-    header, a set_end whose count is not an int) answers False, and the caller runs the full
-    check, which says what is wrong and where.
-    """
-    unset = msgspec.UNSET
-    open_set: Any = _NO_SET
-    seen: set[Any] = set()
-    n_trials = usertest_trials = 0
-    ended = False
-    for rec in records:
-        if ended:
-            return False
-        cls = type(rec)
-        if cls is ATrial:
-            if rec.set_id != open_set or rec.trial_index != n_trials:
-                return False
-            n_trials += 1
-        elif cls is ASetStart:
-            if open_set is not _NO_SET or rec.set_id in seen:
-                return False
-            open_set = rec.set_id
-            seen.add(open_set)
-            n_trials = 0
-        elif cls is ASetEnd:
-            if rec.set_id != open_set or (rec.n_trials is not unset and rec.n_trials != n_trials):
-                return False
-            open_set = _NO_SET
-        elif cls is AUsertestTrial:
-            if rec.trial != usertest_trials:
-                return False
-            usertest_trials += 1
-        elif cls is ASessionEnd:
-            ended = True
-        elif cls is not AFault and cls is not AResume:
-            return False
-    return True
 
 
 def _typed_sets(records: list[Any]) -> dict[str, SetRecords]:

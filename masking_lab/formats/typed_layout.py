@@ -11,7 +11,8 @@ its own loop over every record.
 
 :func:`intact_layout` answers only for that common shape; anything else (a fault or resume
 record, a user-test trial, a record out of place) answers None, and the caller takes the
-record-by-record routes, which say what is wrong and where.
+record-by-record routes, which say what is wrong and where. :func:`typed_structure_intact` is
+the wider structural shortcut for those (faults, resumes and user-test trials allowed).
 """
 
 from __future__ import annotations
@@ -21,9 +22,17 @@ from typing import Any
 
 from msgspec import UNSET
 
-from masking_lab.formats.log_records import ASessionEnd, ASetEnd, ASetStart, ATrial
+from masking_lab.formats.log_records import (
+    AFault,
+    AResume,
+    ASessionEnd,
+    ASetEnd,
+    ASetStart,
+    ATrial,
+    AUsertestTrial,
+)
 
-__all__ = ["Layout", "intact_layout"]
+__all__ = ["Layout", "intact_layout", "typed_structure_intact"]
 
 
 @dataclass(frozen=True)
@@ -112,3 +121,49 @@ def intact_layout(records: list[Any]) -> Layout | None:
     if len(set(ids)) != len(ids) or (unset in ids and None in ids):
         return None
     return Layout(spans, closed, played)
+
+
+_NO_SET = object()  # no set open (distinct from a set whose id is missing)
+
+
+def typed_structure_intact(records: list[Any]) -> bool:
+    """True only if :func:`~masking_lab.formats.log_integrity.problems_of_keys` would find no
+    structural problem in these typed view records of a non-interleaved log.
+
+    The common case, answered in one tight pass (about a sixth of the cost of building the
+    keys); anything unusual (a set started twice, a set open while another starts, a second
+    header, a set_end whose count is not an int) answers False, and the caller runs the full
+    check, which says what is wrong and where.
+    """
+    unset = UNSET
+    open_set: Any = _NO_SET
+    seen: set[Any] = set()
+    n_trials = usertest_trials = 0
+    ended = False
+    for rec in records:
+        if ended:
+            return False
+        cls = type(rec)
+        if cls is ATrial:
+            if rec.set_id != open_set or rec.trial_index != n_trials:
+                return False
+            n_trials += 1
+        elif cls is ASetStart:
+            if open_set is not _NO_SET or rec.set_id in seen:
+                return False
+            open_set = rec.set_id
+            seen.add(open_set)
+            n_trials = 0
+        elif cls is ASetEnd:
+            if rec.set_id != open_set or (rec.n_trials is not unset and rec.n_trials != n_trials):
+                return False
+            open_set = _NO_SET
+        elif cls is AUsertestTrial:
+            if rec.trial != usertest_trials:
+                return False
+            usertest_trials += 1
+        elif cls is ASessionEnd:
+            ended = True
+        elif cls is not AFault and cls is not AResume:
+            return False
+    return True
