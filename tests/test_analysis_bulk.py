@@ -133,3 +133,58 @@ def test_the_outlier_rule_on_slices_is_the_rule_on_new_arrays() -> None:
         "status": ["completed"] * 6, "shift_db": [1.0, 1.2, 0.9, 1.1, 1.0, 9.0],
         "al_db_v": [None] * 6})  # fmt: skip
     assert [o.participant for o in outliers(t)] == ["P5"]
+
+
+def _old_outliers(t: pd.DataFrame) -> list[tuple]:
+    """The rule's AL-shift cells as a DataFrame per cell (before session 35)."""
+    done = t[t["status"] == "completed"]
+    masked = done[done["masker"].notna() & done["shift_db"].notna()]
+    out = []
+    keys = ["experiment", "target", "masker", "masker_level_db_sl"]
+    for (e, tg, m, _), g in masked.groupby(keys, sort=True):
+        lv = float(g["masker_level_db_sl"].iloc[0])
+        vals = dict(zip(g["participant"], g["shift_db"].astype(float), strict=True))
+        out += _old_flag(vals, f"{e} {tg}|{m} @ {lv:g} dB SL (AL shift)")
+    return out
+
+
+def test_the_outlier_cells_walked_on_lists_are_the_grouped_cells() -> None:
+    # cells in shuffled row order, a repeated participant in a cell (the later value counts),
+    # missing levels (no cell), unmasked and unfinished rows, heavy tails at several scales
+    rng = np.random.default_rng(11)
+    rows = []
+    for e in ("exp_b", "exp_a"):
+        for target, masker in (("EV270", "MV120"), ("EV90", "MV200"), ("EV270", None)):
+            for level in (10.0, 2.5, math.nan):
+                scale, offset = 10 ** rng.uniform(-3, 3), rng.uniform(-1e3, 1e3)
+                for _i in range(int(rng.integers(3, 70))):
+                    rows.append({"participant": f"P{rng.integers(0, 80)}", "experiment": e,
+                        "target": target, "masker": masker, "masker_level_db_sl": level,
+                        "status": "completed" if rng.random() < 0.9 else "aborted",
+                        "shift_db": offset + scale * float(rng.standard_t(2)),
+                        "al_db_v": -30.0 + float(rng.normal())})  # fmt: skip
+    t = pd.DataFrame([rows[i] for i in rng.permutation(len(rows))])
+    got = [(o.participant, o.what, o.value_db, o.others_mean_db, o.z) for o in outliers(t)]
+    shift_flags = [g for g in got if g[1].endswith("(AL shift)")]
+    assert shift_flags == _old_outliers(t)
+    assert len(shift_flags) >= 5
+
+
+def test_the_screen_keeps_every_value_the_rule_flags() -> None:
+    # the screen (0.9 of the rule) must pass every value the exact rule flags, at any scale:
+    # cells placed at z = 3.5 +- 1e-9 and heavy-tailed cells against the plain rule
+    rng = np.random.default_rng(5)
+    flagged = 0
+    for k in range(3000):
+        n = int(rng.integers(3, 40))
+        v = rng.standard_t(2, n) * 10 ** rng.uniform(-6, 6) + rng.uniform(-1e6, 1e6)
+        if k % 3 == 0:
+            v = np.round(v, 1)
+        if k % 7 == 0 and n > 4:
+            others = v[1:]
+            v[0] = others.mean() + (OUTLIER_Z + rng.choice([-1e-9, 0.0, 1e-9])) * others.std(ddof=1)
+        vals = {f"P{i}": float(x) for i, x in enumerate(v)}
+        got = [(o.participant, o.what, o.value_db, o.others_mean_db, o.z) for o in _flag(vals, "w")]
+        assert got == _old_flag(vals, "w")
+        flagged += len(got)
+    assert flagged > 500

@@ -333,13 +333,14 @@ class ShiftFigures:
         self.results: list[Callable[[], bytes]] = []
         if not wanted:
             return
-        done = thresholds[(thresholds["status"] == "completed") & thresholds["shift_db"].notna()]
+        names = ["participant", "mv_stimulus", "target", "masker", "masker_level_db_sl", "shift_db"]
+        ok = (thresholds["status"] == "completed") & thresholds["shift_db"].notna()
+        done = thresholds.loc[ok, ["experiment", *names]]  # not the table's other columns
         flagged = set()
         for o in flags:
             if "(AL shift)" in o.what:
                 head, _, rest = o.what.partition(" @ ")
                 flagged.add((o.participant, head.split(" ", 1)[1], float(rest.split(" ")[0])))
-        names = ["participant", "mv_stimulus", "target", "masker", "masker_level_db_sl", "shift_db"]
         # Column lists, not a dict per set (at 10,000 sessions ~40 MB, left fragmented once
         # freed); the worker makes the rows (lab_figures.shift_figure_png_columns).
         for e, g in done.groupby("experiment", sort=True):
