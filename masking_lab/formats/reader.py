@@ -513,6 +513,18 @@ def parse_document(
     return Document(data, lines, hashlib.sha256(raw).hexdigest(), source)
 
 
+def syntax_of(path: str | Path) -> str:
+    """The syntax :func:`load_document` reads a file in by default: ``"json"`` for a ``.json``
+    suffix (any case), else ``"yaml"``.
+
+    Examples
+    --------
+    >>> syntax_of("truth.JSON"), syntax_of("protocol.yaml")
+    ('json', 'yaml')
+    """
+    return "json" if Path(path).suffix.lower() == ".json" else "yaml"
+
+
 def load_document(
     path: str | Path,
     *,
@@ -544,5 +556,4 @@ def load_document(
     """
     p = Path(path)
     raw = read_limited(p, what=what, error=error, max_bytes=max_bytes)
-    fmt = fmt or ("json" if p.suffix.lower() == ".json" else "yaml")
-    return parse_document(raw, str(p), fmt=fmt, error=error)
+    return parse_document(raw, str(p), fmt=fmt or syntax_of(p), error=error)

@@ -21,7 +21,7 @@ import numpy as np
 from masking_lab.core.errors import ProtocolError
 from masking_lab.core.masking import MaskingFunction
 from masking_lab.core.psychometric import GUESS_3IFC, Psychometric
-from masking_lab.formats.reader import parse_document, read_limited
+from masking_lab.formats.reader import parse_document, read_limited, syntax_of
 from masking_lab.formats.resources import shipped
 from masking_lab.formats.schemas import (
     first_problem,
@@ -218,8 +218,7 @@ def read_ground_truth(path: str | Path | None = None) -> tuple[Any, str]:
     # Read every time, parsed and validated once per content (a demo worker opens 15 sessions
     # on the same file); each caller gets its own copy of the plain data.
     raw = read_limited(file, what=what)
-    fmt = "json" if file.suffix.lower() == ".json" else "yaml"
-    return copy.deepcopy(_checked_truth(raw, str(file), fmt, source)), source
+    return copy.deepcopy(_checked_truth(raw, str(file), syntax_of(file), source)), source
 
 
 @functools.lru_cache(maxsize=8)
