@@ -33,6 +33,7 @@ from typing import Any, TextIO
 import numpy as np
 
 from masking_lab.core.errors import MaskingLabError
+from masking_lab.core.worker_processes import worker_pool
 from masking_lab.demo_summary import PROTOCOLS, build_summary, sample_truth, summary_text
 from masking_lab.formats.resources import shipped
 
@@ -330,7 +331,7 @@ def _run_in_pool(
     ready = [(0, i) for i in range(1, n + 1)]  # (protocol index, participant index)
     running: dict[Future[SessionDone], tuple[int, int]] = {}
     warm: threading.Thread | None = None
-    with ProcessPoolExecutor(max_workers=jobs) as pool:
+    with worker_pool(jobs) as pool:
         while ready or running:
             ready.sort()
             while ready and len(running) < jobs:
@@ -430,7 +431,7 @@ class _SceneRender:
         if self.pending is not None:
             return
         try:
-            self.pool = ProcessPoolExecutor(max_workers=1)
+            self.pool = worker_pool(1)
             self.pending = self.pool.submit(_render, self.out, params_text)
         except (OSError, NotImplementedError, RuntimeError):  # no processes: render later
             self.close()

@@ -14,44 +14,17 @@ process likewise.
 
 from __future__ import annotations
 
-import os
-import signal
-import threading
-import time
 import weakref
 from collections.abc import Callable
 from concurrent.futures import Future, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from typing import Any, TypeVar
 
+from masking_lab.core.worker_processes import worker_pool
+
 __all__ = ["FigurePool"]
 
 T = TypeVar("T")
-
-
-def _end_with_parent(parent: int) -> None:
-    """In the worker, first: end when the run's process ends, even killed (SIGKILL runs no
-    shutdown); an orphan would idle forever holding the run's stdout and stderr open."""
-    try:
-        import ctypes
-
-        libc = ctypes.CDLL(None, use_errno=True)
-        armed = libc.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0) == 0  # Linux
-    except (OSError, AttributeError):
-        armed = False
-    if os.getppid() != parent:  # it died before the signal was armed
-        os._exit(0)
-    if not armed:  # elsewhere: look for a new parent now and then
-        threading.Thread(target=_watch_parent, args=(parent,), daemon=True).start()
-
-
-_PR_SET_PDEATHSIG = 1
-
-
-def _watch_parent(parent: int) -> None:
-    while os.getppid() == parent:
-        time.sleep(0.5)
-    os._exit(0)
 
 
 def _warm() -> None:
@@ -88,9 +61,7 @@ class FigurePool:
 
     def _add_lane(self) -> bool:
         try:
-            pool = ProcessPoolExecutor(
-                max_workers=1, initializer=_end_with_parent, initargs=(os.getpid(),)
-            )
+            pool = worker_pool(1)  # ends with this process, even killed
             pool.submit(_warm)  # the worker starts now, not at the first figure
         except (OSError, NotImplementedError, RuntimeError):  # no processes here: in-process
             return False

@@ -28,6 +28,7 @@ from masking_lab.analysis.procedure_estimates import places_masker
 from masking_lab.analysis.study_status import SessionInfo, session_of
 from masking_lab.analysis.thresholds import EstimatorSettings, packed, session_rows
 from masking_lab.core.errors import LogError
+from masking_lab.core.worker_processes import worker_pool
 from masking_lab.formats.log_bytes import check_schema_version, read_log_bytes, strip_bom
 from masking_lab.formats.log_records import (
     ANALYSIS_DECODER,
@@ -313,7 +314,7 @@ def read_logs(
     # Every chunk is handed to the workers now, not at the first result asked for: the caller
     # loads the rest of the analysis while they read.
     chunks = [(jobs[i : i + _CHUNK], settings) for i in range(0, n, _CHUNK)]
-    pool = ProcessPoolExecutor(max_workers=min(workers, len(chunks)))
+    pool = worker_pool(min(workers, len(chunks)))
     try:
         parts = pool.map(_read_chunk, chunks)
     except BaseException:

@@ -13,13 +13,13 @@ from __future__ import annotations
 import functools
 import os
 from collections.abc import Callable, Mapping, Sequence
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
 
 from masking_lab.analysis.psychometric import PFFit, PFJob, fit_pf_many
 from masking_lab.core.errors import MaskingLabError
 from masking_lab.core.psychometric import GUESS_3IFC
+from masking_lab.core.worker_processes import worker_pool
 from masking_lab.formats.session_log import SessionLog
 
 __all__ = [
@@ -235,7 +235,7 @@ def fit_all(
     share = workers if len(chunks) >= workers else len(chunks)
     results: list[list[PFFit] | None] = [None] * len(chunks)
     made = 0
-    with ProcessPoolExecutor(max_workers=share - 1) as pool:
+    with worker_pool(share - 1) as pool:
         away = {i: pool.submit(fit_pf_many, c) for i, c in enumerate(chunks) if i % share}
         for i in range(0, len(chunks), share):  # this process's share, while the pool works
             results[i] = fit_pf_many(chunks[i])

@@ -14,7 +14,6 @@ from __future__ import annotations
 import importlib.util
 import os
 from collections.abc import Callable, Iterator, Mapping, Sequence
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -24,6 +23,7 @@ from masking_lab.analysis.pf_table import SetTrials, set_trials
 from masking_lab.analysis.study_status import SessionInfo, session_of
 from masking_lab.analysis.trials_table import TRIAL_COLUMNS, trial_rows
 from masking_lab.core.errors import LogError
+from masking_lab.core.worker_processes import worker_pool
 from masking_lab.formats.csv_table import csv_text_columns
 from masking_lab.formats.session_log import read_log
 
@@ -169,7 +169,7 @@ def read_parts(
         names = logs[i : i + _CHUNK]
         sub = {k: v for rel in names for k, v in by_log.get(rel, {}).items()}
         chunks.append(([(data / rel, rel) for rel in names], sub, csv, rows))
-    with ProcessPoolExecutor(max_workers=min(workers, len(chunks))) as pool:
+    with worker_pool(min(workers, len(chunks))) as pool:
         for parts in pool.map(_read_chunk, chunks):
             yield from parts
 

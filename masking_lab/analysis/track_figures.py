@@ -12,13 +12,13 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from masking_lab.core.worker_processes import worker_pool
 from masking_lab.formats.fileio import write_bytes_atomic
 from masking_lab.formats.png_figure import legible, png_bytes
 
@@ -154,7 +154,7 @@ def draw_tracks(jobs: Sequence[TrackJob], *, workers: int = 1) -> list[Path]:
     # Even shares for small batches, at most _CHUNK per task for big ones.
     size = max(1, min(_CHUNK, math.ceil(len(jobs) / workers)))
     chunks = [list(jobs[i : i + size]) for i in range(0, len(jobs), size)]
-    with ProcessPoolExecutor(max_workers=workers) as pool:
+    with worker_pool(workers) as pool:
         return [p for done in pool.map(_draw_chunk, chunks) for p in done]
 
 

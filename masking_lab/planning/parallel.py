@@ -216,11 +216,12 @@ def _local_pool(
 def _forked_pool(workers: int) -> Any:
     """A pool of ``workers`` processes forked from this one (they start with its imports)."""
     import multiprocessing
-    from concurrent.futures import ProcessPoolExecutor
+
+    from masking_lab.core.worker_processes import worker_pool
 
     methods = multiprocessing.get_all_start_methods()
     context = multiprocessing.get_context("fork" if "fork" in methods else None)
-    return ProcessPoolExecutor(workers, mp_context=context, initializer=_one_blas_thread)
+    return worker_pool(workers, mp_context=context, initializer=_one_blas_thread)
 
 
 def _one_blas_thread() -> None:

@@ -175,9 +175,9 @@ def write_rendering(
     out = Path(out_dir)
     pool = pending = None
     if figure and figure_worker:
-        from concurrent.futures import ProcessPoolExecutor
+        from masking_lab.core.worker_processes import worker_pool
 
-        pool = ProcessPoolExecutor(max_workers=1)
+        pool = worker_pool(1)
         pending = pool.submit(figure4_png, r, bands=uncertainty)
     try:
         return _write_rendering(r, out, figure, uncertainty, strategies, pending)

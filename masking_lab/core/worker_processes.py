@@ -1,0 +1,136 @@
+"""Worker processes that end with the process that started them (*shell*: processes and
+signals; here, at the bottom layer, so that every layer's pools share one helper).
+
+A ``ProcessPoolExecutor`` worker waits on its task queue for as long as that queue's pipe is
+open, and a forked worker holds the pipe's write end itself. So when the run that started the
+workers is killed (SIGKILL from a job scheduler or the kernel's out-of-memory killer runs no
+shutdown), they sleep forever, each holding its copy of the run's memory and the run's stdout.
+:func:`worker_pool` starts every worker with :func:`end_with_parent`: on Linux the kernel
+kills the worker when its parent dies (``prctl(PR_SET_PDEATHSIG)``); elsewhere a thread in the
+worker looks for its parent now and then and ends the worker once it is gone.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import threading
+import time
+from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
+from multiprocessing.context import BaseContext
+from typing import Any
+
+__all__ = ["end_with_parent", "worker_pool"]
+
+_PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
+_POLL_S = 0.5  # the watching thread's look at its parent (where the kernel cannot be asked)
+
+
+def end_with_parent(parent: int) -> None:
+    """In a worker, first: end this process when process ``parent`` ends, even killed.
+
+    Parameters
+    ----------
+    parent : int
+        Process id of the process that started the pool.
+
+    Notes
+    -----
+    The kernel's parent-death signal follows the thread that forked the worker; the pools
+    of this package are made by their process's main thread. A worker whose parent is not
+    ``parent`` (a fork server's child) is watched by a thread instead.
+
+    Examples
+    --------
+    >>> pool = worker_pool(1)
+    >>> pool.submit(os.getppid).result() == os.getpid()
+    True
+    >>> pool.shutdown()
+    """
+    armed = False
+    if os.getppid() == parent:
+        armed = _arm_parent_death_signal()
+        if os.getppid() != parent:  # the parent died before the signal was armed
+            os._exit(0)
+    elif not _alive(parent):
+        os._exit(0)
+    if not armed:
+        threading.Thread(target=_watch_parent, args=(parent,), daemon=True).start()
+
+
+def _arm_parent_death_signal() -> bool:
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        return bool(libc.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0) == 0)  # Linux
+    except (OSError, AttributeError):
+        return False
+
+
+def _alive(pid: int) -> bool:
+    """Whether process ``pid`` runs (a zombie, killed and not yet reaped, does not)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # someone else's process: it exists
+        pass
+    try:
+        with open(f"/proc/{pid}/stat", encoding="ascii") as fh:
+            return fh.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except (OSError, IndexError):  # no /proc here: existing is all that can be known
+        return True
+
+
+def _watch_parent(parent: int) -> None:
+    # A child of ``parent`` is re-parented when it dies (no pid-reuse question); another
+    # process's child can only ask whether ``parent`` still exists.
+    direct = os.getppid() == parent
+    while (os.getppid() == parent) if direct else _alive(parent):
+        time.sleep(_POLL_S)
+    os._exit(0)
+
+
+def _start_worker(parent: int, initializer: Callable[..., object] | None, args: tuple) -> None:
+    end_with_parent(parent)
+    if initializer is not None:
+        initializer(*args)
+
+
+def worker_pool(
+    max_workers: int,
+    *,
+    mp_context: BaseContext | None = None,
+    initializer: Callable[..., object] | None = None,
+    initargs: tuple[Any, ...] = (),
+) -> ProcessPoolExecutor:
+    """A ``ProcessPoolExecutor`` whose workers end with this process (see the module docstring).
+
+    Parameters
+    ----------
+    max_workers : int
+        Worker processes.
+    mp_context : multiprocessing context, optional
+        How workers start (the platform's default when None).
+    initializer, initargs
+        Run in each worker after it has arranged to end with this process.
+
+    Returns
+    -------
+    ProcessPoolExecutor
+        Use it as any executor (``submit``, ``map``, ``shutdown``, ``with``).
+
+    Examples
+    --------
+    >>> with worker_pool(2) as pool:
+    ...     list(pool.map(abs, [-1, 2, -3]))
+    [1, 2, 3]
+    """
+    return ProcessPoolExecutor(
+        max_workers=max_workers,
+        mp_context=mp_context,
+        initializer=_start_worker,
+        initargs=(os.getpid(), initializer, initargs),
+    )
