@@ -424,6 +424,7 @@ def test_no_progress_when_not_a_terminal(study, tmp_path, capsys):
     ("setup", "message"),
     [
         (lambda d: None, "no such folder"),
+        (lambda d: d.write_text("{}\n"), "a file, not a folder"),
         (lambda d: d.mkdir(), "no session logs"),
         (lambda d: (d.mkdir(), (d / "x.jsonl").write_text("garbage\n")), "none of the 1 log file"),
     ],

@@ -78,5 +78,6 @@ def test_no_folder_is_named(tmp_path):
     with pytest.raises(AnalysisError, match="no such folder"):
         find_logs(tmp_path / "missing")
     (tmp_path / "file.jsonl").write_text("{}\n")
-    with pytest.raises(AnalysisError, match=r"file\.jsonl: no such folder"):
+    with pytest.raises(AnalysisError, match=r"file\.jsonl: a file, not a folder") as err:
         find_logs(tmp_path / "file.jsonl")
+    assert f"this file's folder is {tmp_path}" in str(err.value)

@@ -78,8 +78,7 @@ def find_logs(data_dir: Path) -> list[Path]:
     >>> [p.relative_to(root).as_posix() for p in find_logs(root)]
     ['P1/a.jsonl', 'P2/b.jsonl']
     """
-    if not data_dir.is_dir():
-        raise AnalysisError(f"{data_dir}: no such folder; give the folder holding session logs")
+    _check_data_folder(data_dir)
     found: list[str] = []  # relative paths, "/"-separated
     folders = [(os.fspath(data_dir), "")]
     while folders:
@@ -97,6 +96,18 @@ def find_logs(data_dir: Path) -> list[Path]:
             elif entry.is_dir() and not entry.is_symlink():
                 folders.append((entry.path, rel + entry.name + "/"))
     return [data_dir / r for r in sorted(found)]
+
+
+def _check_data_folder(data_dir: Path) -> None:
+    """Refuse a data folder that is missing, or a file (a log given instead of its folder)."""
+    if data_dir.is_dir():
+        return
+    if data_dir.exists():
+        raise AnalysisError(
+            f"{data_dir}: a file, not a folder; give the folder holding session logs "
+            f"(this file's folder is {data_dir.parent})"
+        )
+    raise AnalysisError(f"{data_dir}: no such folder; give the folder holding session logs")
 
 
 def _skip_reason(header: dict) -> str | None:
@@ -168,8 +179,7 @@ def run_analyze(
     >>> run_analyze("data", "analysis", AnalysisSettings())  # doctest: +SKIP
     """
     data, out = Path(data_dir), Path(out_dir)
-    if not data.is_dir():
-        raise AnalysisError(f"{data}: no such folder; give the folder holding session logs")
+    _check_data_folder(data)
     if figure_pool is None:
         figure_pool = FigurePool(settings.figures != "none")
     try:
