@@ -207,7 +207,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--sizes", default="100,1000", help="session counts, comma-separated")
     ap.add_argument("--with-10000", action="store_true", help="add 10000 sessions (~2 GB)")
     ap.add_argument("--analyze-args", default="", help="extra options for analyze, quoted")
-    ap.add_argument("--workdir", help="folder for the generated logs (default: a temp folder)")
+    ap.add_argument(
+        "--workdir",
+        help="folder for the generated logs and analyze's outputs, kept afterwards (default: a "
+        "temp folder, removed)",
+    )
     ap.add_argument(
         "--baseline-src",
         metavar="DIR",
@@ -264,8 +268,9 @@ def main(argv: list[str] | None = None) -> int:
                 + (f" (baseline {baselines[-1][1]:.2f} s)" if args.baseline_src else ""),
                 flush=True,
             )
-            shutil.rmtree(data)
-            shutil.rmtree(work / f"out_{n}", ignore_errors=True)
+            if not args.workdir:  # a --workdir keeps the logs and the last outputs to look at
+                shutil.rmtree(data)
+                shutil.rmtree(work / f"out_{n}", ignore_errors=True)
         print()
         print(f"analyze options: {args.analyze_args or '(defaults)'}; {os.cpu_count()} CPUs")
         print(
