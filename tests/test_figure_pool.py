@@ -14,6 +14,7 @@ import pytest
 from masking_lab.analysis.figure_pool import FigurePool
 from masking_lab.analysis.figures import masking_function_png
 from masking_lab.analysis.lab_figures import shift_figure_png
+from masking_lab.core.worker_processes import alive
 
 PARENT = os.getpid()
 CELLS = [
@@ -111,33 +112,104 @@ def test_a_widened_pool_spreads_figures_over_its_workers_with_the_same_bytes(tmp
 
 
 _KILLED_RUN = """
-import os, signal
+import os, signal, time
 from masking_lab.analysis.figure_pool import FigurePool
-pool = FigurePool()
-print(pool.submit(os.getpid)(), flush=True)
+gate = {gate!r}
+def held(path=gate):  # both workers busy at once: one task each
+    while not os.path.exists(path):
+        time.sleep(0.01)
+    return os.getpid()
+pool = FigurePool()  # its workers are forked from here on: they know held()
+first, second = pool.submit(held), pool.submit(held)
+open(gate, "w").close()
+print(first(), second(), flush=True)
 os.kill(os.getpid(), signal.SIGKILL)  # no shutdown runs
 """
 
 
-def _alive(pid: int) -> bool:
-    try:
-        with open(f"/proc/{pid}/stat", encoding="ascii") as fh:
-            return fh.read().rsplit(")", 1)[1].split()[0] != "Z"  # a zombie has ended
-    except FileNotFoundError:
-        return False
-
-
 @pytest.mark.skipif(not os.path.isdir("/proc"), reason="reads /proc")
-def test_a_killed_run_takes_its_figure_worker_with_it() -> None:
-    # An orphaned worker would hold the run's stdout open: run() would wait for it forever
-    # (the timeout only guards against that hang).
-    done = subprocess.run(
-        [sys.executable, "-c", _KILLED_RUN], capture_output=True, text=True, timeout=300
-    )
+def test_a_killed_run_takes_both_figure_workers_with_it(tmp_path) -> None:
+    # Output to a file, not a pipe: an orphaned worker holding a pipe would hang the test.
+    out = tmp_path / "pids.txt"
+    with out.open("w") as stdout:
+        done = subprocess.run(
+            [sys.executable, "-c", _KILLED_RUN.format(gate=str(tmp_path / "go"))],
+            stdout=stdout,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
     assert done.returncode == -signal.SIGKILL, done.stderr
-    worker = int(done.stdout.split()[0])
+    workers = [int(p) for p in out.read_text().split()]
+    assert len(set(workers)) == 2  # the first worker and the one it forked
     for _ in range(600):  # the kernel delivers the parent-death signal at once; a hang guard
-        if not _alive(worker):
+        if not any(alive(w) for w in workers):
             break
         time.sleep(0.05)
-    assert not _alive(worker)
+    assert not any(alive(w) for w in workers)
+
+
+def _parent_pid(_: object = None) -> tuple[int, int]:
+    return os.getpid(), os.getppid()
+
+
+def _fail(message: str) -> None:
+    raise ValueError(message)
+
+
+def _first_worker(pool: FigurePool) -> int:
+    (pid,) = pool._lanes[0][0]._processes  # type: ignore[attr-defined]
+    return int(pid)
+
+
+def test_the_second_worker_is_forked_from_the_first_once_warm(tmp_path) -> None:
+    gate = tmp_path / "go"
+    pool = FigurePool()
+    try:
+        first = pool.submit(_pid_once_file_exists, str(gate))  # holds the first worker
+        second = pool.submit(_parent_pid)  # so this goes to the second
+        w2, its_parent = second()
+        gate.touch()
+        w1 = first()
+        assert its_parent == w1 != w2 and PARENT not in (w1, w2)
+    finally:
+        pool.close()
+
+
+def test_an_error_in_the_second_worker_is_raised_here(tmp_path) -> None:
+    gate = tmp_path / "go"
+    pool = FigurePool()
+    try:
+        held = pool.submit(_pid_once_file_exists, str(gate))
+        failing = pool.submit(_fail, "no such level")
+        with pytest.raises(ValueError, match="no such level"):
+            failing()
+        gate.touch()
+        assert held() != PARENT
+    finally:
+        pool.close()
+
+
+def test_a_dead_second_worker_leaves_its_work_to_this_process(tmp_path) -> None:
+    here = masking_function_png(title="t", cells=CELLS, fits=FITS)
+    gate = tmp_path / "go"
+    pool = FigurePool()
+    try:
+        held = pool.submit(_pid_once_file_exists, str(gate))
+        dying = pool.submit(_twice_but_die_in_a_worker, 21)  # the second worker dies
+        assert dying() == 42  # computed here once the worker is found gone
+        gate.touch()
+        assert held() != PARENT
+        figure = pool.submit(masking_function_png, title="t", cells=CELLS, fits=FITS)
+        assert figure() == here  # the first worker goes on drawing
+    finally:
+        pool.close()
+
+
+def test_a_first_worker_dead_before_forking_leaves_all_work_here() -> None:
+    pool = FigurePool()
+    try:
+        os.kill(_first_worker(pool), signal.SIGKILL)  # while it loads matplotlib
+        results = [pool.submit(_parent_pid) for _ in range(3)]
+        assert [r()[0] for r in results] == [PARENT] * 3
+    finally:
+        pool.close()

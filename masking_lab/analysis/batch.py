@@ -230,8 +230,8 @@ def _analyze_into(
     analysed_logs: list[Path] = []  # paths that may hold functional-procedure sets
     sessions: list[Any] = []  # each analysed log's session, for the study matrix
     if figure_pool is not None and len(paths) >= PARALLEL_FROM and settings.figures != "none":
-        # A large study's shift figures take seconds each and are drawn by two workers: the
-        # second loads matplotlib while the logs are read, not after.
+        # A large study's shift figures take seconds each and are drawn by two workers (the
+        # second forked from the first; a second pool where processes cannot be forked).
         figure_pool.widen(2)
     # One read per log (hashed and parsed from the same bytes), in parallel for many logs: the
     # workers start at once, forked before the statistics' modules (pandas, SciPy) are loaded,

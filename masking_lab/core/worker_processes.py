@@ -21,7 +21,7 @@ from concurrent.futures import ProcessPoolExecutor
 from multiprocessing.context import BaseContext
 from typing import Any
 
-__all__ = ["end_with_parent", "worker_pool"]
+__all__ = ["alive", "end_with_parent", "worker_pool"]
 
 _PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
 _POLL_S = 0.5  # the watching thread's look at its parent (where the kernel cannot be asked)
@@ -53,7 +53,7 @@ def end_with_parent(parent: int) -> None:
         armed = _arm_parent_death_signal()
         if os.getppid() != parent:  # the parent died before the signal was armed
             os._exit(0)
-    elif not _alive(parent):
+    elif not alive(parent):
         os._exit(0)
     if not armed:
         threading.Thread(target=_watch_parent, args=(parent,), daemon=True).start()
@@ -69,8 +69,14 @@ def _arm_parent_death_signal() -> bool:
         return False
 
 
-def _alive(pid: int) -> bool:
-    """Whether process ``pid`` runs (a zombie, killed and not yet reaped, does not)."""
+def alive(pid: int) -> bool:
+    """Whether process ``pid`` runs (a zombie, ended and not yet reaped, does not).
+
+    Examples
+    --------
+    >>> alive(os.getpid())
+    True
+    """
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
@@ -88,7 +94,7 @@ def _watch_parent(parent: int) -> None:
     # A child of ``parent`` is re-parented when it dies (no pid-reuse question); another
     # process's child can only ask whether ``parent`` still exists.
     direct = os.getppid() == parent
-    while (os.getppid() == parent) if direct else _alive(parent):
+    while (os.getppid() == parent) if direct else alive(parent):
         time.sleep(_POLL_S)
     os._exit(0)
 
