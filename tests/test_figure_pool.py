@@ -213,3 +213,22 @@ def test_a_first_worker_dead_before_forking_leaves_all_work_here() -> None:
         assert [r()[0] for r in results] == [PARENT] * 3
     finally:
         pool.close()
+
+
+def test_closed_pools_leave_no_thread_behind() -> None:
+    # A long-lived process (a notebook, this suite) makes many pools: each queue's feeder
+    # thread must end with its pool.
+    import threading
+
+    before = {t.ident for t in threading.enumerate()}
+    for _ in range(3):
+        pool = FigurePool()
+        answers = [pool.submit(_parent_pid) for _ in range(3)]  # both workers get some
+        assert all(a()[0] != PARENT for a in answers)
+        pool.close()
+    for _ in range(600):  # a hang guard: the threads end as soon as their queues are written
+        left = [t for t in threading.enumerate() if t.ident not in before and t.is_alive()]
+        if not left:
+            break
+        time.sleep(0.05)
+    assert left == []

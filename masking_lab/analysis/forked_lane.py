@@ -101,6 +101,7 @@ class ForkedLane:
         if not self._gone:
             self._tasks.put(None)
         self._gone = True
+        self._tasks.close()  # this process's feeder thread ends once the queue is written
 
     def _drain(self, *, block: bool) -> bool:
         """Take the answers that have arrived (waiting a little for one with ``block``)."""
