@@ -129,16 +129,15 @@ os.kill(os.getpid(), signal.SIGKILL)  # no shutdown runs
 
 @pytest.mark.skipif(not os.path.isdir("/proc"), reason="reads /proc")
 def test_a_killed_run_takes_both_figure_workers_with_it(tmp_path) -> None:
-    # Output to a file, not a pipe: an orphaned worker holding a pipe would hang the test.
-    out = tmp_path / "pids.txt"
-    with out.open("w") as stdout:
+    # Output to files, not pipes: an orphaned worker holding a pipe would hang the test.
+    out, err = tmp_path / "pids.txt", tmp_path / "stderr.txt"
+    with out.open("w") as stdout, err.open("w") as stderr:
         done = subprocess.run(
             [sys.executable, "-c", _KILLED_RUN.format(gate=str(tmp_path / "go"))],
             stdout=stdout,
-            stderr=subprocess.PIPE,
-            text=True,
+            stderr=stderr,
         )
-    assert done.returncode == -signal.SIGKILL, done.stderr
+    assert done.returncode == -signal.SIGKILL, err.read_text()
     workers = [int(p) for p in out.read_text().split()]
     assert len(set(workers)) == 2  # the first worker and the one it forked
     for _ in range(600):  # the kernel delivers the parent-death signal at once; a hang guard
