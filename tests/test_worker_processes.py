@@ -20,7 +20,8 @@ from pathlib import Path
 import pytest
 
 from masking_lab.analysis import log_reading
-from masking_lab.core.worker_processes import worker_pool
+from masking_lab.core import worker_processes
+from masking_lab.core.worker_processes import alive, worker_pool
 
 pytestmark = pytest.mark.skipif(not os.path.isdir("/proc"), reason="reads /proc")
 
@@ -144,3 +145,23 @@ def test_every_worker_pool_of_the_package_ends_with_its_run() -> None:
                 if name == "ProcessPoolExecutor":
                     direct.append(f"{path.relative_to(PACKAGE)}:{node.lineno}")
     assert direct == []
+
+
+def test_alive_tells_running_ended_and_unreaped_processes_apart() -> None:
+    assert alive(os.getpid())
+    child = subprocess.Popen([sys.executable, "-c", "pass"])
+    for _ in range(600):  # ended but not reaped: a zombie, which no longer runs
+        if not alive(child.pid):
+            break
+        time.sleep(0.05)
+    assert not alive(child.pid)
+    child.wait()
+    assert not alive(child.pid)  # reaped: gone
+
+
+def test_alive_never_signals_a_process_on_windows(monkeypatch: pytest.MonkeyPatch) -> None:
+    # There os.kill(pid, 0) terminates the process instead of asking whether it exists.
+    sent: list[tuple[int, int]] = []
+    monkeypatch.setattr(worker_processes.os, "name", "nt")
+    monkeypatch.setattr(worker_processes.os, "kill", lambda pid, sig: sent.append((pid, sig)))
+    assert alive(os.getpid()) and sent == []
