@@ -17,9 +17,11 @@ import signal
 import threading
 import time
 from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor
-from multiprocessing.context import BaseContext
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:  # loaded when a pool is made: output folders only ask whether a pid runs
+    from concurrent.futures import ProcessPoolExecutor
+    from multiprocessing.context import BaseContext
 
 __all__ = ["alive", "end_with_parent", "worker_pool"]
 
@@ -70,18 +72,20 @@ def _arm_parent_death_signal() -> bool:
 
 
 def alive(pid: int) -> bool:
-    """Whether process ``pid`` runs (a zombie, ended and not yet reaped, does not).
+    """Whether process ``pid`` runs (a zombie, ended and not yet reaped, does not; nor does a
+    pid no system has). On Windows every pid counts as running: there ``os.kill(pid, 0)``
+    would end the process instead of asking about it.
 
     Examples
     --------
-    >>> alive(os.getpid())
-    True
+    >>> alive(os.getpid()), alive(2**70)
+    (True, False)
     """
-    if os.name == "nt":  # there os.kill(pid, 0) would end the process, not ask about it
+    if os.name == "nt":
         return True
     try:
         os.kill(pid, 0)
-    except ProcessLookupError:
+    except (ProcessLookupError, OverflowError):  # gone, or a pid no system has
         return False
     except PermissionError:  # someone else's process: it exists
         pass
@@ -136,6 +140,8 @@ def worker_pool(
     ...     list(pool.map(abs, [-1, 2, -3]))
     [1, 2, 3]
     """
+    from concurrent.futures import ProcessPoolExecutor
+
     return ProcessPoolExecutor(
         max_workers=max_workers,
         mp_context=mp_context,

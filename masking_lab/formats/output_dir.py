@@ -38,6 +38,7 @@ from pathlib import Path
 from typing import Literal
 
 from masking_lab.core.errors import MaskingLabError, OutputFolderError
+from masking_lab.core.worker_processes import alive
 from masking_lab.formats.fileio import fsync_dir, kill_point
 
 __all__ = ["MARKER_FILES", "recover_leftovers", "staged_output"]
@@ -286,7 +287,7 @@ def recover_leftovers(out: str | Path) -> list[str]:
         if not m or m["name"] != out.name or not entry.is_dir() or entry.is_symlink():
             continue
         pid = int(m["pid"])
-        if pid != os.getpid() and _alive(pid):
+        if pid != os.getpid() and alive(pid):
             continue
         if m["kind"] == "old" and not out.exists() and not out.is_symlink():
             os.rename(entry, out)
@@ -295,13 +296,3 @@ def recover_leftovers(out: str | Path) -> list[str]:
             shutil.rmtree(entry, ignore_errors=True)
             done.append(f"deleted {entry.name}, left by a killed run")
     return done
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except (ProcessLookupError, OverflowError):  # gone, or a pid no system has
-        return False
-    except PermissionError:  # another user's process
-        return True
-    return True
