@@ -437,6 +437,16 @@ def test_unusable_data_folders_exit_2_with_a_message(tmp_path, capsys, setup, me
     assert message in err and "Traceback" not in err
 
 
+def test_an_empty_data_folder_name_is_refused_not_read_as_the_current_folder(
+    tmp_path, capsys, monkeypatch
+):
+    monkeypatch.chdir(tmp_path)  # a folder with logs below it would otherwise be analysed
+    assert main(["analyze", "", "--out", str(tmp_path / "out"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "empty name" in err and "give the folder holding session logs" in err
+    assert not (tmp_path / "out").exists()
+
+
 def test_only_baseline_logs_write_thresholds_then_explain(study, tmp_path, capsys):
     data = _copy_study(study, tmp_path / "data", participants={"P01"}, experiments={"baseline"})
     out = tmp_path / "out"

@@ -178,6 +178,11 @@ def run_analyze(
     --------
     >>> run_analyze("data", "analysis", AnalysisSettings())  # doctest: +SKIP
     """
+    if not str(data_dir).strip():  # Path("") is ".": an unset variable would read the cwd
+        raise AnalysisError(
+            "the data folder is an empty name (an unset shell variable?); give the folder "
+            "holding session logs"
+        )
     data, out = Path(data_dir), Path(out_dir)
     _check_data_folder(data)
     if figure_pool is None:
