@@ -33,6 +33,7 @@ from masking_lab.responders.base import SetInfo, TrialPresentation
 from masking_lab.responders.keys import INTERRUPT, KeyReader, KeysResponder, parse_keys
 
 TIMEOUT_S = 10.0
+EXIT_TIMEOUT_S = 30.0  # a child's exit under a loaded CI machine (it failed once at 10 s)
 PROMPT = b"Press 1, 2 or 3"
 
 
@@ -325,16 +326,48 @@ CHILD = textwrap.dedent(
 )
 
 
-def wait_exit(pid: int, timeout: float = TIMEOUT_S) -> int:
+def child_state(pid: int) -> str:
+    """What /proc says about a child that is still running: its state, signals and wait channel."""
+    try:
+        with open(f"/proc/{pid}/status") as status:
+            fields = [
+                line.strip()
+                for line in status
+                if line.startswith(
+                    ("State:", "SigPnd:", "ShdPnd:", "SigBlk:", "SigIgn:", "SigCgt:")
+                )
+            ]
+        with open(f"/proc/{pid}/wchan") as wchan:
+            fields.append(f"wchan: {wchan.read()}")
+    except OSError as exc:
+        return f"no /proc entry ({exc})"
+    return "; ".join(fields)
+
+
+def wait_exit(
+    pid: int, timeout: float = EXIT_TIMEOUT_S, terminal: Participant | None = None
+) -> int:
+    """The child's exit code, once it exits; a child still running after ``timeout`` (s) fails.
+
+    The bound is wall time on a shared machine, so it is generous, and a failure says what the
+    child was doing (from /proc) and what its terminal showed.
+    """
     deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
+    while True:
         done, status = os.waitpid(pid, os.WNOHANG)
         if done:
             return os.waitstatus_to_exitcode(status)
+        if time.monotonic() >= deadline:  # checked after waitpid: a stalled test still looks once
+            break
         time.sleep(0.01)
+    state = child_state(pid)
+    if terminal is not None:
+        with contextlib.suppress(AssertionError):  # whatever arrives in a moment, for the message
+            terminal.wait_for(lambda seen: False, "more output", timeout=0.5)
     os.kill(pid, signal.SIGKILL)
     os.waitpid(pid, 0)
-    raise AssertionError("child did not exit")
+    shown = bytes(terminal.seen) if terminal is not None else b"(not read)"
+    raise AssertionError(f"child did not exit in {timeout} s: {state}; terminal showed {shown!r}")
 
 
 def test_ctrl_c_interrupts_and_restores_the_terminal():
@@ -353,7 +386,9 @@ def test_ctrl_c_interrupts_and_restores_the_terminal():
             # The exit status, not the child's "INTERRUPTED", says the interrupt was handled:
             # raising SIGINT, the line discipline also flushes the terminal's queues, which
             # can drop what the child wrote before the flush ran.
-            assert wait_exit(pid) == 130  # sys.exit(130) in its KeyboardInterrupt handler
+            assert (
+                wait_exit(pid, terminal=participant) == 130
+            )  # sys.exit(130) in its KeyboardInterrupt handler
             assert lflag(watcher) & termios.ICANON  # the terminal it left behind
             assert lflag(watcher) & termios.ECHO
         finally:
@@ -371,7 +406,7 @@ def test_answer_in_a_child_process_on_its_controlling_terminal():
         participant.expect(PROMPT, timeout=30)
         participant.type(b"\x1bOQ3")  # F2 (SS3), then 3
         assert json.loads(participant.line_after(b"ANSWER ")) == 3
-        assert wait_exit(pid) == 0
+        assert wait_exit(pid, terminal=participant) == 0
     finally:
         os.close(master)
 
