@@ -47,9 +47,11 @@ import threading
 import time
 from pathlib import Path
 
-from timing_setup import compile_tree
+from timing_setup import compile_tree, console_code
 
 from masking_lab.simulation.synthetic_logs import simulate_study
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def build_folder(pool: Path, dest: Path, n_sessions: int) -> int:
@@ -168,7 +170,7 @@ def run_analyze(
     masking_lab | tar -x -C DIR``), imported instead of the installed one (an editable
     install's import hook would win over ``PYTHONPATH``, so it is dropped first).
     """
-    code = "import sys; from masking_lab.commands.cli import main; sys.exit(main(sys.argv[1:]))"
+    code = console_code(Path(src) if src else ROOT)  # the console script, as a user runs it
     if src:
         code = (
             "import sys; sys.meta_path[:] = [f for f in sys.meta_path if 'editable' not in "

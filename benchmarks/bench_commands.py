@@ -33,7 +33,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from timing_setup import compile_tree
+from timing_setup import compile_tree, console_code
 
 ROOT = Path(__file__).resolve().parents[1]
 PLAN_PROTOCOLS = (
@@ -59,7 +59,8 @@ def run_once(args: list[str], src: Path | None, out: Path) -> tuple[float, float
     env = dict(os.environ)
     if src is not None:
         env["PYTHONPATH"] = str(src)
-    argv = [sys.executable, "-m", "masking_lab.commands.cli"]
+    # The tree's console script, as a user runs it (PYTHONPATH above picks the tree's package).
+    argv = [sys.executable, "-c", console_code(src if src is not None else ROOT)]
     argv += [a.replace("{out}", str(out)) for a in args]
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()

@@ -1,4 +1,5 @@
-"""Compile a source tree's bytecode before it is timed, as an installed package has it.
+"""Set a source tree up to be timed as an installed package runs: its bytecode compiled, and
+its ``masking-lab`` command started through the console-script entry point it declares.
 
 ``pip install`` compiles every module's bytecode, and Python writes it on the first import
 anyway; a benchmark run from a source tree under ``PYTHONDONTWRITEBYTECODE=1`` (as some
@@ -9,6 +10,7 @@ about 0.3 s that no user pays. Both trees of a before/after comparison are compi
 from __future__ import annotations
 
 import compileall
+import tomllib
 from pathlib import Path
 
 
@@ -17,3 +19,13 @@ def compile_tree(root: Path) -> None:
     package = Path(root) / "masking_lab"
     if not compileall.compile_dir(str(package), quiet=1, workers=0):
         raise SystemExit(f"could not compile the bytecode of {package}")
+
+
+def console_code(root: Path) -> str:
+    """Python source (for ``python -c``) that runs the tree's ``masking-lab`` console script on
+    ``sys.argv[1:]``: the entry point ``root``/pyproject.toml names (``module:function``), as
+    the installed ``masking-lab`` calls it (an older tree's may be ``cli:main``)."""
+    with open(Path(root) / "pyproject.toml", "rb") as fh:
+        entry = tomllib.load(fh)["project"]["scripts"]["masking-lab"]
+    module, function = entry.split(":")
+    return f"import sys; from {module} import {function}; sys.exit({function}())"

@@ -8,6 +8,7 @@ Each sub-command lives in ``masking_lab/commands/<name>.py`` and exposes
 from __future__ import annotations
 
 import argparse
+import gc
 import importlib
 import sys
 
@@ -66,5 +67,33 @@ def main(argv: list[str] | None = None) -> int:
         return 130
 
 
+def console_main() -> int:
+    """The ``masking-lab`` command: :func:`main` on ``sys.argv``, then a quick exit.
+
+    What the run loaded and made lives until the process ends, so it is frozen out of the
+    interpreter's last garbage collections (:func:`gc.freeze`): after an analysis those visit
+    every object of pandas, SciPy and matplotlib and took ~0.12 s of a 1.4 s run. Everything is
+    still released as at any exit (files closed, ``atexit`` handlers run); only objects in
+    reference cycles are left to the operating system, as every exit leaves the memory.
+    :func:`main` itself (called by the tests, many times in one process) does not freeze.
+
+    Returns
+    -------
+    int
+        The exit status: 0, 2 on a usage or input error, 130 when interrupted.
+
+    Examples
+    --------
+    >>> import subprocess, sys
+    >>> code = "from masking_lab.commands.cli import console_main; console_main()"
+    >>> done = subprocess.run([sys.executable, "-c", code, "--version"], capture_output=True)
+    >>> done.stdout.decode().startswith("masking-lab ")
+    True
+    """
+    code = main()
+    gc.freeze()
+    return code
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(console_main())
