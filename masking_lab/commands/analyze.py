@@ -191,6 +191,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    import numpy  # noqa: F401 - loaded once, before the fork: the figure worker uses it too
+
     from masking_lab.analysis.figure_pool import FigurePool
 
     # Started before the analysis is imported: the worker loads matplotlib meanwhile.
