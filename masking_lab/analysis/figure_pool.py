@@ -106,9 +106,11 @@ class FigurePool:
         giving its result (waiting for the worker, or drawing in-process)."""
         if not self._lanes:
             return lambda: fn(*args, **kwargs)
-        pool, queued = min(self._lanes, key=lambda lane: sum(not f.done() for f in lane[1]))
+        busy = [sum(not f.done() for f in lane[1]) for lane in self._lanes]
+        first = min(range(len(busy)), key=busy.__getitem__)  # the least busy, first of equals
+        pool, queued = self._lanes[first]
         second = self._second
-        if second is not None and second.busy < sum(not f.done() for f in queued):
+        if second is not None and second.busy < busy[first]:
             try:
                 ticket = second.submit(fn, args, kwargs)
             except LaneGone:
