@@ -26,6 +26,7 @@ import numpy as np
 
 from masking_lab.core.errors import StaircaseError
 from masking_lab.core.psychometric import GUESS_3IFC, Psychometric
+from masking_lab.core.roots import brentq
 from masking_lab.procedures.staircase import StaircaseSettings, implied_target_p_for
 from masking_lab.procedures.staircase_batch import Observer, simulate
 
@@ -84,7 +85,6 @@ def downup_ratio_for(
     if n_up == 1:
         pn = target_p**n_down
         return (1.0 - pn) / pn
-    from scipy.optimize import brentq  # imported here: scipy costs ~1 s at CLI start-up
 
     # The zero-drift p rises monotonically as the down step shrinks relative to the up step.
     def excess(log_r: float) -> float:

@@ -34,6 +34,7 @@ from dataclasses import dataclass, field, replace
 from typing import Literal
 
 from masking_lab.core.errors import StaircaseError
+from masking_lab.core.roots import brentq
 from masking_lab.procedures.base import ThresholdEstimate, TrackState
 from masking_lab.procedures.base import replay as _replay
 
@@ -371,8 +372,6 @@ def implied_target_p(settings: StaircaseSettings) -> float:
 
 def implied_target_p_for(n_up: int, n_down: int, down_up_ratio: float = 1.0) -> float:
     """:func:`implied_target_p` for a rule given by its numbers (see there)."""
-
-    from scipy.optimize import brentq  # imported here: scipy costs ~1 s at CLI start-up
 
     def drift(p: float) -> float:
         p_up, p_down = _step_rates(n_up, n_down, p)
