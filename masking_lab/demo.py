@@ -368,15 +368,14 @@ _SESSION_MODULES = (
     "threadpoolctl",
 )
 # What the analysis and the scene load, imported while the sessions run. The analysis imports
-# scipy.optimize (the staircase's target p), jinja2 (report.html) and pyarrow.parquet
-# (trials.parquet) only when it first needs them: ~0.25 s of CPU on its critical path otherwise.
+# jinja2 (report.html) and pyarrow.parquet (trials.parquet) only when it first needs them: CPU
+# on its critical path otherwise.
 _LATER_MODULES = (
     "masking_lab.analysis.batch",
     # batch loads these only once its log reading has started (analyze's own start-up)
     "masking_lab.analysis.experiment",
     "masking_lab.analysis.export",
     "masking_lab.rendering.render",
-    "scipy.optimize",
     "jinja2",
     "pyarrow.parquet",
 )

@@ -142,6 +142,23 @@ def test_the_log_reading_workers_are_forked_without_the_statistics_modules():
     assert out.stdout.strip() == "[]"
 
 
+def test_a_whole_analysis_with_trial_tables_never_loads_scipy_optimize(study, tmp_path):
+    """The staircases' target p for psychometric.csv is found by masking_lab.core.roots (the
+    same bits as SciPy's brentq): loading scipy.optimize for it cost ~0.17 s of every run."""
+    import subprocess
+    import sys
+
+    probe = (
+        "import sys\n"
+        "from masking_lab.commands.cli import main\n"
+        f"code = main(['analyze', {str(study)!r}, '--out', {str(tmp_path / 'out')!r}, '--quiet'])\n"
+        "print(code, 'scipy.optimize' in sys.modules, 'scipy.special' in sys.modules)"
+    )
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=300)
+    assert out.stdout.strip().splitlines()[-1] == "0 False True", out.stderr[-2000:]
+    assert (tmp_path / "out" / "psychometric.csv").is_file()
+
+
 def test_reading_stopped_early_leaves_no_worker_behind(study, tmp_path):
     """read_logs hands every chunk to its workers at once; a caller that stops after the first
     result (an error in the analysis) cancels the chunks not yet read and ends the workers."""
