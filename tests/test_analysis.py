@@ -437,11 +437,22 @@ def test_unusable_data_folders_exit_2_with_a_message(tmp_path, capsys, setup, me
     assert message in err and "Traceback" not in err
 
 
+@pytest.mark.parametrize(
+    "command",
+    [
+        ["analyze", "", "--out", "OUT", "--quiet"],
+        ["status", ""],  # read the current folder recursively before the shared check
+        ["usertest-report", "", "--out", "OUT"],
+        ["analyze", "  ", "--out", "OUT", "--quiet"],
+    ],
+)
 def test_an_empty_data_folder_name_is_refused_not_read_as_the_current_folder(
-    tmp_path, capsys, monkeypatch
+    tmp_path, capsys, monkeypatch, study, command
 ):
     monkeypatch.chdir(tmp_path)  # a folder with logs below it would otherwise be analysed
-    assert main(["analyze", "", "--out", str(tmp_path / "out"), "--quiet"]) == 2
+    shutil.copytree(study, tmp_path / "logs")
+    argv = [str(tmp_path / "out") if a == "OUT" else a for a in command]
+    assert main(argv) == 2
     err = capsys.readouterr().err
     assert "empty name" in err and "give the folder holding session logs" in err
     assert not (tmp_path / "out").exists()

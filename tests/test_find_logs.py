@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from masking_lab.analysis.batch import find_logs
+from masking_lab.analysis.data_folder import find_logs
 from masking_lab.core.errors import AnalysisError
 
 

@@ -435,12 +435,13 @@ def study_at_a_glance(data: str | Path) -> tuple[LabSection, list[str]]:
     AnalysisError
         If ``data`` is not a folder or holds no session log.
     """
-    from masking_lab.analysis.batch import _skip_reason, find_logs
+    from masking_lab.analysis.batch import _skip_reason
+    from masking_lab.analysis.data_folder import data_folder, find_logs
     from masking_lab.analysis.log_reading import read_logs
     from masking_lab.analysis.thresholds import EstimatorSettings, thresholds_table
     from masking_lab.core.errors import AnalysisError
 
-    root = Path(data)
+    root = data_folder(data)
     paths = find_logs(root)
     if not paths:
         raise AnalysisError(f"{root}: no session logs (*.jsonl) found")

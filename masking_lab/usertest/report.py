@@ -88,10 +88,10 @@ def collect_usertest(data_dir: str | Path) -> UserTestData:
     AnalysisError
         No such folder, no user-test log in it, or logs of designs with different answer keys.
     """
-    from masking_lab.analysis.batch import find_logs
+    from masking_lab.analysis.data_folder import data_folder, find_logs
     from masking_lab.formats.session_log import read_log
 
-    data = Path(data_dir)
+    data = data_folder(data_dir)
     paths = find_logs(data)
     records: list[dict[str, Any]] = []
     sessions: list[UserTestSession] = []
