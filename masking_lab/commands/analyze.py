@@ -20,7 +20,7 @@ import sys
 from datetime import UTC, datetime
 from typing import TYPE_CHECKING, Any
 
-from masking_lab.commands.options import command_texts
+from masking_lab.commands.options import command_texts, output_folder
 
 if TYPE_CHECKING:  # the analysis imports pandas; keep `masking-lab --help` fast
     from masking_lab.analysis.batch import RunSummary
@@ -70,7 +70,9 @@ def add_fit_options(p: argparse.ArgumentParser) -> None:
         help="level at which a cell's one-sample t-test counts as masking (default 0.05)",
     )
     o = p.add_argument_group("output")
-    o.add_argument("--out", required=True, metavar="OUT_DIR", help="folder for the outputs")
+    o.add_argument(
+        "--out", required=True, type=output_folder, metavar="OUT_DIR", help="folder for the outputs"
+    )
     o.add_argument(
         "--created-utc",
         metavar="TIME",

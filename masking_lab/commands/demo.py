@@ -12,7 +12,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from masking_lab.commands.options import command_texts
+from masking_lab.commands.options import command_texts, output_folder
 from masking_lab.commands.progress_bars import add_progress_options, progress_wanted, step_bar
 
 
@@ -20,7 +20,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("demo", **command_texts(__doc__))
     p.add_argument(
         "--out",
-        type=Path,
+        type=output_folder,
         default=None,
         help="output folder [demo_out, or demo_out-2, -3, ... when that holds a demo already]",
     )
@@ -50,7 +50,7 @@ def run(args: argparse.Namespace) -> int:
     if args.participants < 2:
         raise MaskingLabError("--participants: the statistics need at least 2 participants")
     settings = DemoSettings(
-        out=args.out if args.out is not None else new_demo_folder(Path("demo_out")),
+        out=Path(args.out) if args.out is not None else new_demo_folder(Path("demo_out")),
         force=args.force,
         participants=args.participants,
         seed=args.seed,

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import argparse
 
-from masking_lab.commands.options import command_texts, rating_options
+from masking_lab.commands.options import command_texts, output_folder, rating_options
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -21,7 +21,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--mv", metavar="NAME", help="MV stimulus, e.g. MV180 (needed if several)")
     p.add_argument("--ev", metavar="NAME", default="EV270", help="EV stimulus (default EV270)")
-    p.add_argument("--out", required=True, metavar="DIR", help="folder for gamut.json, gamut.png")
+    p.add_argument(
+        "--out",
+        required=True,
+        type=output_folder,
+        metavar="DIR",
+        help="folder for gamut.json, gamut.png",
+    )
     rating_options(
         p,
         "rig config whose channels.<EV|MV>.max_level_db_sl are the rated maxima unless "

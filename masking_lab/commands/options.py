@@ -11,6 +11,7 @@ __all__ = [
     "add_scheduler_option",
     "check_scheduler",
     "command_texts",
+    "output_folder",
     "progress_flags",
     "rating_options",
     "session_options",
@@ -37,6 +38,28 @@ def finite_float(text: str) -> float:
     if not math.isfinite(value):
         raise argparse.ArgumentTypeError(f"{text[:40]!r} is not a finite number")
     return value
+
+
+def output_folder(text: str) -> str:
+    """argparse type of every ``--out``: a folder name, refusing an empty one.
+
+    ``--out "$OUT"`` with ``OUT`` unset is ``--out ""``, which is the current folder: the demo
+    wrote its folders there and ``plan`` ran its whole simulation before failing to replace
+    it. Refused before any work, with what to give.
+
+    Examples
+    --------
+    >>> output_folder("results/study1")
+    'results/study1'
+    >>> output_folder("")
+    Traceback (most recent call last):
+    argparse.ArgumentTypeError: an empty name (an unset shell variable?); give the output folder
+    """
+    if not text.strip():
+        raise argparse.ArgumentTypeError(
+            "an empty name (an unset shell variable?); give the output folder"
+        )
+    return text
 
 
 def add_scheduler_option(p: argparse.ArgumentParser) -> None:

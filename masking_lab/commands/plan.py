@@ -27,7 +27,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from masking_lab.commands.options import add_scheduler_option, command_texts
+from masking_lab.commands.options import add_scheduler_option, command_texts, output_folder
 from masking_lab.commands.plan_scene import add_scene_options, run_scene
 from masking_lab.commands.progress_bars import add_progress_options
 
@@ -215,6 +215,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "--out",
+        type=output_folder,
         default=None,
         help="output folder (default ./plan_out, or plan_out-2, -3, ... when that holds a plan "
         "already)",

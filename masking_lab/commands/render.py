@@ -15,7 +15,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from masking_lab.commands.options import command_texts, rating_options
+from masking_lab.commands.options import command_texts, output_folder, rating_options
 from masking_lab.commands.progress_bars import add_progress_options, progress_wanted, step_bar
 
 
@@ -23,7 +23,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("render", **command_texts(__doc__))
     p.add_argument("scene", metavar="SCENE", help="scene YAML file")
     p.add_argument("--params", metavar="FILE", help="masking_params.json from `masking-lab fit`")
-    p.add_argument("--out", required=True, metavar="DIR", help="output folder (created)")
+    p.add_argument(
+        "--out", required=True, type=output_folder, metavar="DIR", help="output folder (created)"
+    )
     rating_options(
         p,
         "rig config whose channels.<EV|MV>.max_level_db_sl are the rated maxima unless "

@@ -15,7 +15,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from masking_lab.commands.options import add_scheduler_option, command_texts
+from masking_lab.commands.options import add_scheduler_option, command_texts, output_folder
 from masking_lab.commands.plan import _count, _positive_int
 from masking_lab.commands.progress_bars import add_progress_options, progress_wanted, step_bar
 
@@ -24,6 +24,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("study", **command_texts(__doc__))
     p.add_argument(
         "--out",
+        type=output_folder,
         default="study_out",
         help="folder for the CSV, PNG and blocks/*.md files (default: study_out)",
     )

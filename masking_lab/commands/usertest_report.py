@@ -16,13 +16,15 @@ from __future__ import annotations
 
 import argparse
 
-from masking_lab.commands.options import command_texts
+from masking_lab.commands.options import command_texts, output_folder
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("usertest-report", **command_texts(__doc__))
     p.add_argument("data", metavar="DATA_DIR", help="folder holding the session logs")
-    p.add_argument("--out", required=True, metavar="OUT", help="output folder (created)")
+    p.add_argument(
+        "--out", required=True, type=output_folder, metavar="OUT", help="output folder (created)"
+    )
     p.add_argument("--no-figure", action="store_true", help="skip figure8a.png")
     p.set_defaults(handler=run)
 
