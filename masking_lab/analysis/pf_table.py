@@ -16,6 +16,7 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+from masking_lab.analysis.freed_memory import reused_blocks
 from masking_lab.analysis.psychometric import PFFit, PFJob, fit_pf_many
 from masking_lab.core.errors import MaskingLabError
 from masking_lab.core.psychometric import GUESS_3IFC
@@ -228,7 +229,7 @@ def fit_all(
     fits: list[PFFit] = []
     if workers <= 1 or len(chunks) < 2:
         for chunk in chunks:
-            fits += fit_pf_many(chunk)
+            fits += _fit_chunk(chunk)
             if progress:
                 progress(len(fits), n)
         return fits
@@ -236,9 +237,9 @@ def fit_all(
     results: list[list[PFFit] | None] = [None] * len(chunks)
     made = 0
     with worker_pool(share - 1) as pool:
-        away = {i: pool.submit(fit_pf_many, c) for i, c in enumerate(chunks) if i % share}
+        away = {i: pool.submit(_fit_chunk, c) for i, c in enumerate(chunks) if i % share}
         for i in range(0, len(chunks), share):  # this process's share, while the pool works
-            results[i] = fit_pf_many(chunks[i])
+            results[i] = _fit_chunk(chunks[i])
             made += len(chunks[i])
             if progress:
                 progress(made, n)
@@ -251,6 +252,12 @@ def fit_all(
         assert done is not None
         fits += done
     return fits
+
+
+def _fit_chunk(jobs: list[PFJob]) -> list[PFFit]:
+    """One chunk's fits, their numpy temporaries reused from the heap (in a worker too)."""
+    with reused_blocks():
+        return fit_pf_many(jobs)
 
 
 def chunk_bounds(n: int, workers: int, chunk: int) -> list[tuple[int, int]]:
