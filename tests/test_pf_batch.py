@@ -90,3 +90,58 @@ def test_an_empty_batch_and_a_bad_track_are_answered_not_raised():
     assert not fit.ok and "wrong" in fit.message
     with pytest.raises(Exception, match="2 levels but 1 answers"):
         fit_pf_many([PFJob([0.0, 1.0], [True])])
+
+
+def _where_and_trials(job: PFJob, fit: psychometric.PFFit) -> tuple[int, int]:
+    """``then`` of the tests below: the process that made the fit, and its trials."""
+    import os
+
+    return os.getpid(), len(job.levels_db)
+
+
+def _refuse_level_count_7(job: PFJob, fit: psychometric.PFFit) -> int:
+    if fit.n_levels == 7:
+        raise ValueError("no plot for 7 levels")
+    return fit.n_levels
+
+
+def _eight_chunks(monkeypatch) -> list[PFJob]:
+    monkeypatch.setattr(pf_table, "_PF_CHUNK", 2)
+    rng = np.random.default_rng(8)
+    jobs = []
+    for i in range(16):
+        x, r = _track(rng, n_levels=4 + i % 4, n_per=8)
+        jobs.append(pf_job(SetTrials({"level_unit": "db_sl"}, x, r), seed=i, n_boot=30))
+    return jobs
+
+
+def test_then_runs_beside_each_fit_wherever_the_fit_was_made(monkeypatch):
+    import os
+
+    jobs = _eight_chunks(monkeypatch)
+    alone = fit_all(jobs, workers=1)
+    seen: list[tuple[int, int]] = []
+    made = pf_table.fit_all_with(
+        jobs, _where_and_trials, workers=2, progress=lambda i, n: seen.append((i, n))
+    )
+    assert [repr(f) for f, _ in made] == [repr(f) for f in alone]
+    assert [n for _, (_, n) in made] == [len(j.levels_db) for j in jobs]
+    # This process fitted chunks from the end while the worker took them from the start: the
+    # fits' processes are the worker's first, then this one's, and each made some.
+    where = [pid for _, (pid, _) in made]
+    here = os.getpid()
+    first_here = where.index(here)
+    assert all(pid != here for pid in where[:first_here])
+    assert all(pid == here for pid in where[first_here:])
+    assert 0 < first_here < len(jobs) and first_here % 2 == 0
+    assert seen == sorted(seen) and seen[-1] == (16, 16)
+    # None: nothing made beside the fits
+    assert [extra for _, extra in pf_table.fit_all_with(jobs[:3], None, workers=1)] == [None] * 3
+
+
+def test_a_failing_then_is_raised_and_ends_the_pool(monkeypatch):
+    jobs = _eight_chunks(monkeypatch)
+    with pytest.raises(ValueError, match="no plot for 7 levels"):
+        pf_table.fit_all_with(jobs, _refuse_level_count_7, workers=2)
+    with pytest.raises(ValueError, match="no plot for 7 levels"):
+        pf_table.fit_all_with(jobs, _refuse_level_count_7, workers=1)

@@ -14,7 +14,7 @@ import functools
 import os
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, TypeVar
 
 from masking_lab.analysis.freed_memory import reused_blocks
 from masking_lab.analysis.psychometric import PFFit, PFJob, fit_pf_many
@@ -29,10 +29,13 @@ __all__ = [
     "SetTrials",
     "chunk_bounds",
     "fit_all",
+    "fit_all_with",
     "pf_job",
     "pf_row",
     "set_trials",
 ]
+
+T = TypeVar("T")
 
 PF_BOOTSTRAP = 200  # parametric-bootstrap data sets per psychometric function
 PF_PARALLEL_FROM = 256  # fewer sets than this are fitted in-process (workers cost ~0.3 s)
@@ -214,50 +217,103 @@ def fit_all(
     """:func:`~masking_lab.analysis.psychometric.fit_pf_many` of every job, in chunks spread
     over processes for many sets (each fit is the same whichever chunk holds it).
 
-    This process is one of the ``workers``: it fits its share of the chunks while
-    ``workers − 1`` forked processes fit the rest (it would only wait for them otherwise).
-
     Examples
     --------
     >>> fit_all([])
     []
     """
+    return [fit for fit, _ in fit_all_with(jobs, None, workers=workers, progress=progress)]
+
+
+def fit_all_with(
+    jobs: Sequence[PFJob],
+    then: Callable[[PFJob, PFFit], T] | None,
+    *,
+    workers: int | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> list[tuple[PFFit, T | None]]:
+    """Each job's fit (as :func:`fit_all`) and ``then(job, fit)``, made where the fit was made.
+
+    ``then`` (a module-level function, so that it reaches a worker) is the per-fit work that
+    would otherwise follow the fits in this process alone: the report's plot of each set.
+
+    The chunks are offered to ``workers − 1`` forked processes; this process fits chunks too,
+    from the last one backwards, each one the pool has not started, so all finish together
+    however the cores are shared (with the figure workers, say). A chunk's fits do not depend
+    on where it was fitted.
+
+    Parameters
+    ----------
+    jobs : sequence of PFJob
+        One per set.
+    then : callable or None
+        ``then(job, fit)``; None gives None beside every fit.
+    workers : int, optional
+        Processes, this one included; default: the CPU count from :data:`PF_PARALLEL_FROM`
+        sets on, else 1.
+    progress : callable, optional
+        Called with (sets fitted, sets to fit), the count rising.
+
+    Returns
+    -------
+    list of (PFFit, result of ``then``)
+        In the order of ``jobs``.
+
+    Examples
+    --------
+    >>> st = SetTrials({"level_unit": "db_sl"}, [0.0, 2.0, 4.0] * 10, [False, True, True] * 10)
+    >>> trials = lambda job, fit: len(job.levels_db)  # in this process: any callable
+    >>> [(fit.n_levels, n) for fit, n in fit_all_with([pf_job(st, 1, 0)], trials)]
+    [(3, 30)]
+    """
     n = len(jobs)
     if workers is None:
         workers = (os.cpu_count() or 1) if n >= PF_PARALLEL_FROM else 1
     chunks = [list(jobs[a:b]) for a, b in chunk_bounds(n, workers, _PF_CHUNK)]
-    fits: list[PFFit] = []
+    made: list[tuple[PFFit, T | None]] = []
     if workers <= 1 or len(chunks) < 2:
         for chunk in chunks:
-            fits += _fit_chunk(chunk)
+            made += _fit_chunk(chunk, then)
             if progress:
-                progress(len(fits), n)
-        return fits
-    share = workers if len(chunks) >= workers else len(chunks)
-    results: list[list[PFFit] | None] = [None] * len(chunks)
-    made = 0
-    with worker_pool(share - 1) as pool:
-        away = {i: pool.submit(_fit_chunk, c) for i, c in enumerate(chunks) if i % share}
-        for i in range(0, len(chunks), share):  # this process's share, while the pool works
-            results[i] = _fit_chunk(chunks[i])
-            made += len(chunks[i])
-            if progress:
-                progress(made, n)
-        for i, fut in away.items():
-            results[i] = fut.result()
-            made += len(chunks[i])
-            if progress:
-                progress(made, n)
-    for done in results:
-        assert done is not None
-        fits += done
-    return fits
+                progress(len(made), n)
+        return made
+    results: list[list[tuple[PFFit, T | None]] | None] = [None] * len(chunks)
+    done = 0
+    with worker_pool(min(workers, len(chunks)) - 1) as pool:
+        futures = [pool.submit(_fit_chunk, c, then) for c in chunks]
+        try:
+            for i in reversed(range(len(chunks))):
+                if not futures[i].cancel():
+                    break  # the pool has started it: the rest is the pool's
+                results[i] = _fit_chunk(chunks[i], then)
+                done += len(chunks[i])
+                if progress:
+                    progress(done, n)
+            for i, fut in enumerate(futures):
+                if results[i] is None:
+                    results[i] = fut.result()
+                    done += len(chunks[i])
+                    if progress:
+                        progress(done, n)
+        except BaseException:
+            pool.shutdown(wait=True, cancel_futures=True)
+            raise
+    for part in results:
+        assert part is not None
+        made += part
+    return made
 
 
-def _fit_chunk(jobs: list[PFJob]) -> list[PFFit]:
-    """One chunk's fits, their numpy temporaries reused from the heap (in a worker too)."""
+def _fit_chunk(
+    jobs: list[PFJob], then: Callable[[PFJob, PFFit], T] | None = None
+) -> list[tuple[PFFit, T | None]]:
+    """One chunk's fits (and ``then`` of each), their numpy temporaries reused from the heap
+    (in a worker too)."""
     with reused_blocks():
-        return fit_pf_many(jobs)
+        fits = fit_pf_many(jobs)
+    if then is None:
+        return [(fit, None) for fit in fits]
+    return [(fit, then(job, fit)) for job, fit in zip(jobs, fits, strict=True)]
 
 
 def chunk_bounds(n: int, workers: int, chunk: int) -> list[tuple[int, int]]:

@@ -7,11 +7,11 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import cached_property
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from masking_lab.analysis.psychometric import PFFit, binned, pf_curve
 from masking_lab.analysis.study_status import OUTLIER_RULE, CellStatus, Outlier
@@ -70,7 +70,7 @@ class PFPlot:
 _W, _H, _L, _R, _T, _B = 250, 170, 38, 8, 8, 30  # size and margins of a PF plot, px
 
 
-def pf_plot(levels_db: Sequence[float], correct: Sequence[bool], fit: PFFit) -> PFPlot:
+def pf_plot(levels_db: ArrayLike, correct: ArrayLike, fit: PFFit) -> PFPlot:
     """The geometry of one set's PF plot: binned proportions with n, the curve, α and AL.
 
     Examples
