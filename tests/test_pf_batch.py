@@ -126,9 +126,12 @@ def test_then_runs_beside_each_fit_wherever_the_fit_was_made(monkeypatch):
     )
     assert [repr(f) for f, _ in made] == [repr(f) for f in alone]
     assert [n for _, (_, n) in made] == [len(j.levels_db) for j in jobs]
-    # This process fitted chunks from the end while the worker took them from the start: the
-    # fits' processes are the worker's first, then this one's, and each made some.
-    where = [pid for _, (pid, _) in made]
+    # This process fitted chunks from the end while the worker took them from the start: in
+    # the order the sets were chunked (by batch group), the fits' processes are the worker's
+    # first, then this one's, and each made some.
+    order = sorted(range(len(jobs)), key=lambda i: psychometric.batch_group(jobs[i]))
+    assert order != list(range(len(jobs)))  # the sets were regrouped
+    where = [made[i][1][0] for i in order]
     here = os.getpid()
     first_here = where.index(here)
     assert all(pid != here for pid in where[:first_here])
@@ -145,3 +148,21 @@ def test_a_failing_then_is_raised_and_ends_the_pool(monkeypatch):
         pf_table.fit_all_with(jobs, _refuse_level_count_7, workers=2)
     with pytest.raises(ValueError, match="no plot for 7 levels"):
         pf_table.fit_all_with(jobs, _refuse_level_count_7, workers=1)
+
+
+def test_sets_are_chunked_by_batch_group_and_come_back_in_their_order(monkeypatch):
+    jobs = _eight_chunks(monkeypatch)
+    seen_chunks: list[list[tuple[int, float, bool]]] = []
+    real = pf_table._fit_chunk
+
+    def spy(chunk, then=None):
+        seen_chunks.append([psychometric.batch_group(j) for j in chunk])
+        return real(chunk, then)
+
+    monkeypatch.setattr(pf_table, "_fit_chunk", spy)
+    made = pf_table.fit_all_with(jobs, None, workers=1)
+    # each chunk holds one group where the groups allow it (16 sets, 4 per level count)
+    assert [len(set(c)) for c in seen_chunks] == [1] * 8
+    groups = [g for c in seen_chunks for g in c]
+    assert groups == sorted(groups)
+    assert [f.n_levels for f, _ in made] == [psychometric.batch_group(j)[0] for j in jobs]

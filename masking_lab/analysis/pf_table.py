@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 from typing import Any, TypeVar
 
 from masking_lab.analysis.freed_memory import reused_blocks
-from masking_lab.analysis.psychometric import PFFit, PFJob, fit_pf_many
+from masking_lab.analysis.psychometric import PFFit, PFJob, batch_group, fit_pf_many
 from masking_lab.core.errors import MaskingLabError
 from masking_lab.core.psychometric import GUESS_3IFC
 from masking_lab.core.worker_processes import worker_pool
@@ -237,7 +237,9 @@ def fit_all_with(
     ``then`` (a module-level function, so that it reaches a worker) is the per-fit work that
     would otherwise follow the fits in this process alone: the report's plot of each set.
 
-    The chunks are offered to ``workers − 1`` forked processes; this process fits chunks too,
+    The sets are fitted in chunks of :data:`_PF_CHUNK`, sorted so that sets with the same
+    :func:`~masking_lab.analysis.psychometric.batch_group` share chunks. The chunks are
+    offered to ``workers − 1`` forked processes; this process fits chunks too,
     from the last one backwards, each one the pool has not started, so all finish together
     however the cores are shared (with the figure workers, say). A chunk's fits do not depend
     on where it was fitted.
@@ -269,14 +271,19 @@ def fit_all_with(
     n = len(jobs)
     if workers is None:
         workers = (os.cpu_count() or 1) if n >= PF_PARALLEL_FROM else 1
-    chunks = [list(jobs[a:b]) for a, b in chunk_bounds(n, workers, _PF_CHUNK)]
+    # Sets that climb as one batch side by side, so that a chunk's batches are full (a study's
+    # sets differ in their number of levels: in the order of the logs, a chunk of 128 sets
+    # made a dozen small batches, each paying numpy's per-call cost).
+    order = sorted(range(n), key=lambda i: batch_group(jobs[i]))
+    ordered = [jobs[i] for i in order]
+    chunks = [ordered[a:b] for a, b in chunk_bounds(n, workers, _PF_CHUNK)]
     made: list[tuple[PFFit, T | None]] = []
     if workers <= 1 or len(chunks) < 2:
         for chunk in chunks:
             made += _fit_chunk(chunk, then)
             if progress:
                 progress(len(made), n)
-        return made
+        return _unsorted(made, order)
     results: list[list[tuple[PFFit, T | None]] | None] = [None] * len(chunks)
     done = 0
     with worker_pool(min(workers, len(chunks)) - 1) as pool:
@@ -301,7 +308,15 @@ def fit_all_with(
     for part in results:
         assert part is not None
         made += part
-    return made
+    return _unsorted(made, order)
+
+
+def _unsorted(made: list[Any], order: list[int]) -> list[Any]:
+    """``made[k]`` belongs to job ``order[k]``: back in the order of the jobs."""
+    out: list[Any] = [None] * len(made)
+    for k, i in enumerate(order):
+        out[i] = made[k]
+    return out
 
 
 def _fit_chunk(

@@ -40,7 +40,16 @@ from masking_lab.analysis.pf_likelihood import refit as _refit
 from masking_lab.core.errors import AnalysisError
 from masking_lab.core.psychometric import GUESS_3IFC, LEVITT_1U3D
 
-__all__ = ["PFFit", "PFJob", "binned", "deviance", "fit_pf", "fit_pf_many", "pf_curve"]
+__all__ = [
+    "PFFit",
+    "PFJob",
+    "batch_group",
+    "binned",
+    "deviance",
+    "fit_pf",
+    "fit_pf_many",
+    "pf_curve",
+]
 
 MAX_LAPSE = 0.1
 MIN_TRIALS = 10
@@ -232,6 +241,22 @@ class _Fit:
     def group(self) -> tuple[int, float, bool]:
         """What data sets must share to climb together: levels, guess rate, λ fitted."""
         return (self.xu.size, self.job.guess, self.job.lapse is None)
+
+
+def batch_group(job: PFJob) -> tuple[int, float, bool]:
+    """What a set's data sets share with those they climb beside in :func:`fit_pf_many`: the
+    number of distinct levels, the guess rate and whether λ is fitted.
+
+    Sets of one group fill a batch together; sorting sets by it before cutting them into
+    chunks gives full batches. It never changes a fit.
+
+    Examples
+    --------
+    >>> batch_group(PFJob([0.0, 2.0, 2.0, 4.0], [False, True, True, True]))
+    (3, 0.3333333333333333, True)
+    """
+    levels = np.unique(np.asarray(job.levels_db, dtype=float).ravel())
+    return (levels.size, job.guess, job.lapse is None)
 
 
 _BATCH_ROWS = 8192  # data sets climbed together: large enough to amortise numpy's overhead
