@@ -58,6 +58,10 @@ EDGE_LINES = [
     '{"text": "NaN and Infinity in a note", "v": 1.5}',
     '{"esc": "\\u00e9\\ud83d\\ude00\\/", "raw": "é"}',
     '{"lone": "\\ud800"}',
+    '{"lone": "' + "\ud800" + '"}',  # a lone surrogate in the text itself, not escaped
+    '{"id": "' + "7" * 70 + '"}',  # a long run of digits in a string
+    '{"id": "' + "\u0663" * 70 + '", "n": 1}',  # non-ASCII digits are not a long integer
+    '{"n": ' + "1" * 64 + ', "s": "é' + "5" * 65 + '"}',
     '{"ctrl": "a\tb"}',
     "{} {}",
     "{} ",

@@ -139,8 +139,11 @@ def _parse_int(text: str) -> int:
 # last duplicate kept). Anything it refuses goes the exact way below.
 _FAST = msgspec.json.Decoder()
 _FAST_OPEN = 256
-_DIGITS_AS_ZERO = str.maketrans("123456789", "000000000")
-_LONG_DIGITS = "0" * (MAX_INT_DIGITS + 1)
+# A run of digits found as a run of b"0" in the line's UTF-8 bytes with 1-9 mapped to 0: a
+# byte table (a quarter of the time of str.translate's dict, a third of a line's decode). Only
+# ASCII digits encode to those bytes; "surrogatepass" so that no str can make it raise.
+_DIGITS_AS_ZERO = bytes.maketrans(b"123456789", b"000000000")
+_LONG_DIGITS = b"0" * (MAX_INT_DIGITS + 1)
 
 
 def loads_record(text: str) -> tuple[Any, str | None]:
@@ -176,7 +179,7 @@ def loads_record(text: str) -> tuple[Any, str | None]:
         "NaN" not in text
         and "Infinity" not in text
         and text.count("[") + text.count("{") < _FAST_OPEN
-        and _LONG_DIGITS not in text.translate(_DIGITS_AS_ZERO)
+        and _LONG_DIGITS not in text.encode("utf-8", "surrogatepass").translate(_DIGITS_AS_ZERO)
     ):
         try:
             return _FAST.decode(text), None
