@@ -99,6 +99,19 @@ def _where_and_trials(job: PFJob, fit: psychometric.PFFit) -> tuple[int, int]:
     return os.getpid(), len(job.levels_db)
 
 
+_TEST_PROCESS = __import__("os").getpid()  # a forked worker inherits this value
+
+
+def _die_in_a_worker(job: PFJob, fit: psychometric.PFFit) -> int:
+    """``then`` that kills the worker process it runs in (as the kernel's OOM killer would)."""
+    import os
+    import signal
+
+    if os.getpid() != _TEST_PROCESS:
+        os.kill(os.getpid(), signal.SIGKILL)
+    return os.getpid()
+
+
 def _refuse_level_count_7(job: PFJob, fit: psychometric.PFFit) -> int:
     if fit.n_levels == 7:
         raise ValueError("no plot for 7 levels")
@@ -166,3 +179,19 @@ def test_sets_are_chunked_by_batch_group_and_come_back_in_their_order(monkeypatc
     groups = [g for c in seen_chunks for g in c]
     assert groups == sorted(groups)
     assert [f.n_levels for f, _ in made] == [psychometric.batch_group(j)[0] for j in jobs]
+
+
+# and nothing fails in the pool's own thread (a cancelled future there did, on Python 3.11)
+@pytest.mark.filterwarnings("error::pytest.PytestUnhandledThreadExceptionWarning")
+def test_the_chunks_of_a_worker_that_died_are_fitted_here(monkeypatch):
+    import os
+
+    jobs = _eight_chunks(monkeypatch)
+    alone = fit_all(jobs, workers=1)
+    seen: list[tuple[int, int]] = []
+    made = pf_table.fit_all_with(
+        jobs, _die_in_a_worker, workers=2, progress=lambda i, n: seen.append((i, n))
+    )
+    assert [repr(f) for f, _ in made] == [repr(f) for f in alone]
+    assert {pid for _, pid in made} == {os.getpid()}  # every chunk ended up fitted here
+    assert seen == sorted(seen) and seen[-1] == (16, 16)

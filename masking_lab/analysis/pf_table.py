@@ -13,6 +13,8 @@ from __future__ import annotations
 import functools
 import os
 from collections.abc import Callable, Mapping, Sequence
+from concurrent.futures import Future
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 from typing import Any, TypeVar
 
@@ -238,11 +240,12 @@ def fit_all_with(
     would otherwise follow the fits in this process alone: the report's plot of each set.
 
     The sets are fitted in chunks of :data:`_PF_CHUNK`, sorted so that sets with the same
-    :func:`~masking_lab.analysis.psychometric.batch_group` share chunks. The chunks are
-    offered to ``workers − 1`` forked processes; this process fits chunks too,
-    from the last one backwards, each one the pool has not started, so all finish together
-    however the cores are shared (with the figure workers, say). A chunk's fits do not depend
-    on where it was fitted.
+    :func:`~masking_lab.analysis.psychometric.batch_group` share chunks. ``workers − 1``
+    forked processes take chunks from the first on, two per process at a time; this process
+    fits chunks too, from the last one backwards, so all finish together however the cores
+    are shared (with the figure workers, say). A chunk's fits do not depend
+    on where it was fitted, so the chunks of a worker that died (killed for memory, say) are
+    fitted here, as the figure pool draws a dead worker's figures.
 
     Parameters
     ----------
@@ -286,22 +289,37 @@ def fit_all_with(
         return _unsorted(made, order)
     results: list[list[tuple[PFFit, T | None]] | None] = [None] * len(chunks)
     done = 0
-    with worker_pool(min(workers, len(chunks)) - 1) as pool:
-        futures = [pool.submit(_fit_chunk, c, then) for c in chunks]
+    pool_size = min(workers, len(chunks)) - 1
+    # The pool takes chunks from the front, two per worker in hand (one running, one queued);
+    # this process takes them from the back, topping the pool up after each. Nothing is ever
+    # cancelled: Python 3.11's pool, once broken, fails on a cancelled future in its own thread.
+    futures: dict[int, Future[list[tuple[PFFit, T | None]]]] = {}
+    front, back, broken = 0, len(chunks), False
+    with worker_pool(pool_size) as pool:
         try:
-            for i in reversed(range(len(chunks))):
-                if not futures[i].cancel():
-                    break  # the pool has started it: the rest is the pool's
-                results[i] = _fit_chunk(chunks[i], then)
+            while front < back:
+                in_hand = sum(not f.done() for f in futures.values())
+                while front < back and not broken and in_hand < 2 * pool_size:
+                    try:
+                        futures[front] = pool.submit(_fit_chunk, chunks[front], then)
+                    except BrokenProcessPool:
+                        broken = True
+                        break
+                    front, in_hand = front + 1, in_hand + 1
+                if front < back:
+                    back -= 1
+                    results[back] = _fit_chunk(chunks[back], then)
+                    done += len(chunks[back])
+                    if progress:
+                        progress(done, n)
+            for i, fut in sorted(futures.items()):
+                try:
+                    results[i] = fut.result()
+                except BrokenProcessPool:  # the worker died (e.g. killed for memory): fit here
+                    results[i] = _fit_chunk(chunks[i], then)
                 done += len(chunks[i])
                 if progress:
                     progress(done, n)
-            for i, fut in enumerate(futures):
-                if results[i] is None:
-                    results[i] = fut.result()
-                    done += len(chunks[i])
-                    if progress:
-                        progress(done, n)
         except BaseException:
             pool.shutdown(wait=True, cancel_futures=True)
             raise
