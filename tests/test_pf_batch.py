@@ -128,16 +128,21 @@ def _eight_chunks(monkeypatch) -> list[PFJob]:
     return jobs
 
 
-def test_then_runs_beside_each_fit_wherever_the_fit_was_made(monkeypatch):
-    import os
-
+def _fitted_with_two(monkeypatch, then):
+    """The 16 sets of :func:`_eight_chunks` fitted with ``then`` by this process and a worker,
+    checked against the fits made alone; also the progress calls."""
     jobs = _eight_chunks(monkeypatch)
     alone = fit_all(jobs, workers=1)
     seen: list[tuple[int, int]] = []
-    made = pf_table.fit_all_with(
-        jobs, _where_and_trials, workers=2, progress=lambda i, n: seen.append((i, n))
-    )
+    made = pf_table.fit_all_with(jobs, then, workers=2, progress=lambda i, n: seen.append((i, n)))
     assert [repr(f) for f, _ in made] == [repr(f) for f in alone]
+    return jobs, made, seen
+
+
+def test_then_runs_beside_each_fit_wherever_the_fit_was_made(monkeypatch):
+    import os
+
+    jobs, made, seen = _fitted_with_two(monkeypatch, _where_and_trials)
     assert [n for _, (_, n) in made] == [len(j.levels_db) for j in jobs]
     # This process fitted chunks from the end while the worker took them from the start: in
     # the order the sets were chunked (by batch group), the fits' processes are the worker's
@@ -186,12 +191,6 @@ def test_sets_are_chunked_by_batch_group_and_come_back_in_their_order(monkeypatc
 def test_the_chunks_of_a_worker_that_died_are_fitted_here(monkeypatch):
     import os
 
-    jobs = _eight_chunks(monkeypatch)
-    alone = fit_all(jobs, workers=1)
-    seen: list[tuple[int, int]] = []
-    made = pf_table.fit_all_with(
-        jobs, _die_in_a_worker, workers=2, progress=lambda i, n: seen.append((i, n))
-    )
-    assert [repr(f) for f, _ in made] == [repr(f) for f in alone]
+    _, made, seen = _fitted_with_two(monkeypatch, _die_in_a_worker)
     assert {pid for _, pid in made} == {os.getpid()}  # every chunk ended up fitted here
     assert seen == sorted(seen) and seen[-1] == (16, 16)
