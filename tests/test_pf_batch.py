@@ -160,6 +160,20 @@ def test_then_runs_beside_each_fit_wherever_the_fit_was_made(monkeypatch):
     assert [extra for _, extra in pf_table.fit_all_with(jobs[:3], None, workers=1)] == [None] * 3
 
 
+def test_two_chunks_on_two_workers_are_fitted_one_in_each_process(monkeypatch):
+    import os
+
+    # The demo's case (340 sets: 2 x 170). Handing the pool two chunks per worker left none
+    # for this process, and the demo's fits ran on one core.
+    jobs = _eight_chunks(monkeypatch)
+    monkeypatch.setattr(pf_table, "_PF_CHUNK", 8)
+    assert len(pf_table.chunk_bounds(len(jobs), 2, pf_table._PF_CHUNK)) == 2
+    made = pf_table.fit_all_with(jobs, _where_and_trials, workers=2)
+    where = [pid for _, (pid, _) in made]
+    assert where.count(os.getpid()) == 8 and len(set(where)) == 2
+    assert [repr(f) for f, _ in made] == [repr(f) for f in fit_all(jobs, workers=1)]
+
+
 def test_a_failing_then_is_raised_and_ends_the_pool(monkeypatch):
     jobs = _eight_chunks(monkeypatch)
     with pytest.raises(ValueError, match="no plot for 7 levels"):

@@ -291,15 +291,17 @@ def fit_all_with(
     done = 0
     pool_size = min(workers, len(chunks)) - 1
     # The pool takes chunks from the front, two per worker in hand (one running, one queued);
-    # this process takes them from the back, topping the pool up after each. Nothing is ever
-    # cancelled: Python 3.11's pool, once broken, fails on a cancelled future in its own thread.
+    # this process takes them from the back, topping the pool up after each, and always keeps
+    # one for itself (the demo's two chunks went both to the pool: its fits ran on one core).
+    # Nothing is ever cancelled: Python 3.11's pool, once broken, fails on a cancelled future
+    # in its own thread.
     futures: dict[int, Future[list[tuple[PFFit, T | None]]]] = {}
     front, back, broken = 0, len(chunks), False
     with worker_pool(pool_size) as pool:
         try:
             while front < back:
                 in_hand = sum(not f.done() for f in futures.values())
-                while front < back and not broken and in_hand < 2 * pool_size:
+                while front < back - 1 and not broken and in_hand < 2 * pool_size:
                     try:
                         futures[front] = pool.submit(_fit_chunk, chunks[front], then)
                     except BrokenProcessPool:
