@@ -279,15 +279,17 @@ def _analyze_into(
     warnings = [f"{p['log']}: {p['problem']} ({p['action']})" for p in problems]
     warnings += report_inputs.rig_warnings
     experiments = masking_figures = params_json = None
-    if on_params is not None and not shifts.empty:
-        # The export first, for the caller to use while the per-trial outputs are written;
-        # the masking-function figures are drawn meanwhile too.
+    if not shifts.empty:
+        # The statistics before the per-trial outputs: the masking-function figures are drawn
+        # (by the figure worker) while this process reads and fits the trials, and a caller's
+        # export is ready for it to use meanwhile.
         from masking_lab.analysis.export import start_masking_figures
 
         experiments = _statistics(shifts, data, settings)
         masking_figures = start_masking_figures(experiments, settings, figure_pool)
-        params_json = _params_text(experiments, settings, inputs, skipped, created_utc)
-        on_params(params_json)
+        if on_params is not None:
+            params_json = _params_text(experiments, settings, inputs, skipped, created_utc)
+            on_params(params_json)
     # Only the track figures are listed as such (files also holds thresholds.csv, problems.csv).
     lab = _lab_outputs(
         data,
@@ -323,8 +325,7 @@ def _analyze_into(
             f"{data}: no completed masked set to analyse ({len(thresholds)} sets, none with an "
             "AL shift); see report.txt for the status of each set"
         )
-    if experiments is None:
-        experiments = _statistics(shifts, data, settings)
+    assert experiments is not None  # computed above: the shifts are not empty
     files += write_outputs(
         out,
         experiments,
