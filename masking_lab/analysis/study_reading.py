@@ -23,7 +23,7 @@ from masking_lab.analysis.pf_table import SetTrials, set_trials
 from masking_lab.analysis.study_status import SessionInfo, session_of
 from masking_lab.analysis.trials_table import TRIAL_COLUMNS, trial_rows
 from masking_lab.core.errors import LogError
-from masking_lab.core.worker_processes import worker_pool
+from masking_lab.core.worker_processes import rest_here, worker_pool
 from masking_lab.formats.csv_table import csv_text_columns
 from masking_lab.formats.session_log import read_log
 
@@ -170,7 +170,8 @@ def read_parts(
         sub = {k: v for rel in names for k, v in by_log.get(rel, {}).items()}
         chunks.append(([(data / rel, rel) for rel in names], sub, csv, rows))
     with worker_pool(min(workers, len(chunks))) as pool:
-        for parts in pool.map(_read_chunk, chunks):
+        # the chunks of a worker that died (killed for memory, say) are read here
+        for parts in rest_here(pool.map(_read_chunk, chunks), _read_chunk, chunks):
             yield from parts
 
 

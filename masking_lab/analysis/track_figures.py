@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from masking_lab.core.worker_processes import worker_pool
+from masking_lab.core.worker_processes import rest_here, worker_pool
 from masking_lab.formats.fileio import write_bytes_atomic
 from masking_lab.formats.png_figure import legible, png_bytes
 
@@ -155,7 +155,9 @@ def draw_tracks(jobs: Sequence[TrackJob], *, workers: int = 1) -> list[Path]:
     size = max(1, min(_CHUNK, math.ceil(len(jobs) / workers)))
     chunks = [list(jobs[i : i + size]) for i in range(0, len(jobs), size)]
     with worker_pool(workers) as pool:
-        return [p for done in pool.map(_draw_chunk, chunks) for p in done]
+        # the chunks of a worker that died (killed for memory, say) are drawn here
+        drawn = rest_here(pool.map(_draw_chunk, chunks), _draw_chunk, chunks)
+        return [p for done in drawn for p in done]
 
 
 # One figure per grid shape, per process: building 15 axes is most of a figure's cost.

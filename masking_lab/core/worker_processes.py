@@ -16,14 +16,17 @@ import os
 import signal
 import threading
 import time
-from collections.abc import Callable
-from typing import TYPE_CHECKING, Any
+from collections.abc import Callable, Iterator, Sequence
+from typing import TYPE_CHECKING, Any, TypeVar
 
 if TYPE_CHECKING:  # loaded when a pool is made: output folders only ask whether a pid runs
     from concurrent.futures import ProcessPoolExecutor
     from multiprocessing.context import BaseContext
 
-__all__ = ["alive", "end_with_parent", "worker_pool"]
+__all__ = ["alive", "end_with_parent", "rest_here", "worker_pool"]
+
+A = TypeVar("A")
+R = TypeVar("R")
 
 _PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
 _POLL_S = 0.5  # the watching thread's look at its parent (where the kernel cannot be asked)
@@ -148,3 +151,44 @@ def worker_pool(
         initializer=_start_worker,
         initargs=(os.getpid(), initializer, initargs),
     )
+
+
+def rest_here(results: Iterator[R], fn: Callable[[A], R], items: Sequence[A]) -> Iterator[R]:
+    """The results of ``pool.map(fn, items)``, in order, also when a worker dies.
+
+    A worker killed from outside (the kernel's out-of-memory killer, say) breaks the whole
+    pool: every result not yet returned raises ``BrokenProcessPool``. From the first of them
+    on, ``fn`` is called on the remaining items in this process, so the caller gets every
+    result, computed by the same function, instead of a traceback.
+
+    Parameters
+    ----------
+    results : iterator
+        ``pool.map(fn, items)``, already started (the workers run while the caller does other
+        work).
+    fn : callable
+        The mapped function (module-level, as the pool needs).
+    items : sequence
+        The mapped items.
+
+    Returns
+    -------
+    iterator
+        ``fn(item)`` for each item, in order.
+
+    Examples
+    --------
+    >>> with worker_pool(2) as pool:
+    ...     list(rest_here(pool.map(abs, [-1, 2, -3]), abs, [-1, 2, -3]))
+    [1, 2, 3]
+    """
+    from concurrent.futures.process import BrokenProcessPool
+
+    done = 0
+    try:
+        for result in results:
+            yield result
+            done += 1
+    except BrokenProcessPool:
+        for item in items[done:]:
+            yield fn(item)

@@ -1,0 +1,126 @@
+"""A worker process of `analyze` killed from outside (the kernel's out-of-memory killer, say):
+what it had not returned is done in the analysing process, with the same results, instead of
+a ``BrokenProcessPool`` traceback (issue 22; the fits' and figures' pools already did this).
+
+Each case kills a real forked worker with SIGKILL from inside its task, once, and leaves a
+marker file so that the test knows the kill happened."""
+
+from __future__ import annotations
+
+import os
+import signal
+from pathlib import Path
+
+import pytest
+
+from masking_lab.analysis import log_reading, study_reading, track_figures
+from masking_lab.analysis.thresholds import EstimatorSettings
+from masking_lab.core.worker_processes import rest_here, worker_pool
+from masking_lab.simulation.synthetic_logs import simulate_study
+
+_HERE = os.getpid()  # a forked worker inherits this value
+
+# and nothing fails in the pool's own thread
+pytestmark = pytest.mark.filterwarnings("error::pytest.PytestUnhandledThreadExceptionWarning")
+
+
+def _kill_worker_once(marker: Path) -> None:
+    """In a worker (not this test's process), the first time: leave ``marker`` and die."""
+    if os.getpid() != _HERE and not marker.exists():
+        marker.write_text(str(os.getpid()))
+        os.kill(os.getpid(), signal.SIGKILL)
+
+
+def _square_or_die(item: tuple[int, str]) -> int:
+    value, marker = item
+    if value == 3:
+        _kill_worker_once(Path(marker))
+    return value * value
+
+
+@pytest.fixture(scope="module")
+def study(tmp_path_factory):
+    root = tmp_path_factory.mktemp("study")
+    simulate_study(root, n_participants=3, seed=5)
+    return root, sorted(root.rglob("*.jsonl"))
+
+
+def test_rest_here_does_in_this_process_what_a_dead_worker_left(tmp_path):
+    items = [(v, str(tmp_path / "killed")) for v in range(8)]
+    with worker_pool(2) as pool:
+        got = list(rest_here(pool.map(_square_or_die, items), _square_or_die, items))
+    assert got == [v * v for v in range(8)]
+    assert (tmp_path / "killed").is_file()  # the worker did die
+    with worker_pool(2) as pool:  # and nothing changes when none dies
+        assert list(rest_here(pool.map(abs, [-1, 2]), abs, [-1, 2])) == [1, 2]
+
+
+def test_logs_of_a_dead_reader_are_read_here(study, tmp_path, monkeypatch):
+    root, paths = study
+    marker = tmp_path / "killed"
+    real = log_reading.read_one
+
+    def read_or_die(path, rel, settings):
+        if path == paths[5]:  # in the third chunk of two logs: the first two came back
+            _kill_worker_once(marker)
+        return real(path, rel, settings)
+
+    settings = EstimatorSettings()
+    alone = list(log_reading.read_logs(paths, root, settings, workers=1))
+    monkeypatch.setattr(log_reading, "_CHUNK", 2)
+    monkeypatch.setattr(log_reading, "read_one", read_or_die)  # the forked workers see it
+    seen: list[tuple[int, int]] = []
+    both = list(log_reading.read_logs(paths, root, settings, workers=2, progress=_to(seen)))
+    assert marker.is_file()
+    assert [(r.rel, r.sha256, r.rows, r.error) for r in both] == [
+        (r.rel, r.sha256, r.rows, r.error) for r in alone
+    ]
+    assert seen[-1] == (len(paths), len(paths)) and seen == sorted(seen)
+
+
+def test_parts_of_a_dead_reader_are_read_here(study, tmp_path, monkeypatch):
+    root, paths = study
+    rels = [p.relative_to(root).as_posix() for p in paths]
+    marker = tmp_path / "killed"
+    real = study_reading.read_part
+
+    def part_or_die(path, rel, *args, **kwargs):
+        if rel == rels[2]:
+            _kill_worker_once(marker)
+        return real(path, rel, *args, **kwargs)
+
+    alone = list(study_reading.read_parts(root, rels, csv=True, workers=1))
+    monkeypatch.setattr(study_reading, "_CHUNK", 2)
+    monkeypatch.setattr(study_reading, "read_part", part_or_die)
+    both = list(study_reading.read_parts(root, rels, csv=True, workers=2))
+    assert marker.is_file()
+    assert both == alone
+
+
+def test_track_figures_of_a_dead_worker_are_drawn_here(study, tmp_path, monkeypatch):
+    from masking_lab.formats.session_log import read_log
+
+    _, paths = study
+    marker = tmp_path / "killed"
+    jobs = [
+        track_figures.track_job(tmp_path / f"{k}.png", read_log(p), {})
+        for k, p in enumerate(paths[:4])
+    ]
+    real = track_figures._track_png
+
+    def png_or_die(job):
+        if job.path == str(tmp_path / "2.png"):
+            _kill_worker_once(marker)
+        return real(job)
+
+    alone = [real(job) for job in jobs]
+    monkeypatch.setattr(track_figures, "_CHUNK", 1)
+    monkeypatch.setattr(track_figures, "_track_png", png_or_die)
+    drawn = track_figures.draw_tracks(jobs, workers=2)
+    assert marker.is_file()
+    assert [p.name for p in drawn] == ["0.png", "1.png", "2.png", "3.png"]
+    assert [p.read_bytes() for p in drawn] == alone
+
+
+def _to(seen: list[tuple[int, int]]):
+    return lambda done, n: seen.append((done, n))
