@@ -38,6 +38,10 @@ def _square_or_die(item: tuple[int, str]) -> int:
     return value * value
 
 
+def _cube_or_die(value: int, marker: str) -> int:
+    return _square_or_die((value, marker)) * value
+
+
 @pytest.fixture(scope="module")
 def study(tmp_path_factory):
     root = tmp_path_factory.mktemp("study")
@@ -120,6 +124,21 @@ def test_track_figures_of_a_dead_worker_are_drawn_here(study, tmp_path, monkeypa
     assert marker.is_file()
     assert [p.name for p in drawn] == ["0.png", "1.png", "2.png", "3.png"]
     assert [p.read_bytes() for p in drawn] == alone
+
+
+def test_plan_tasks_of_a_dead_worker_are_run_here(tmp_path):
+    from masking_lab.planning.parallel import run_chunks, started_tasks
+
+    args = [(v, str(tmp_path / "killed")) for v in range(6)]
+    assert run_chunks(_cube_or_die, args, scheduler="local", max_workers=2) == [
+        v**3 for v in range(6)
+    ]
+    assert (tmp_path / "killed").is_file()
+    args = [(v, str(tmp_path / "killed again")) for v in range(6)]
+    with started_tasks([(_cube_or_die, a) for a in args], scheduler="local") as results:
+        assert results.wait(4, 6) + results.wait(0, 4) == [64, 125, 0, 1, 8, 27]
+        assert results.wait(3, 4) == [27]  # kept, not run again
+    assert (tmp_path / "killed again").is_file()
 
 
 def _to(seen: list[tuple[int, int]]):

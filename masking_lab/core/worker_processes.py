@@ -20,10 +20,10 @@ from collections.abc import Callable, Iterator, Sequence
 from typing import TYPE_CHECKING, Any, TypeVar
 
 if TYPE_CHECKING:  # loaded when a pool is made: output folders only ask whether a pid runs
-    from concurrent.futures import ProcessPoolExecutor
+    from concurrent.futures import Future, ProcessPoolExecutor
     from multiprocessing.context import BaseContext
 
-__all__ = ["alive", "end_with_parent", "rest_here", "worker_pool"]
+__all__ = ["alive", "end_with_parent", "rest_here", "result_or_here", "worker_pool"]
 
 A = TypeVar("A")
 R = TypeVar("R")
@@ -192,3 +192,21 @@ def rest_here(results: Iterator[R], fn: Callable[[A], R], items: Sequence[A]) ->
     except BrokenProcessPool:
         for item in items[done:]:
             yield fn(item)
+
+
+def result_or_here(future: Future[R], fn: Callable[..., R], *args: Any) -> R:
+    """``future.result()`` of ``pool.submit(fn, *args)``, or, when the pool broke because a
+    worker died (see :func:`rest_here`), ``fn(*args)`` computed in this process.
+
+    Examples
+    --------
+    >>> with worker_pool(1) as pool:
+    ...     result_or_here(pool.submit(pow, 2, 3), pow, 2, 3)
+    8
+    """
+    from concurrent.futures.process import BrokenProcessPool
+
+    try:
+        return future.result()
+    except BrokenProcessPool:
+        return fn(*args)

@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from masking_lab.core.errors import AnalysisError
+from masking_lab.core.worker_processes import result_or_here
 
 __all__ = [
     "CONNECT_TIMEOUT_S",
@@ -168,8 +169,17 @@ def started_tasks(
     elif scheduler is None or scheduler == "local":
         with _forked_pool(min(max_workers, _cores(), len(calls))) as pool:
             futures = [pool.submit(fn, *args) for fn, args in calls]
+            got: dict[int, Any] = {}
+
+            def fetch(i: int) -> Any:
+                # a worker that died (killed for memory, say) leaves its tasks to this process
+                if i not in got:
+                    fn, args = calls[i]
+                    got[i] = result_or_here(futures[i], fn, *args)
+                return got[i]
+
             try:
-                yield TaskResults(lambda i: futures[i].result(), len(calls))
+                yield TaskResults(fetch, len(calls))
             except BaseException:
                 pool.shutdown(wait=True, cancel_futures=True)
                 raise
@@ -210,7 +220,8 @@ def _local_pool(
         return [fn(*a) for a in args]
     with _forked_pool(workers) as pool:
         futures = [pool.submit(fn, *a) for a in args]
-        return [f.result() for f in futures]
+        # a worker that died (killed for memory, say) leaves its tasks to this process
+        return [result_or_here(f, fn, *a) for f, a in zip(futures, args, strict=True)]
 
 
 def _forked_pool(workers: int) -> Any:
