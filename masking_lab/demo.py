@@ -33,7 +33,7 @@ from typing import Any, TextIO
 import numpy as np
 
 from masking_lab.core.errors import MaskingLabError
-from masking_lab.core.worker_processes import worker_pool
+from masking_lab.core.worker_processes import result_or_here, worker_pool
 from masking_lab.demo_summary import PROTOCOLS, build_summary, sample_truth, summary_text
 from masking_lab.formats.resources import shipped
 
@@ -347,12 +347,34 @@ def _run_in_pool(
             finished, _ = wait(running, return_when=FIRST_COMPLETED)
             for fut in finished:
                 k, i = running.pop(fut)
-                s = fut.result()
+                s = _session_done(fut, [(k, i), *running.values()], settings)
                 if s.exit_code == 0 and k == 0:
                     ready += [(j, i) for j in range(1, len(PROTOCOLS))]
                 yield s
     if warm is not None:
         warm.join()
+
+
+def _session_done(
+    fut: Future[SessionDone], running: list[tuple[int, int]], settings: DemoSettings
+) -> SessionDone:
+    """A session's result, or a clear error if a worker process died: it breaks the pool, so
+    every session ``running`` (protocol index, participant index) was cut off mid-log; none
+    is run again here, nor analysed."""
+    from concurrent.futures.process import BrokenProcessPool
+
+    try:
+        return fut.result()
+    except BrokenProcessPool:
+        cut = ", ".join(
+            f"S{i:02d} {PROTOCOLS[k]}" for k, i in sorted(running, key=lambda x: x[::-1])
+        )
+        raise MaskingLabError(
+            "a demo worker process died (killed from outside, perhaps by the system for "
+            f"memory) while these sessions ran: {cut}; their logs in {settings.out}/data end "
+            "mid-session, so nothing was analysed. Run the demo again with --force (or with "
+            f"fewer --jobs than {settings.jobs} on a small machine)"
+        ) from None
 
 
 # What a session loads (the device, responder and procedure modules, numpy's generators),
@@ -424,11 +446,13 @@ class _SceneRender:
         self.out = out
         self.pool: ProcessPoolExecutor | None = None
         self.pending: Future[dict[str, Any]] | None = None
+        self.params_text: str | None = None
 
     def start(self, params_text: str) -> None:
         """Start rendering from the text of ``masking_params.json`` (JSON)."""
         if self.pending is not None:
             return
+        self.params_text = params_text
         try:
             self.pool = worker_pool(1)
             self.pending = self.pool.submit(_render, self.out, params_text)
@@ -439,7 +463,8 @@ class _SceneRender:
         """The rendering's summary (``summarize`` plus the strategies and files written)."""
         if self.pending is None:
             return _render(self.out)
-        return self.pending.result()
+        # a worker that died (killed for memory, say) leaves the scene to this process
+        return result_or_here(self.pending, _render, self.out, self.params_text)
 
     def close(self, discard: bool = False) -> None:
         """Wait for the worker to end; with ``discard`` (the analysis failed), remove the

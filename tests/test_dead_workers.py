@@ -141,5 +141,79 @@ def test_plan_tasks_of_a_dead_worker_are_run_here(tmp_path):
     assert (tmp_path / "killed again").is_file()
 
 
+def _session_or_die(out: str, device: str, seed: int, index: int, k: int):
+    from masking_lab.demo import PROTOCOLS, SessionDone
+
+    if (index, k) == (2, 0):
+        _kill_worker_once(Path(out) / "killed")
+    return SessionDone(
+        f"S{index:02d}", PROTOCOLS[k], f"{out}/{index}-{k}.jsonl", 0, 1, 1, 9, 0.0, ""
+    )
+
+
+def test_a_dead_demo_session_worker_is_a_clear_error_naming_the_session(tmp_path):
+    from masking_lab import demo
+    from masking_lab.core.errors import MaskingLabError
+
+    settings = demo.DemoSettings(out=tmp_path, participants=3, device="sim", jobs=2)
+    with pytest.raises(MaskingLabError) as err:
+        list(demo._run_in_pool(str(tmp_path), settings, 2, run=_session_or_die))
+    assert (tmp_path / "killed").is_file()
+    # the pool broke under every session running then: each is named, the killed one too
+    ran = str(err.value).split("while these sessions ran: ")[1].split(";")[0].split(", ")
+    assert "S02 baseline" in ran and 1 <= len(ran) <= 2
+    assert "--force" in str(err.value) and str(tmp_path) in str(err.value)
+
+
+def _scene_or_die(out: Path, params_text: str | None = None) -> dict:
+    _kill_worker_once(out / "killed")
+    return {"out": str(out), "text": params_text}  # stands in for the rendered scene
+
+
+def test_the_demo_scene_of_a_dead_worker_is_rendered_here(tmp_path, monkeypatch):
+    from masking_lab import demo
+
+    monkeypatch.setattr(demo, "_render", _scene_or_die)
+    scene = demo._SceneRender(tmp_path)
+    try:
+        scene.start('{"handed": "text"}')
+        assert scene.pending is not None  # started in the worker
+        assert scene.result() == {"out": str(tmp_path), "text": '{"handed": "text"}'}
+    finally:
+        scene.close()
+    assert (tmp_path / "killed").is_file()
+
+
+def _figure4_or_die(r, *, bands=None):
+    from masking_lab.rendering.figures import figure4_png
+
+    _kill_worker_once(Path(os.environ["DEAD_WORKER_MARKER"]))
+    return figure4_png(r, bands=bands)
+
+
+def test_figure4_of_a_dead_worker_is_drawn_here(tmp_path, monkeypatch):
+    from masking_lab.rendering import outputs
+    from masking_lab.rendering.render import render_scene
+    from masking_lab.rendering.scene import GeometrySpec, PathSpec, Scene, TextureSpec
+    from masking_lab.rendering.solver import MutualMasking
+
+    scene = Scene(
+        "tiny",
+        PathSpec(length_mm=10.0, n_points=21),
+        GeometrySpec("bump", position_mm=5.0, height_mm=1.0, max_inclination=0.5),
+        TextureSpec("rough", "MV180", 12.0),
+    )
+    pair = MutualMasking(a_db=-2.0, b=0.5, c_db=-1.0, d=0.4, mv="MV180", ev="EV270")
+    r = render_scene(scene, pair, max_mv_db_sl=30.0, max_ev_db_sl=30.0, gamut_map="clip")
+    here = outputs.write_rendering(r, tmp_path / "here")
+    monkeypatch.setenv("DEAD_WORKER_MARKER", str(tmp_path / "killed"))
+    monkeypatch.setattr(outputs, "figure4_png", _figure4_or_die)
+    worker = outputs.write_rendering(r, tmp_path / "worker", figure_worker=True)
+    assert (tmp_path / "killed").is_file()
+    assert [p.name for p in here] == [p.name for p in worker]
+    for a, b in zip(here, worker, strict=True):
+        assert a.read_bytes() == b.read_bytes(), a.name
+
+
 def _to(seen: list[tuple[int, int]]):
     return lambda done, n: seen.append((done, n))

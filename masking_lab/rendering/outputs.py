@@ -25,6 +25,7 @@ import numpy as np
 import yaml
 
 from masking_lab.core.errors import SolverError
+from masking_lab.core.worker_processes import result_or_here
 from masking_lab.formats.fileio import write_bytes_atomic, write_text_atomic
 from masking_lab.formats.protocol import parse_protocol
 from masking_lab.formats.resources import shipped
@@ -216,8 +217,10 @@ def _write_rendering(
             gamut = gamut_png(
                 r.gamut, mv_target_db_sl=want_m, ev_target_db_sl=want_e, mapped=mapped
             )
-        png4 = fig4.result() if isinstance(fig4, Future) else fig4
-        written.append(write_bytes_atomic(out / "figure4.png", png4))
+        # a worker that died (killed for memory, say) leaves the figure to this process
+        if isinstance(fig4, Future):
+            fig4 = result_or_here(fig4, lambda: figure4_png(r, bands=uncertainty))
+        written.append(write_bytes_atomic(out / "figure4.png", fig4))
         if gamut is not None:
             written.append(write_bytes_atomic(out / "gamut.png", gamut))
     return written
