@@ -7,6 +7,7 @@ marker file so that the test knows the kill happened."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 from pathlib import Path
@@ -40,6 +41,99 @@ def _square_or_die(item: tuple[int, str]) -> int:
 
 def _cube_or_die(value: int, marker: str) -> int:
     return _square_or_die((value, marker)) * value
+
+
+class _Device:
+    def stop(self) -> None:
+        pass
+
+
+@contextlib.contextmanager
+def _watching(device):
+    """``device`` watched by device.safety (its SIGTERM handler installed, as a session does);
+    then, if this block installed the handlers, this process's handlers and safety's state
+    as they were."""
+    from masking_lab.device import safety
+
+    saved = {sig: signal.getsignal(sig) for sig in (signal.SIGTERM, signal.SIGHUP)}
+    installed, previous = safety._installed, dict(safety._previous)
+    safety.zero_on_exit(device)
+    assert signal.getsignal(signal.SIGTERM) is safety._on_signal
+    try:
+        yield
+    finally:
+        safety.forget(device)
+        if not installed:
+            for sig, handler in saved.items():
+                signal.signal(sig, handler)
+            safety._installed = False
+            safety._previous.clear()
+            safety._previous.update(previous)
+
+
+@pytest.fixture(autouse=True, params=["plain", "device watched"])
+def watched(request):
+    """Run each case also in a process that watches a device: the workers must still die
+    when the pool ends them (the surviving reader, blocked on its full result pipe, ran the
+    inherited handler, whose SystemExit the pool swallowed, and the run hung)."""
+    if request.param == "plain":
+        yield
+        return
+    with _watching(_Device()):
+        yield
+
+
+def test_pool_workers_die_of_sigterm_whatever_their_parent_handles(watched):
+    with worker_pool(1) as pool:
+        assert pool.submit(signal.getsignal, signal.SIGTERM).result() == signal.SIG_DFL
+        assert pool.submit(signal.getsignal, signal.SIGHUP).result() == signal.SIG_DFL
+
+
+class _MarkedDevice:
+    """A watched device whose ``stop()`` leaves a file (its owner's pid) behind."""
+
+    def __init__(self, marker: Path) -> None:
+        self.marker = marker
+
+    def stop(self) -> None:
+        self.marker.write_text(str(os.getpid()))
+
+
+def test_a_forked_child_never_stops_its_parents_devices(tmp_path, watched):
+    from masking_lab.device import safety
+
+    with _watching(_MarkedDevice(tmp_path / "parent's stopped")):
+        # terminated, the child dies without touching the parent's device
+        status = _in_child(lambda: os.kill(os.getpid(), signal.SIGTERM))
+        assert os.WIFSIGNALED(status) and os.WTERMSIG(status) == signal.SIGTERM
+        assert not (tmp_path / "parent's stopped").exists()
+
+        def own_device() -> None:  # one the child opens itself is watched, and stopped
+            device = _MarkedDevice(tmp_path / "child's stopped")  # held: safety's are weak
+            safety.zero_on_exit(device)
+            os.kill(os.getpid(), signal.SIGTERM)
+
+        status = _in_child(own_device)
+        assert os.WIFEXITED(status) and os.WEXITSTATUS(status) == 128 + signal.SIGTERM
+        assert (tmp_path / "child's stopped").is_file()
+        assert not (tmp_path / "parent's stopped").exists()
+
+
+def _in_child(act) -> int:
+    """Fork, run ``act`` in the child and end it (never returning into pytest there): its
+    wait status. A SystemExit ends the child with its code; anything else with 99; falling
+    through (the signal did not end it) with 3."""
+    pid = os.fork()
+    if pid == 0:
+        code = 3
+        try:
+            act()
+        except SystemExit as exc:
+            code = int(exc.code or 0)
+        except BaseException:
+            code = 99
+        os._exit(code)
+    return os.waitpid(pid, 0)[1]
 
 
 @pytest.fixture(scope="module")

@@ -110,6 +110,12 @@ def _watch_parent(parent: int) -> None:
 
 def _start_worker(parent: int, initializer: Callable[..., object] | None, args: tuple) -> None:
     end_with_parent(parent)
+    # A worker dies of SIGTERM, whatever handler it inherited: when a worker is killed, the
+    # pool terminates the others with it, and a forked worker blocked on its full result pipe
+    # ran an inherited Python handler (device.safety's), whose SystemExit the pool's sending
+    # code swallows before it blocks again: the run hung.
+    for sig in (signal.SIGTERM, signal.SIGHUP) if hasattr(signal, "SIGHUP") else (signal.SIGTERM,):
+        signal.signal(sig, signal.SIG_DFL)
     if initializer is not None:
         initializer(*args)
 
@@ -130,7 +136,8 @@ def worker_pool(
     mp_context : multiprocessing context, optional
         How workers start (the platform's default when None).
     initializer, initargs
-        Run in each worker after it has arranged to end with this process.
+        Run in each worker after it has arranged to end with this process (and set SIGTERM
+        and SIGHUP back to their default action, so that the pool can end it).
 
     Returns
     -------
@@ -171,9 +178,9 @@ def rest_here(results: Iterator[R], fn: Callable[[A], R], items: Sequence[A]) ->
     items : sequence
         The mapped items.
 
-    Returns
-    -------
-    iterator
+    Yields
+    ------
+    object
         ``fn(item)`` for each item, in order.
 
     Examples

@@ -13,6 +13,7 @@ import atexit
 import contextlib
 import logging
 import math
+import os
 import signal
 import threading
 import weakref
@@ -212,6 +213,27 @@ def zero_all(reason: str) -> None:
             log.warning("zeroed outputs of %s on %s", getattr(device, "port", device), reason)
         except Exception as exc:  # a dead link cannot be zeroed from here; the watchdog will
             log.error("could not zero %s on %s: %s", device, reason, exc)
+
+
+def _forget_in_child() -> None:
+    """In a forked child: the watched devices are the parent's (its links, its file
+    descriptors), so the child never stops them, and it dies of SIGTERM and SIGHUP as it
+    would have before they were watched. (A worker process forked from a session or an
+    analysis used to send STOP on its parent's link when terminated.) A device the child
+    opens itself is watched afresh."""
+    global _registry, _lock, _installed
+    _lock = threading.Lock()  # another thread may have held the parent's at the fork
+    _registry = weakref.WeakSet()
+    if _installed and threading.current_thread() is threading.main_thread():
+        for sig, previous in _previous.items():
+            with contextlib.suppress(ValueError, OSError, TypeError):
+                signal.signal(sig, signal.SIG_DFL if previous is None else previous)
+    _previous.clear()
+    _installed = False
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_forget_in_child)
 
 
 def _on_signal(signum: int, frame: Any) -> None:
