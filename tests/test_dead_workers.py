@@ -3,7 +3,10 @@ what it had not returned is done in the analysing process, with the same results
 a ``BrokenProcessPool`` traceback (issue 22; the fits' and figures' pools already did this).
 
 Each case kills a real forked worker with SIGKILL from inside its task, once, and leaves a
-marker file so that the test knows the kill happened."""
+marker file so that the test knows the kill happened. Each runs twice, the second time in a
+process that watches a device (device.safety's SIGTERM handler installed, as after a session):
+the workers must still end when the pool ends them, and a forked child must never stop its
+parent's devices."""
 
 from __future__ import annotations
 
@@ -50,25 +53,29 @@ class _Device:
 
 @contextlib.contextmanager
 def _watching(device):
-    """``device`` watched by device.safety (its SIGTERM handler installed, as a session does);
-    then, if this block installed the handlers, this process's handlers and safety's state
-    as they were."""
+    """``device`` watched by device.safety, its SIGTERM handler installed over the default
+    action (as a session's process has it); then this process's handlers and safety's state
+    as they were, whatever earlier tests of this process left."""
     from masking_lab.device import safety
 
-    saved = {sig: signal.getsignal(sig) for sig in (signal.SIGTERM, signal.SIGHUP)}
-    installed, previous = safety._installed, dict(safety._previous)
+    signals = (signal.SIGTERM, signal.SIGHUP)
+    saved = {sig: signal.getsignal(sig) for sig in signals}
+    state = safety._installed, dict(safety._previous)
+    for sig in signals:
+        signal.signal(sig, signal.SIG_DFL)
+    safety._installed = False
+    safety._previous.clear()
     safety.zero_on_exit(device)
     assert signal.getsignal(signal.SIGTERM) is safety._on_signal
     try:
         yield
     finally:
         safety.forget(device)
-        if not installed:
-            for sig, handler in saved.items():
-                signal.signal(sig, handler)
-            safety._installed = False
-            safety._previous.clear()
-            safety._previous.update(previous)
+        for sig, handler in saved.items():
+            signal.signal(sig, handler)
+        safety._installed = state[0]
+        safety._previous.clear()
+        safety._previous.update(state[1])
 
 
 @pytest.fixture(autouse=True, params=["plain", "device watched"])
