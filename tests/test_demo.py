@@ -104,3 +104,11 @@ def test_sample_truth_of_a_pool_averages_the_pairs():
 def test_too_few_participants_is_a_clear_error(tmp_path, capsys):
     assert main(["demo", "--out", str(tmp_path / "d"), "--participants", "1"]) == 2
     assert re.search(r"at least 2 participants", capsys.readouterr().err)
+
+
+@pytest.mark.parametrize("jobs", ["0", "-3"])
+def test_no_worker_process_is_a_clear_error(tmp_path, capsys, jobs):
+    # (both ran the demo with one process, silently)
+    assert main(["demo", "--out", str(tmp_path / "d"), "--jobs", jobs]) == 2
+    assert re.search(rf"--jobs {jobs}: use at least 1 worker process", capsys.readouterr().err)
+    assert not (tmp_path / "d").exists()

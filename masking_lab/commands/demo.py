@@ -49,6 +49,11 @@ def run(args: argparse.Namespace) -> int:
 
     if args.participants < 2:
         raise MaskingLabError("--participants: the statistics need at least 2 participants")
+    if args.jobs is not None and args.jobs < 1:
+        raise MaskingLabError(
+            f"--jobs {args.jobs}: use at least 1 worker process, or leave --jobs out for the "
+            "default (the cores, at most 4)"
+        )
     settings = DemoSettings(
         out=Path(args.out) if args.out is not None else new_demo_folder(Path("demo_out")),
         force=args.force,
