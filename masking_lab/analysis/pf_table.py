@@ -22,7 +22,7 @@ from masking_lab.analysis.freed_memory import reused_blocks
 from masking_lab.analysis.psychometric import PFFit, PFJob, batch_group, fit_pf_many
 from masking_lab.core.errors import MaskingLabError
 from masking_lab.core.psychometric import GUESS_3IFC
-from masking_lab.core.worker_processes import worker_pool
+from masking_lab.core.worker_processes import result_or_here, worker_pool
 from masking_lab.formats.session_log import SessionLog
 
 __all__ = [
@@ -315,10 +315,8 @@ def fit_all_with(
                     if progress:
                         progress(done, n)
             for i, fut in sorted(futures.items()):
-                try:
-                    results[i] = fut.result()
-                except BrokenProcessPool:  # the worker died (e.g. killed for memory): fit here
-                    results[i] = _fit_chunk(chunks[i], then)
+                # a worker that died (killed for memory, say) leaves its chunks to this process
+                results[i] = result_or_here(fut, _fit_chunk, chunks[i], then)
                 done += len(chunks[i])
                 if progress:
                     progress(done, n)

@@ -240,7 +240,7 @@ class _Fit:
     @property
     def group(self) -> tuple[int, float, bool]:
         """What data sets must share to climb together: levels, guess rate, λ fitted."""
-        return (self.xu.size, self.job.guess, self.job.lapse is None)
+        return _group(self.xu.size, self.job)
 
 
 def batch_group(job: PFJob) -> tuple[int, float, bool]:
@@ -256,7 +256,12 @@ def batch_group(job: PFJob) -> tuple[int, float, bool]:
     (3, 0.3333333333333333, True)
     """
     levels = np.unique(np.asarray(job.levels_db, dtype=float).ravel())
-    return (levels.size, job.guess, job.lapse is None)
+    return _group(levels.size, job)
+
+
+def _group(n_levels: int, job: PFJob) -> tuple[int, float, bool]:
+    # one definition for the sort (batch_group) and the batches (_Fit.group)
+    return (n_levels, job.guess, job.lapse is None)
 
 
 _BATCH_ROWS = 8192  # data sets climbed together: large enough to amortise numpy's overhead
