@@ -16,6 +16,8 @@ import msgspec
 import numpy as np
 import pytest
 from fit_memo import once_per_input
+from hypothesis import given
+from hypothesis import strategies as st
 from runner_support import write_calibration, write_protocol
 
 from masking_lab.analysis import log_reading, thresholds
@@ -130,16 +132,22 @@ def test_the_typed_view_gives_the_general_reader_s_rows_and_checks(study, monkey
     [
         lambda b: b[:-5],  # torn last line
         lambda b: b.replace(b"\n", b"\n\n", 1),  # blank line
+        lambda b: b.replace(b"\n", b"\n \t\n", 1),  # a line of white space only
         lambda b: b.replace(b'"correct":true', b'"correct":"yes"', 1),  # wrong type
         lambda b: b + b'{"record":"future_kind"}\n',  # unknown record kind
     ],
-    ids=["torn", "blank", "type", "kind"],
+    ids=["torn", "blank", "white", "type", "kind"],
 )
 def test_unusual_logs_go_to_the_general_reader(study, damage):
     path = sorted(study.rglob("*experiment1.jsonl"))[0]
     raw = damage(path.read_bytes())
     assert fast_parse(raw, path) is None
     assert parse_log(raw, path).problems or parse_log(raw, path).records
+
+
+@given(st.binary(max_size=4096))
+def test_the_line_count_that_guards_the_typed_read_is_bytes_count(raw):
+    assert log_reading._newlines(raw) == raw.count(b"\n")
 
 
 def test_the_view_refuses_a_field_it_does_not_decode():
