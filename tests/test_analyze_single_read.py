@@ -144,18 +144,30 @@ def test_the_log_reading_workers_are_forked_without_the_statistics_modules():
 
 def test_a_whole_analysis_with_trial_tables_never_loads_scipy_optimize(study, tmp_path):
     """The staircases' target p for psychometric.csv is found by masking_lab.core.roots (the
-    same bits as SciPy's brentq): loading scipy.optimize for it cost ~0.17 s of every run."""
+    same bits as SciPy's brentq): loading scipy.optimize for it cost ~0.17 s of every run.
+    Neither the analysing process nor the worker that computes the statistics beside it
+    loads it (the worker loads scipy.special for the tests' p values)."""
     import subprocess
     import sys
 
+    mark = tmp_path / "statistics_process.txt"
     probe = (
         "import sys\n"
+        "import masking_lab.analysis.batch as batch\n"
         "from masking_lab.commands.cli import main\n"
+        "inner = batch._statistics\n"
+        "def statistics(*args):\n"
+        "    result = inner(*args)\n"
+        f"    with open({str(mark)!r}, 'w') as fh:\n"
+        "        print('scipy.optimize' in sys.modules, 'scipy.special' in sys.modules, file=fh)\n"
+        "    return result\n"
+        "batch._statistics = statistics\n"
         f"code = main(['analyze', {str(study)!r}, '--out', {str(tmp_path / 'out')!r}, '--quiet'])\n"
-        "print(code, 'scipy.optimize' in sys.modules, 'scipy.special' in sys.modules)"
+        "print(code, 'scipy.optimize' in sys.modules)"
     )
     out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=300)
-    assert out.stdout.strip().splitlines()[-1] == "0 False True", out.stderr[-2000:]
+    assert out.stdout.strip().splitlines()[-1] == "0 False", out.stderr[-2000:]
+    assert mark.read_text().split() == ["False", "True"]
     assert (tmp_path / "out" / "psychometric.csv").is_file()
 
 

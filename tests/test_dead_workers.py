@@ -19,7 +19,7 @@ import pytest
 
 from masking_lab.analysis import log_reading, study_reading, track_figures
 from masking_lab.analysis.thresholds import EstimatorSettings
-from masking_lab.core.worker_processes import rest_here, worker_pool
+from masking_lab.core.worker_processes import Beside, rest_here, worker_pool
 from masking_lab.simulation.synthetic_logs import simulate_study
 
 _HERE = os.getpid()  # a forked worker inherits this value
@@ -158,6 +158,41 @@ def test_rest_here_does_in_this_process_what_a_dead_worker_left(tmp_path):
     assert (tmp_path / "killed").is_file()  # the worker did die
     with worker_pool(2) as pool:  # and nothing changes when none dies
         assert list(rest_here(pool.map(abs, [-1, 2]), abs, [-1, 2])) == [1, 2]
+
+
+def test_beside_computes_here_what_its_dead_worker_left(tmp_path):
+    with Beside(_cube_or_die, 3, str(tmp_path / "killed")) as cube:
+        assert cube.result() == 27
+    assert (tmp_path / "killed").is_file()
+
+
+_REAL_STATISTICS: list = []  # the statistics function _statistics_or_die stands in front of
+
+
+def _statistics_or_die(shifts, settings):
+    _kill_worker_once(Path(os.environ["DEAD_WORKER_MARKER"]))
+    return _REAL_STATISTICS[0](shifts, settings)
+
+
+def test_the_statistics_of_a_dead_worker_are_computed_here(study, tmp_path, monkeypatch):
+    from masking_lab.analysis import batch
+    from masking_lab.analysis.settings import AnalysisSettings
+
+    root, _ = study
+    settings = AnalysisSettings(figures="none")
+    batch.run_analyze(root, tmp_path / "alive", settings)
+    monkeypatch.setenv("DEAD_WORKER_MARKER", str(tmp_path / "killed"))
+    _REAL_STATISTICS[:] = [batch._statistics]
+    monkeypatch.setattr(batch, "_statistics", _statistics_or_die)
+    batch.run_analyze(root, tmp_path / "dead", settings)
+    assert (tmp_path / "killed").is_file()
+    names = sorted(p.relative_to(tmp_path / "alive") for p in (tmp_path / "alive").rglob("*"))
+    assert names == sorted(p.relative_to(tmp_path / "dead") for p in (tmp_path / "dead").rglob("*"))
+    for name in names:
+        if (tmp_path / "alive" / name).is_file():
+            assert (tmp_path / "alive" / name).read_bytes() == (
+                tmp_path / "dead" / name
+            ).read_bytes(), name
 
 
 def test_logs_of_a_dead_reader_are_read_here(study, tmp_path, monkeypatch):

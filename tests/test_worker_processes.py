@@ -165,3 +165,50 @@ def test_alive_never_signals_a_process_on_windows(monkeypatch: pytest.MonkeyPatc
     monkeypatch.setattr(worker_processes.os, "name", "nt")
     monkeypatch.setattr(worker_processes.os, "kill", lambda pid, sig: sent.append((pid, sig)))
     assert alive(os.getpid()) and sent == []
+
+
+def _pid_and_power(base: int, exponent: int) -> tuple[int, int]:
+    return os.getpid(), base**exponent
+
+
+def _fails(message: str) -> None:
+    raise ValueError(message)
+
+
+def test_beside_computes_in_a_worker_of_its_own_and_ends_it() -> None:
+    with worker_processes.Beside(_pid_and_power, 2, 10) as power:
+        pid, value = power.result()
+        assert value == 1024
+        assert pid != os.getpid()  # a worker computed it
+    assert not _alive(pid)  # and has ended (joined)
+
+
+def test_beside_raises_what_its_function_raised() -> None:
+    with (
+        worker_processes.Beside(_fails, "bad levels") as failing,
+        pytest.raises(ValueError, match="bad levels"),
+    ):
+        failing.result()
+
+
+def test_beside_computes_here_where_no_worker_can_start(monkeypatch: pytest.MonkeyPatch) -> None:
+    def no_processes(*args: object, **kwargs: object) -> None:
+        raise OSError("no processes here")
+
+    monkeypatch.setattr(worker_processes, "worker_pool", no_processes)
+    with worker_processes.Beside(_pid_and_power, 3, 3) as power:
+        assert power.result() == (os.getpid(), 27)
+
+
+def test_beside_left_before_its_result_ends_its_worker() -> None:
+    with (
+        pytest.raises(RuntimeError, match="the caller failed"),
+        worker_processes.Beside(_pid_and_power, 5, 2) as power,
+    ):
+        pool = power._pool
+        assert pool is not None
+        workers = list(pool._processes.values())  # started with the task
+        assert workers
+        raise RuntimeError("the caller failed")
+    assert power._pool is None
+    assert [w.is_alive() for w in workers] == [False] * len(workers)

@@ -17,6 +17,7 @@ import gc
 import hashlib
 import os
 from collections.abc import Callable
+from contextlib import nullcontext
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
@@ -37,6 +38,7 @@ from masking_lab.analysis.thresholds import (
 )
 from masking_lab.core.blas_threads import one_blas_thread
 from masking_lab.core.errors import AnalysisError
+from masking_lab.core.worker_processes import Beside
 from masking_lab.formats.csv_table import csv_column_blocks, csv_text
 from masking_lab.formats.fileio import write_text_atomic, write_text_chunks_atomic
 from masking_lab.formats.output_dir import staged_output
@@ -108,10 +110,11 @@ def run_analyze(
         when the run ends.
     on_params : callable, optional
         Called once with the text of ``masking_params.json`` (the bytes the run will write)
-        as soon as the ramp fits are done, before the per-trial outputs and the psychometric
-        fits: the demo renders its scene from it while the rest is written. With it, the
-        statistics run before those outputs rather than after (the same numbers either way:
-        every bootstrap has its own seed). Not called when there is no masked set to export.
+        as soon as the ramp fits are done, before the psychometric fits: the demo renders its
+        scene from it while the rest is written. The statistics and ramp fits run in a worker
+        of their own while this process writes ``thresholds.csv`` and reads the logs again for
+        the per-trial outputs (the same numbers: every bootstrap has its own seed). Not called
+        when there is no masked set to export.
 
     Returns
     -------
@@ -267,42 +270,61 @@ def _analyze_into(
         ),
         rig_warnings=tuple(rig_changes(rigs)),
     )
-    # Formatted column-wise and written a block of rows at a time; neither the column lists
-    # (at 10,000 sessions ~25 MB) nor the whole text (~21 MB, twice while encoded) is kept.
-    columns = [thresholds[c].tolist() for c in THRESHOLD_COLUMNS]
-    blocks = csv_column_blocks(THRESHOLD_COLUMNS, columns)
-    files.append(write_text_chunks_atomic(out / "thresholds.csv", blocks))
-    del columns, blocks
-    files.append(
-        write_text_atomic(out / "problems.csv", csv_text(["log", "problem", "action"], problems))
-    )
-    warnings = [f"{p['log']}: {p['problem']} ({p['action']})" for p in problems]
-    warnings += report_inputs.rig_warnings
-    experiments = masking_figures = params_json = None
+    # The statistics and ramp fits (~0.5 s for the demo's study, ~1.5 s at 10,000 sessions)
+    # run in a worker of their own while this process writes thresholds.csv and reads the logs
+    # again for the per-trial outputs; the result is taken when that read is done, before the
+    # psychometric fits, so the masking-function figures and a caller's export still come
+    # before those. Masker levels too close to tell apart are refused here first: a bad study
+    # fails before anything is read again.
+    statistics: Beside[list[Any]] | None = None
     if not shifts.empty:
-        # The statistics before the per-trial outputs: the masking-function figures are drawn
-        # (by the figure worker) while this process reads and fits the trials, and a caller's
-        # export is ready for it to use meanwhile.
+        from masking_lab.formats.shifts_csv import levels_told_apart
+
+        levels_told_apart(shifts, str(data))
+        statistics = Beside(_statistics, shifts, settings)
+    experiments: list[Any] | None = None
+    masking_figures = params_json = None
+
+    def statistics_done() -> None:
+        """Take the statistics' result (once) and start what follows it."""
+        nonlocal experiments, masking_figures, params_json
+        if statistics is None or experiments is not None:
+            return
         from masking_lab.analysis.export import start_masking_figures
 
-        experiments = _statistics(shifts, data, settings)
+        experiments = statistics.result()
         masking_figures = start_masking_figures(experiments, settings, figure_pool)
         if on_params is not None:
             params_json = _params_text(experiments, settings, inputs, skipped, created_utc)
             on_params(params_json)
-    # Only the track figures are listed as such (files also holds thresholds.csv, problems.csv).
-    lab = _lab_outputs(
-        data,
-        out,
-        [i["path"] for i in inputs],
-        thresholds,
-        settings,
-        track_files,
-        fit_progress,
-        sessions,
-        figure_pool,
-        shift_figures,
-    )
+
+    with statistics or nullcontext():
+        # Formatted column-wise and written a block of rows at a time; neither the column
+        # lists (at 10,000 sessions ~25 MB) nor the whole text (~21 MB, twice while encoded)
+        # is kept.
+        columns = [thresholds[c].tolist() for c in THRESHOLD_COLUMNS]
+        blocks = csv_column_blocks(THRESHOLD_COLUMNS, columns)
+        files.append(write_text_chunks_atomic(out / "thresholds.csv", blocks))
+        del columns, blocks
+        problem_rows = csv_text(["log", "problem", "action"], problems)
+        files.append(write_text_atomic(out / "problems.csv", problem_rows))
+        warnings = [f"{p['log']}: {p['problem']} ({p['action']})" for p in problems]
+        warnings += report_inputs.rig_warnings
+        # Only the track figures are listed as such (files also holds thresholds.csv, ...).
+        lab = _lab_outputs(
+            data,
+            out,
+            [i["path"] for i in inputs],
+            thresholds,
+            settings,
+            track_files,
+            fit_progress,
+            sessions,
+            figure_pool,
+            shift_figures,
+            after_read=statistics_done,
+        )
+        statistics_done()
     files += lab.files
     warnings += lab.warnings
     if shifts.empty:
@@ -347,12 +369,11 @@ def _analyze_into(
     return RunSummary(out, files + ramp_files, warnings + ramp_problems)
 
 
-def _statistics(shifts: pd.DataFrame, data: Path, settings: AnalysisSettings) -> list[Any]:
-    """The per-experiment statistics and ramp fits of the AL shifts (dB)."""
+def _statistics(shifts: pd.DataFrame, settings: AnalysisSettings) -> list[Any]:
+    """The per-experiment statistics and ramp fits of the AL shifts (dB), whose masker levels
+    are told apart (:func:`~masking_lab.formats.shifts_csv.levels_told_apart`)."""
     from masking_lab.analysis.experiment import analyze_shifts
-    from masking_lab.formats.shifts_csv import levels_told_apart
 
-    levels_told_apart(shifts, str(data))
     freed_memory.trim()  # before the statistics' bootstrap
     with one_blas_thread():
         return analyze_shifts(shifts, settings, has_participants=True)
@@ -427,8 +448,11 @@ def _lab_outputs(
     sessions: list[Any] | None = None,
     figure_pool: FigurePool | None = None,
     shift_figures: ShiftFigures | None = None,
+    *,
+    after_read: Callable[[], None] | None = None,
 ) -> LabOutputs:
-    """trials.csv, psychometric.csv, participants.tsv, the study status and their figures."""
+    """trials.csv, psychometric.csv, participants.tsv, the study status and their figures;
+    ``after_read`` is called once the logs are read, before the psychometric fits."""
     from dataclasses import replace
 
     from masking_lab.analysis.lab_outputs import write_lab_outputs
@@ -445,6 +469,7 @@ def _lab_outputs(
         sessions=sessions,
         figure_pool=figure_pool,
         shift_figures=shift_figures,
+        after_read=after_read,
     )
     tracks = tuple(
         (p.relative_to(out).as_posix(), "staircase tracks of one session") for p in drawn

@@ -136,6 +136,7 @@ def write_lab_outputs(
     sessions: Sequence[tuple[SessionInfo, Mapping[str, Any] | None, list[dict]]] | None = None,
     figure_pool: FigurePool | None = None,
     shift_figures: ShiftFigures | None = None,
+    after_read: Callable[[], None] | None = None,
 ) -> LabOutputs:
     """Write the per-trial and per-participant outputs of ``analyze`` into ``out``.
 
@@ -167,6 +168,9 @@ def write_lab_outputs(
     shift_figures : ShiftFigures, optional
         The thresholds' outlier flags and shift figures, already started
         (:func:`start_shift_figures`; default: started here).
+    after_read : callable, optional
+        Called once the logs are read, before the psychometric fits (``analyze`` takes the
+        statistics computed beside the read then).
 
     Returns
     -------
@@ -201,6 +205,8 @@ def write_lab_outputs(
             study.add(LogPart(session, info, specs, {}))
     else:
         study = read_study(data, logs)
+    if after_read is not None:
+        after_read()
 
     # Psychometric functions of the sets whose threshold is used (completed attempts).
     used = thresholds[thresholds["status"] == "completed"] if trial_tables else thresholds[:0]

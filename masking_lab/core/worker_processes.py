@@ -17,13 +17,13 @@ import signal
 import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
-from typing import TYPE_CHECKING, Any, TypeVar
+from typing import TYPE_CHECKING, Any, Generic, TypeVar
 
 if TYPE_CHECKING:  # loaded when a pool is made: output folders only ask whether a pid runs
     from concurrent.futures import Future, ProcessPoolExecutor
     from multiprocessing.context import BaseContext
 
-__all__ = ["alive", "end_with_parent", "rest_here", "result_or_here", "worker_pool"]
+__all__ = ["Beside", "alive", "end_with_parent", "rest_here", "result_or_here", "worker_pool"]
 
 A = TypeVar("A")
 R = TypeVar("R")
@@ -217,3 +217,58 @@ def result_or_here(future: Future[R], fn: Callable[..., R], *args: Any) -> R:
         return future.result()
     except BrokenProcessPool:
         return fn(*args)
+
+
+class Beside(Generic[R]):
+    """``fn(*args)`` computed by a worker process of its own while the caller goes on.
+
+    :meth:`result` waits for the worker and ends it. Where no worker can start, or when the
+    worker died (killed for memory, say), ``fn(*args)`` is computed in this process instead:
+    the same function, so the same result. ``fn`` must be a module-level function and its
+    arguments and result picklable. Use it as a context manager, so that a caller that fails
+    before asking for the result does not leave the worker behind.
+
+    Examples
+    --------
+    >>> with Beside(pow, 2, 10) as power:
+    ...     power.result()
+    1024
+    """
+
+    def __init__(self, fn: Callable[..., R], *args: Any) -> None:
+        self._fn, self._args = fn, args
+        self._pool: ProcessPoolExecutor | None = None
+        self._future: Future[R] | None = None
+        try:
+            self._pool = worker_pool(1)
+            self._future = self._pool.submit(fn, *args)
+        except (OSError, NotImplementedError, RuntimeError):  # no process to start: here
+            self.close()
+            self._future = None
+
+    def result(self) -> R:
+        """``fn(*args)``, from the worker or computed here (see the class docstring).
+
+        Raises
+        ------
+        Exception
+            Whatever ``fn`` raised, in the worker or here.
+        """
+        if self._future is None:
+            return self._fn(*self._args)
+        try:
+            return result_or_here(self._future, self._fn, *self._args)
+        finally:
+            self.close()
+
+    def close(self) -> None:
+        """End the worker (waiting for its task, if that still runs)."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+        self._pool = None
+
+    def __enter__(self) -> Beside[R]:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
