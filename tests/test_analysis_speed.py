@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy  # noqa: F401  (loads the BLAS pool that threadpoolctl lists)
@@ -30,11 +31,30 @@ def seen_threads(monkeypatch, tmp_path):
 
     def spy(*args, **kwargs):
         with record.open("a") as fh:
-            print(" ".join(map(str, sorted(_blas_threads()))), file=fh)
+            print(os.getpid(), *sorted(_blas_threads()), file=fh)
         return real(*args, **kwargs)
 
     monkeypatch.setattr(experiment, "analyze_shifts", spy)
-    return lambda: [{int(n) for n in line.split()} for line in record.read_text().splitlines()]
+    return lambda: [{int(n) for n in line.split()[1:]} for line in record.read_text().splitlines()]
+
+
+def _statistics_pids(tmp_path) -> list[int]:
+    return [int(line.split()[0]) for line in (tmp_path / "blas_threads.txt").open()]
+
+
+def test_analyze_computes_its_statistics_in_a_worker_only_beside_a_second_read_in_process(
+    seen_threads, tmp_path
+):
+    """A small study's second read (trial tables) runs in the analysing process: the
+    statistics run beside it in a worker. Without trial tables there is nothing to overlap,
+    and a large study's second read has workers on every core: the statistics stay here."""
+    simulate_study(tmp_path / "data", n_participants=2, seed=3)
+    argv = ["analyze", str(tmp_path / "data"), "--quiet", "--figures", "none", "--n-boot", "100"]
+    assert main([*argv, "--out", str(tmp_path / "with")]) == 0
+    assert main([*argv, "--out", str(tmp_path / "without"), "--no-trial-tables"]) == 0
+    beside, here = _statistics_pids(tmp_path)
+    assert beside != os.getpid() and here == os.getpid()
+    assert seen_threads() == [{1}, {1}]
 
 
 def test_analyze_runs_its_statistics_on_one_blas_thread(seen_threads, tmp_path):

@@ -200,6 +200,14 @@ def test_beside_computes_here_where_no_worker_can_start(monkeypatch: pytest.Monk
         assert power.result() == (os.getpid(), 27)
 
 
+def test_beside_without_a_worker_computes_at_once_here() -> None:
+    power = worker_processes.Beside(_pid_and_power, 2, 5, worker=False)
+    assert power._pool is None
+    assert power.result() == (os.getpid(), 32)
+    with pytest.raises(ValueError, match="at once"):
+        worker_processes.Beside(_fails, "at once", worker=False)
+
+
 def test_beside_left_before_its_result_ends_its_worker() -> None:
     with (
         pytest.raises(RuntimeError, match="the caller failed"),

@@ -270,18 +270,20 @@ def _analyze_into(
         ),
         rig_warnings=tuple(rig_changes(rigs)),
     )
-    # The statistics and ramp fits (~0.5 s for the demo's study, ~1.5 s at 10,000 sessions)
-    # run in a worker of their own while this process writes thresholds.csv and reads the logs
-    # again for the per-trial outputs; the result is taken when that read is done, before the
-    # psychometric fits, so the masking-function figures and a caller's export still come
-    # before those. Masker levels too close to tell apart are refused here first: a bad study
-    # fails before anything is read again.
+    # The statistics and ramp fits (~0.5 s for the demo's study) run in a worker of their own
+    # while this process writes thresholds.csv and reads the logs again for the per-trial
+    # outputs; the result is taken when that read is done, before the psychometric fits, so
+    # the masking-function figures and a caller's export still come before those. Only where
+    # a core is free for that worker: a large study's second read has workers of its own on
+    # every core, and without trial tables there is nothing to read (at 10,000 sessions the
+    # worker only added memory). Masker levels too close to tell apart are refused first.
     statistics: Beside[list[Any]] | None = None
     if not shifts.empty:
         from masking_lab.formats.shifts_csv import levels_told_apart
 
         levels_told_apart(shifts, str(data))
-        statistics = Beside(_statistics, shifts, settings)
+        beside = settings.trial_tables and len(inputs) < PARALLEL_FROM
+        statistics = Beside(_statistics, shifts, settings, worker=beside)
     experiments: list[Any] | None = None
     masking_figures = params_json = None
 

@@ -224,27 +224,34 @@ class Beside(Generic[R]):
 
     :meth:`result` waits for the worker and ends it. Where no worker can start, or when the
     worker died (killed for memory, say), ``fn(*args)`` is computed in this process instead:
-    the same function, so the same result. ``fn`` must be a module-level function and its
-    arguments and result picklable. Use it as a context manager, so that a caller that fails
-    before asking for the result does not leave the worker behind.
+    the same function, so the same result. With ``worker=False`` (no core would be free for
+    it) it is computed here at once, as a plain call would. ``fn`` must be a module-level
+    function and its arguments and result picklable. Use it as a context manager, so that a
+    caller that fails before asking for the result does not leave the worker behind.
 
     Examples
     --------
     >>> with Beside(pow, 2, 10) as power:
     ...     power.result()
     1024
+    >>> Beside(pow, 2, 3, worker=False).result()  # computed in the constructor
+    8
     """
 
-    def __init__(self, fn: Callable[..., R], *args: Any) -> None:
+    def __init__(self, fn: Callable[..., R], *args: Any, worker: bool = True) -> None:
         self._fn, self._args = fn, args
         self._pool: ProcessPoolExecutor | None = None
         self._future: Future[R] | None = None
-        try:
-            self._pool = worker_pool(1)
-            self._future = self._pool.submit(fn, *args)
-        except (OSError, NotImplementedError, RuntimeError):  # no process to start: here
-            self.close()
-            self._future = None
+        self._done: tuple[R] | None = None
+        if worker:
+            try:
+                self._pool = worker_pool(1)
+                self._future = self._pool.submit(fn, *args)
+                return
+            except (OSError, NotImplementedError, RuntimeError):  # no process to start
+                self.close()
+                self._future = None
+        self._done = (fn(*args),)
 
     def result(self) -> R:
         """``fn(*args)``, from the worker or computed here (see the class docstring).
@@ -254,6 +261,8 @@ class Beside(Generic[R]):
         Exception
             Whatever ``fn`` raised, in the worker or here.
         """
+        if self._done is not None:
+            return self._done[0]
         if self._future is None:
             return self._fn(*self._args)
         try:
