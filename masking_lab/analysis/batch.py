@@ -111,10 +111,10 @@ def run_analyze(
     on_params : callable, optional
         Called once with the text of ``masking_params.json`` (the bytes the run will write)
         as soon as the ramp fits are done, before the psychometric fits: the demo renders its
-        scene from it while the rest is written. The statistics and ramp fits run in a worker
-        of their own while this process writes ``thresholds.csv`` and reads the logs again for
-        the per-trial outputs (the same numbers: every bootstrap has its own seed). Not called
-        when there is no masked set to export.
+        scene from it while the rest is written. For a small study with trial tables, the
+        statistics and ramp fits run in a worker of their own while this process reads the
+        logs again for the per-trial outputs (the same numbers: every bootstrap has its own
+        seed). Not called when there is no masked set to export.
 
     Returns
     -------

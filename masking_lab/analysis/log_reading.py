@@ -136,8 +136,8 @@ def fast_parse(raw: bytes, path: str | Path) -> SessionLog | None:
 
 
 def _newlines(raw: bytes) -> int:
-    """``raw.count(b"\\n")``, in a fifth of its time (numpy compares 64 bytes at once; a
-    ~300 kB log: ~20 µs against ~110 µs, a tenth of what reading it costs beyond the decoding).
+    """``raw.count(b"\\n")`` in under half its time (numpy compares 64 bytes at once): ~35 µs
+    against ~80 µs for a ~300 kB log: a reading worker's time per log falls by 4 %.
 
     Examples
     --------

@@ -250,7 +250,6 @@ class Beside(Generic[R]):
                 return
             except (OSError, NotImplementedError, RuntimeError):  # no process to start
                 self.close()
-                self._future = None
         self._done = (fn(*args),)
 
     def result(self) -> R:
@@ -263,8 +262,7 @@ class Beside(Generic[R]):
         """
         if self._done is not None:
             return self._done[0]
-        if self._future is None:
-            return self._fn(*self._args)
+        assert self._future is not None  # started in the constructor, or _done is set
         try:
             return result_or_here(self._future, self._fn, *self._args)
         finally:
