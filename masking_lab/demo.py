@@ -25,7 +25,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
-from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from concurrent.futures import FIRST_COMPLETED, Future, wait
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TextIO
@@ -33,7 +33,7 @@ from typing import Any, TextIO
 import numpy as np
 
 from masking_lab.core.errors import MaskingLabError
-from masking_lab.core.worker_processes import result_or_here, worker_pool
+from masking_lab.core.worker_processes import Beside, worker_pool
 from masking_lab.demo_summary import PROTOCOLS, build_summary, sample_truth, summary_text
 from masking_lab.formats.resources import shipped
 
@@ -447,35 +447,27 @@ class _SceneRender:
 
     def __init__(self, out: Path) -> None:
         self.out = out
-        self.pool: ProcessPoolExecutor | None = None
-        self.pending: Future[dict[str, Any]] | None = None
-        self.params_text: str | None = None
+        self.pending: Beside[dict[str, Any]] | None = None
 
     def start(self, params_text: str) -> None:
         """Start rendering from the text of ``masking_params.json`` (JSON)."""
-        if self.pending is not None:
-            return
-        self.params_text = params_text
-        try:
-            self.pool = worker_pool(1)
-            self.pending = self.pool.submit(_render, self.out, params_text)
-        except (OSError, NotImplementedError, RuntimeError):  # no processes: render later
-            self.close()
+        if self.pending is None:
+            self.pending = Beside(_render, self.out, params_text)
 
     def result(self) -> dict[str, Any]:
         """The rendering's summary (``summarize`` plus the strategies and files written)."""
         if self.pending is None:
             return _render(self.out)
         # a worker that died (killed for memory, say) leaves the scene to this process
-        return result_or_here(self.pending, _render, self.out, self.params_text)
+        return self.pending.result()
 
     def close(self, discard: bool = False) -> None:
         """Wait for the worker to end; with ``discard`` (the analysis failed), remove the
         ``render/`` folder it wrote."""
-        if self.pool is not None:
-            self.pool.shutdown(wait=True, cancel_futures=True)
-        self.pool = None
-        if discard and self.pending is not None:
+        if self.pending is None:
+            return
+        self.pending.close()
+        if discard:
             import shutil
 
             shutil.rmtree(self.out / "render", ignore_errors=True)
