@@ -288,9 +288,10 @@ def _analyze_into(
     masking_figures = params_json = None
 
     def statistics_done() -> None:
-        """Take the statistics' result (once) and start what follows it."""
+        """Take the statistics' result and start what follows it (``write_lab_outputs`` calls
+        this once, after its read)."""
         nonlocal experiments, masking_figures, params_json
-        if statistics is None or experiments is not None:
+        if statistics is None:
             return
         from masking_lab.analysis.export import start_masking_figures
 
@@ -326,7 +327,6 @@ def _analyze_into(
             shift_figures,
             after_read=statistics_done,
         )
-        statistics_done()
     files += lab.files
     warnings += lab.warnings
     if shifts.empty:
