@@ -22,7 +22,13 @@ from collections.abc import Callable
 from concurrent.futures import Future
 from typing import Any
 
-from masking_lab.core.worker_processes import alive, end_with_parent
+from masking_lab.core.worker_processes import (
+    alive,
+    end_with_parent,
+    interruptible,
+    interrupts_held,
+    note_interrupts,
+)
 
 __all__ = ["ForkedLane", "LaneGone", "fork_second"]
 
@@ -135,7 +141,13 @@ def fork_second() -> int | None:
         return None
     first = os.getpid()
     try:
-        pid = os.fork()
+        # Ctrl-C while forking reaches the second worker once it only notes it (as the
+        # first worker does while idle): a KeyboardInterrupt raised in its start-up could
+        # land in a callback and print a traceback.
+        with interrupts_held():
+            pid = os.fork()
+            if pid == 0:
+                note_interrupts()
     except OSError:
         return None
     if pid == 0:  # the second worker
@@ -154,7 +166,7 @@ def _serve(lane: ForkedLane) -> None:
             break
         ticket, fn, args, kwargs = task
         try:
-            answer = (ticket, True, fn(*args, **kwargs))
+            answer = (ticket, True, interruptible(fn, *args, **kwargs))
         except BaseException as exc:  # the caller re-raises it, as a worker pool would
             answer = (ticket, False, exc)
         try:

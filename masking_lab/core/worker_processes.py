@@ -8,22 +8,41 @@ shutdown), they sleep forever, each holding its copy of the run's memory and the
 :func:`worker_pool` starts every worker with :func:`end_with_parent`: on Linux the kernel
 kills the worker when its parent dies (``prctl(PR_SET_PDEATHSIG)``); elsewhere a thread in the
 worker looks for its parent now and then and ends the worker once it is gone.
+
+Ctrl-C at a terminal signals every process of the foreground group, the workers included. A
+worker waiting for work only notes it (Python's handler printed each idle worker's
+``KeyboardInterrupt`` traceback under the run's own "interrupted"); a task is interrupted as in
+the calling process, so its own clean-up runs (a session zeroes its device); and the tasks
+still queued for the worker are refused at once. SIGINT is held back while a pool forks its
+workers, so none starts with Python's handler (:func:`worker_pool`).
 """
 
 from __future__ import annotations
 
+import functools
 import os
 import signal
 import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from typing import TYPE_CHECKING, Any, Generic, TypeVar
 
 if TYPE_CHECKING:  # loaded when a pool is made: output folders only ask whether a pid runs
     from concurrent.futures import Future, ProcessPoolExecutor
     from multiprocessing.context import BaseContext
 
-__all__ = ["Beside", "alive", "end_with_parent", "rest_here", "result_or_here", "worker_pool"]
+__all__ = [
+    "Beside",
+    "alive",
+    "end_with_parent",
+    "interruptible",
+    "interrupts_held",
+    "note_interrupts",
+    "rest_here",
+    "result_or_here",
+    "worker_pool",
+]
 
 A = TypeVar("A")
 R = TypeVar("R")
@@ -110,6 +129,11 @@ def _watch_parent(parent: int) -> None:
 
 def _start_worker(parent: int, initializer: Callable[..., object] | None, args: tuple) -> None:
     end_with_parent(parent)
+    # Idle, a worker only notes Ctrl-C (each task turns it back on: interruptible); a SIGINT
+    # that came while the pool forked this worker, held back since, is noted here.
+    note_interrupts()
+    if hasattr(signal, "pthread_sigmask"):
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
     # A worker dies of SIGTERM, whatever handler it inherited: when a worker is killed, the
     # pool terminates the others with it, and a forked worker blocked on its full result pipe
     # ran an inherited Python handler (device.safety's), whose SystemExit the pool's sending
@@ -150,14 +174,100 @@ def worker_pool(
     ...     list(pool.map(abs, [-1, 2, -3]))
     [1, 2, 3]
     """
-    from concurrent.futures import ProcessPoolExecutor
-
-    return ProcessPoolExecutor(
+    return _pool_class()(
         max_workers=max_workers,
         mp_context=mp_context,
         initializer=_start_worker,
         initargs=(os.getpid(), initializer, initargs),
     )
+
+
+@functools.cache
+def _pool_class() -> type[ProcessPoolExecutor]:
+    """``ProcessPoolExecutor`` whose tasks take Ctrl-C as the caller does (the class is made
+    when the first pool is: ``concurrent.futures`` loads only then)."""
+    from concurrent.futures import ProcessPoolExecutor
+
+    class WorkerPool(ProcessPoolExecutor):
+        def submit(self, fn: Callable[..., R], /, *args: Any, **kwargs: Any) -> Future[R]:
+            # A pool forks its workers in a submit (the first, or each, by start method): a
+            # child starts with this thread's signal mask, so SIGINT is held back until the
+            # child has set it aside (_start_worker). Held here, it arrives after the submit.
+            with interrupts_held():
+                return super().submit(interruptible, fn, *args, **kwargs)
+
+    return WorkerPool
+
+
+@contextmanager
+def interrupts_held() -> Iterator[None]:
+    """SIGINT blocked in this thread for the block (where threads have signal masks): a
+    process forked in it starts with SIGINT held back until it has set up its handler
+    (:func:`note_interrupts`); one that comes meanwhile reaches this process after the block.
+
+    Examples
+    --------
+    >>> with interrupts_held():
+    ...     signal.SIGINT in signal.pthread_sigmask(signal.SIG_BLOCK, set())
+    True
+    """
+    if not hasattr(signal, "pthread_sigmask"):
+        yield
+        return
+    before = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, before)
+
+
+def note_interrupts() -> None:
+    """In a worker, when it starts: Ctrl-C only notes, quietly, that the run is ending (no
+    ``KeyboardInterrupt``, no traceback); :func:`interruptible` then refuses further tasks.
+
+    Examples
+    --------
+    >>> with worker_pool(1) as pool:  # its workers call it when they start
+    ...     os.kill(pool.submit(os.getpid).result(), signal.SIGINT)  # Ctrl-C, the worker idle
+    ...     type(pool.submit(abs, -1).exception()).__name__  # a task after it is refused
+    'KeyboardInterrupt'
+    """
+    global _interrupted
+    _interrupted = False  # not a Ctrl-C of the process it was forked from
+    signal.signal(signal.SIGINT, _note_interrupt)
+
+
+def interruptible(fn: Callable[..., R], *args: Any, **kwargs: Any) -> R:
+    """In a worker: ``fn(*args, **kwargs)`` with Ctrl-C raising ``KeyboardInterrupt`` in it, as
+    in the calling process (its own clean-up runs). After a Ctrl-C (in a task or while idle)
+    the worker refuses the tasks still queued for it: the run is ending, and its pool's
+    shutdown need not wait for them (a ``plan`` chunk takes seconds).
+
+    :func:`worker_pool`'s workers run every task through it.
+
+    Examples
+    --------
+    >>> interruptible(pow, 2, 3)
+    8
+    """
+    if _interrupted:
+        raise KeyboardInterrupt
+    idle = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        return fn(*args, **kwargs)
+    except KeyboardInterrupt:
+        _note_interrupt()
+        raise
+    finally:
+        signal.signal(signal.SIGINT, idle)
+
+
+_interrupted = False  # in a worker: Ctrl-C came (see interruptible)
+
+
+def _note_interrupt(*_signal: object) -> None:
+    global _interrupted
+    _interrupted = True
 
 
 def rest_here(results: Iterator[R], fn: Callable[[A], R], items: Sequence[A]) -> Iterator[R]:
