@@ -122,6 +122,27 @@ def test_the_bounds_hold_at_the_extremes_and_the_placement_is_the_argmin(post, u
     np.testing.assert_allclose(picked, np.repeat(exact.min(axis=1), 3), rtol=0, atol=1e-12)
 
 
+@pytest.mark.parametrize("use_compiled", [True, False])
+def test_an_answer_that_no_joint_probability_reaches_adds_nothing(use_compiled):
+    # All mass on a lapse-free, steep point at the lowest threshold: far above it p(wrong) is
+    # below FLUSH in every cell the posterior holds, so that answer's m is 0 at every threshold
+    # (0, never subnormal: no clamping before the logarithm) and its p·ln p is 0·ln 0 = 0.
+    t = tables(GRIDS["steep"])
+    both = psi_screen._float32_tables(t)
+    n_s = t.levels_db.size
+    n = int(np.argmax((both[0, :, n_s:] == 0).sum(axis=1)))  # the point with most zeros
+    assert (both[0, n, n_s:] == 0).any()
+    post = np.zeros(t.prior.shape)
+    post[0, n] = 1.0
+    low, high = psi_screen.screen(t, post[None], use_compiled=use_compiled)
+    exact = expected_entropy(t, post[None])
+    assert np.isfinite(low).all() and np.isfinite(high).all()
+    assert np.all((low <= exact) & (exact <= high))
+    nonzero = both[both > 0]
+    assert nonzero.min() >= psi_screen.FLUSH * (1 - 2**-23)  # so every product is ≥ ~1e-36
+    assert float(nonzero.min()) ** 2 > np.finfo(np.float32).tiny
+
+
 def test_the_compiled_and_numpy_routes_place_alike():
     t = tables(SHIPPED)
     posts = list(_tracks(SHIPPED, 40, 60, seed=11))

@@ -16,17 +16,43 @@ import numpy as np
 
 @numba.njit(cache=True, nogil=True)
 def add_column_sums(m, log_m, pk, h):
-    """``pk[r, s] += Σ_t m[t, r, s]`` and ``h[r, s] += Σ_t m·log_m``, accumulated in float64.
+    """``pk[r, s] += Σ_t m[t, r, s]`` and ``h[r, s] += Σ_t m·log_m``, accumulated in float64,
+    with 0·log 0 taken as 0 (``log_m`` is -inf where ``m`` is 0; elsewhere above -1e30).
 
     ``m`` and ``log_m`` are float32 arrays of shape (T, R, S); ``pk`` and ``h`` float64 (R, S).
     """
     n_t, n_r, n_s = m.shape
+    floor = np.float32(-1e30)
     for t in range(n_t):
         for r in range(n_r):
             for s in range(n_s):
                 x = np.float64(m[t, r, s])
                 pk[r, s] += x
-                h[r, s] += x * np.float64(log_m[t, r, s])
+                h[r, s] += x * np.float64(max(log_m[t, r, s], floor))
+
+
+@numba.njit(cache=True, nogil=True)
+def entropy_bounds(pk, h, rel, floor, tail, tail_mass, safety, low, high):
+    """The screen's bounds from its float64 sums (:func:`~masking_lab.procedures.psi_screen.
+    screen`, whose numpy route computes the same): per track r and level s, with both answers'
+    ``pk`` and ``h`` side by side in (R, 2S), the entropy ± ``safety``·(``rel``·spread +
+    ``floor`` + ``tail`` + ``tail_mass``·max |ln p|) into ``low`` and ``high`` (R, S).
+    """
+    n_r, n_s = low.shape
+    for r in range(n_r):
+        for s in range(n_s):
+            entropy = 0.0
+            spread = 0.0
+            worst = 0.0
+            for k in (s, s + n_s):
+                p = pk[r, k]
+                log_p = math.log(max(p, 1e-300))  # an answer no m reaches adds 0·ln 0 = 0
+                entropy += p * log_p - h[r, k]
+                spread += -h[r, k] + p * (2.0 - log_p)
+                worst = max(worst, abs(log_p))
+            margin = safety * (rel * spread + floor + tail + tail_mass * worst)
+            low[r, s] = entropy - margin
+            high[r, s] = entropy + margin
 
 
 @numba.njit(cache=True, nogil=True)

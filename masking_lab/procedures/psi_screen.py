@@ -25,8 +25,10 @@ ulp (8·u) of ln; so each m·ln m is within (N + 14)·u·m·(|ln m| + 1) of its 
 p·ln p within (N + 14)·u·p·(|ln p| + 1). Summed over thresholds and answers, with m ≤ 1, that is
 (N + 14)·u · Σ_answers (H_answer + p + p·(|ln p| + 1)), H = −Σ m·ln m, computed from the
 float32 values themselves; :data:`SAFETY` doubles it. Posterior and table cells below
-:data:`FLUSH` are set to 0 before the products, which keeps float32 out of its subnormal range
-(slow on x86); the change they make, ≤ N·FLUSH per m, is added as an absolute term. Each
+:data:`FLUSH` are set to 0 before the products, so every product is 0 or at least FLUSH² (far
+above float32's subnormal range, slow on x86) and so is every m: an m of 0 adds nothing to
+either sum, and no m needs clamping before its logarithm. The change those cells make,
+≤ N·FLUSH per m, is added as an absolute term. Each
 track's tails (at most :data:`TAIL`/4 of its mass on either side) are left out, which spares a
 fifth of the thresholds late in a track; leaving out mass D changes the entropy by at most
 D·(ln 2T − ln D) + D·(max |ln p| + 1), also added.
@@ -49,8 +51,9 @@ if TYPE_CHECKING:
 
 __all__ = ["FLUSH", "SAFETY", "TAIL", "best_levels", "screen"]
 
-#: Posterior and likelihood cells below this are 0 in the float32 screen.
-FLUSH = 1e-19
+#: Posterior and likelihood cells below this are 0 in the float32 screen: a product of two
+#: cells is then 0 or above 1e-36, never subnormal (float32's normal range ends at 1.2e-38).
+FLUSH = 1e-18
 #: Posterior mass of a track's two tails that the screen may leave out (its thresholds' share
 #: of the bound, ~3e-7 nats, is a hundredth of the rounding's).
 TAIL = 1e-8
@@ -61,7 +64,10 @@ _TRACKS_PER_PASS = 32
 #: Thresholds per block of a pass: its two (block, tracks, 2S) float32 buffers take ~0.5 MB.
 _THRESHOLDS_PER_BLOCK = 8
 _U32 = 2.0**-24
-_TINY32 = np.float32(np.finfo(np.float32).tiny)
+#: Below ln(FLUSH²) ≈ -82.9, the logarithm of every m that is not 0: m·max(ln m, this) is
+#: m·ln m, and 0 (not NaN) where m is 0.
+_LOG_FLOOR = np.float32(-1e30)
+_TINY64 = 1e-300
 
 
 def best_levels(
@@ -157,32 +163,37 @@ def screen(
     # cache from the product to the sums (the whole (T, R, 2S) array would not).
     block = np.empty((min(_THRESHOLDS_PER_BLOCK, hi - lo), r, 2 * n_s), dtype=np.float32)
     log_m = np.empty_like(block)
-    for a in range(lo, hi, _THRESHOLDS_PER_BLOCK):
-        b = min(a + _THRESHOLDS_PER_BLOCK, hi)
-        m, lm = block[: b - a], log_m[: b - a]
-        np.matmul(p32[a:b], both[a:b], out=m)
-        # An m that underflowed: ln stays finite, the error ≤ tiny, and no subnormal reaches
-        # the logarithm (float32 ln of a subnormal takes a slow path, ~1.5× the screen's time).
-        np.maximum(m, _TINY32, out=m)
-        np.log(m, out=lm)
-        if loops is not None:
-            loops.add_column_sums(m, lm, pk, h)
-        else:
-            pk += m.sum(axis=0, dtype=np.float64)
-            h += np.multiply(m, lm, dtype=np.float64).sum(axis=0)
-    log_pk = np.log(pk)
-    terms = pk * log_pk
-    entropy = terms[:, :n_s] + terms[:, n_s:] - h[:, :n_s] - h[:, n_s:]
-    spread = -h + pk * (2.0 - log_pk)
-    spread = spread[:, :n_s] + spread[:, n_s:]
+    # Each m is 0 or normal (see FLUSH): ln 0 = -inf, taken as 0·ln 0 = 0 in the sums.
+    with np.errstate(divide="ignore"):  # once: entering it per block cost 6 % of the screen
+        for a in range(lo, hi, _THRESHOLDS_PER_BLOCK):
+            b = min(a + _THRESHOLDS_PER_BLOCK, hi)
+            m, lm = block[: b - a], log_m[: b - a]
+            np.matmul(p32[a:b], both[a:b], out=m)
+            np.log(m, out=lm)
+            if loops is not None:
+                loops.add_column_sums(m, lm, pk, h)
+            else:
+                np.maximum(lm, _LOG_FLOOR, out=lm)
+                pk += m.sum(axis=0, dtype=np.float64)
+                h += np.multiply(m, lm, dtype=np.float64).sum(axis=0)
     rel = (n_n + 14) * _U32
     flushed = n_n * FLUSH
     floor = 8 * n_t * flushed * (1.0 - np.log(flushed)) + 1e-12
     # The tails left out (mass D ≤ TAIL/2 + rounding < TAIL): their cells' −Σ m·ln m is at most
     # D·(ln 2T − ln D), and each answer's p·ln p moves by at most δ·(|ln p| + 1), Σ δ = D.
-    worst_log = np.maximum(np.abs(log_pk[:, :n_s]), np.abs(log_pk[:, n_s:])) + 0.01
-    trimmed = TAIL * (np.log(2 * n_t) - np.log(TAIL) + 1.0 + worst_log)
-    spread = SAFETY * (rel * spread + floor + trimmed)
+    tail = TAIL * (np.log(2 * n_t) - np.log(TAIL) + 1.01)
+    if loops is not None:
+        low, high = np.empty((r, n_s)), np.empty((r, n_s))
+        loops.entropy_bounds(pk, h, rel, floor, tail, TAIL, SAFETY, low, high)
+        return low, high
+    # An answer that no m reaches (p = 0) adds 0·ln 0 = 0.
+    log_pk = np.log(np.maximum(pk, _TINY64))
+    terms = pk * log_pk
+    entropy = terms[:, :n_s] + terms[:, n_s:] - h[:, :n_s] - h[:, n_s:]
+    spread = -h + pk * (2.0 - log_pk)
+    spread = spread[:, :n_s] + spread[:, n_s:]
+    worst_log = np.maximum(np.abs(log_pk[:, :n_s]), np.abs(log_pk[:, n_s:]))
+    spread = SAFETY * (rel * spread + floor + tail + TAIL * worst_log)
     return entropy - spread, entropy + spread
 
 
