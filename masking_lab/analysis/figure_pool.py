@@ -25,7 +25,7 @@ from concurrent.futures.process import BrokenProcessPool
 from typing import Any, TypeVar
 
 from masking_lab.analysis.forked_lane import ForkedLane, LaneGone, fork_second
-from masking_lab.core.worker_processes import worker_pool
+from masking_lab.core.worker_processes import cancel_pool, worker_pool
 
 __all__ = ["FigurePool"]
 
@@ -144,5 +144,8 @@ class FigurePool:
             self._second.close()
             self._second = None
         for pool, _ in self._lanes:
-            pool.shutdown(wait=not cancel, cancel_futures=cancel)
+            if cancel:
+                cancel_pool(pool)
+            else:
+                pool.shutdown(wait=True)
         self._lanes = []

@@ -29,7 +29,7 @@ from masking_lab.analysis.procedure_estimates import places_masker
 from masking_lab.analysis.study_status import SessionInfo, session_of
 from masking_lab.analysis.thresholds import EstimatorSettings, packed, session_rows
 from masking_lab.core.errors import LogError
-from masking_lab.core.worker_processes import rest_here, worker_pool
+from masking_lab.core.worker_processes import cancel_pool, rest_here, worker_pool
 from masking_lab.formats.log_bytes import check_schema_version, read_log_bytes, strip_bom
 from masking_lab.formats.log_records import (
     ANALYSIS_DECODER,
@@ -332,7 +332,7 @@ def read_logs(
     try:
         parts = pool.map(_read_chunk, chunks)
     except BaseException:
-        pool.shutdown(wait=False, cancel_futures=True)
+        cancel_pool(pool)
         raise
     # the chunks of a worker that died (killed for memory, say) are read here
     return _gathered(pool, rest_here(parts, _read_chunk, chunks), n, progress)

@@ -90,7 +90,14 @@ def console_main() -> int:
     >>> done.stdout.decode().startswith("masking-lab ")
     True
     """
-    code = main()
+    try:
+        code = main()
+    finally:
+        # A pool an interrupted run left open (its readers, say) is stopped and joined now,
+        # not raced by the interpreter's exit (core/worker_processes.cancel_open_pools).
+        from masking_lab.core.worker_processes import cancel_open_pools
+
+        cancel_open_pools()
     gc.freeze()
     return code
 

@@ -19,9 +19,11 @@ workers, so none starts with Python's handler (:func:`worker_pool`).
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import os
 import signal
+import sys
 import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
@@ -35,6 +37,8 @@ if TYPE_CHECKING:  # loaded when a pool is made: output folders only ask whether
 __all__ = [
     "Beside",
     "alive",
+    "cancel_open_pools",
+    "cancel_pool",
     "end_with_parent",
     "interruptible",
     "interrupts_held",
@@ -174,12 +178,50 @@ def worker_pool(
     ...     list(pool.map(abs, [-1, 2, -3]))
     [1, 2, 3]
     """
-    return _pool_class()(
+    pool = _pool_class()(
         max_workers=max_workers,
         mp_context=mp_context,
         initializer=_start_worker,
         initargs=(os.getpid(), initializer, initargs),
     )
+    _open_pools.add(pool)
+    return pool
+
+
+#: Every pool made here and not yet shut down with a wait (see :func:`cancel_open_pools`); held
+#: strongly: a pool collected unclosed would shut down on its own thread, racing the exit.
+_open_pools: set[ProcessPoolExecutor] = set()
+
+
+def cancel_open_pools() -> None:
+    """:func:`cancel_pool` on every pool of this process that is still open: at the end of a
+    run, whatever way it ends (``masking-lab`` calls it before exiting).
+
+    A pool its run left open (an interrupted run's log readers, whose reading had not begun)
+    would still be running when the interpreter exits, where Python 3.11's exit handler races
+    a pool thread that shuts down meanwhile (an ``OSError`` traceback after the run's last
+    line).
+
+    Examples
+    --------
+    In a process of its own (it stops every pool of the process that calls it):
+
+    >>> import subprocess, sys
+    >>> code = '''
+    ... from masking_lab.core.worker_processes import cancel_open_pools, worker_pool
+    ... pool = worker_pool(1)
+    ... pool.submit(abs, -1)
+    ... cancel_open_pools()
+    ... try:
+    ...     pool.submit(abs, -1)
+    ... except RuntimeError as exc:
+    ...     print(exc)
+    ... '''
+    >>> subprocess.run([sys.executable, "-c", code], capture_output=True, text=True).stdout.strip()
+    'cannot schedule new futures after shutdown'
+    """
+    for pool in list(_open_pools):
+        cancel_pool(pool)
 
 
 @functools.cache
@@ -196,14 +238,24 @@ def _pool_class() -> type[ProcessPoolExecutor]:
             with interrupts_held():
                 return super().submit(interruptible, fn, *args, **kwargs)
 
+        def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None:
+            super().shutdown(wait, cancel_futures=cancel_futures)
+            if wait:  # its thread and workers joined: nothing of it runs any more
+                _open_pools.discard(self)
+
     return WorkerPool
 
 
 @contextmanager
 def interrupts_held() -> Iterator[None]:
-    """SIGINT blocked in this thread for the block (where threads have signal masks): a
-    process forked in it starts with SIGINT held back until it has set up its handler
-    (:func:`note_interrupts`); one that comes meanwhile reaches this process after the block.
+    """Ctrl-C held back for the block, then delivered: around forking a worker.
+
+    SIGINT is blocked in this thread, so a process forked in the block starts with it held
+    back until it has set up its own handler (:func:`note_interrupts`). In this process,
+    another thread may still take the signal, and Python then runs the handler in the main
+    thread at once, inside fork's after-fork callbacks, where a ``KeyboardInterrupt`` prints
+    an "Exception ignored" traceback; so, in the main thread, the handler only notes it for
+    the block, and the ``KeyboardInterrupt`` (or whatever the handler does) comes after it.
 
     Examples
     --------
@@ -214,11 +266,19 @@ def interrupts_held() -> Iterator[None]:
     if not hasattr(signal, "pthread_sigmask"):
         yield
         return
+    came: list[object] = []
+    handler = None
+    if threading.current_thread() is threading.main_thread():
+        handler = signal.signal(signal.SIGINT, lambda *_: came.append(True))
     before = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
     try:
         yield
     finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, before)
+        signal.pthread_sigmask(signal.SIG_SETMASK, before)  # one held back arrives here
+        if handler is not None:
+            signal.signal(signal.SIGINT, handler)
+            if came:
+                signal.raise_signal(signal.SIGINT)
 
 
 def note_interrupts() -> None:
@@ -235,6 +295,15 @@ def note_interrupts() -> None:
     global _interrupted
     _interrupted = False  # not a Ctrl-C of the process it was forked from
     signal.signal(signal.SIGINT, _note_interrupt)
+    sys.unraisablehook = _unraisable_in_worker
+
+
+def _unraisable_in_worker(unraisable: Any) -> None:
+    # A Ctrl-C that lands in a callback (a weakref's, run by garbage collection in the middle
+    # of a task) cannot interrupt the task: Python prints it as "Exception ignored" and goes
+    # on. The worker has noted it (_interrupt_task), so it refuses the tasks after this one.
+    if not isinstance(unraisable.exc_value, KeyboardInterrupt):
+        sys.__unraisablehook__(unraisable)
 
 
 def interruptible(fn: Callable[..., R], *args: Any, **kwargs: Any) -> R:
@@ -252,7 +321,7 @@ def interruptible(fn: Callable[..., R], *args: Any, **kwargs: Any) -> R:
     """
     if _interrupted:
         raise KeyboardInterrupt
-    idle = signal.signal(signal.SIGINT, signal.default_int_handler)
+    idle = signal.signal(signal.SIGINT, _interrupt_task)
     try:
         return fn(*args, **kwargs)
     except KeyboardInterrupt:
@@ -268,6 +337,11 @@ _interrupted = False  # in a worker: Ctrl-C came (see interruptible)
 def _note_interrupt(*_signal: object) -> None:
     global _interrupted
     _interrupted = True
+
+
+def _interrupt_task(*_signal: object) -> None:
+    _note_interrupt()
+    raise KeyboardInterrupt
 
 
 def rest_here(results: Iterator[R], fn: Callable[[A], R], items: Sequence[A]) -> Iterator[R]:
@@ -309,6 +383,34 @@ def rest_here(results: Iterator[R], fn: Callable[[A], R], items: Sequence[A]) ->
     except BrokenProcessPool:
         for item in items[done:]:
             yield fn(item)
+
+
+def cancel_pool(pool: ProcessPoolExecutor) -> None:
+    """End ``pool`` without waiting for its work (a failed or interrupted run): its queued
+    tasks cancelled, a task still running interrupted as by Ctrl-C (:func:`interruptible`),
+    then its workers and its thread joined.
+
+    Nothing of the pool is left running when the interpreter exits: Python 3.11's exit
+    handler wakes every pool's thread without a lock, and one still closing its pipes (a
+    pool shut down without waiting) made that print an ``OSError`` traceback after the run's
+    last line. Interrupting, rather than killing, the workers never cuts a result in half in
+    the pipe, which would leave the pool's thread waiting for the rest.
+
+    Examples
+    --------
+    >>> pool = worker_pool(1)
+    >>> busy = pool.submit(time.sleep, 600)
+    >>> cancel_pool(pool)  # at once, not after 600 s
+    >>> busy.done()  # interrupted, or cancelled before it started
+    True
+    """
+    # Interrupted first: from then on a worker refuses whatever reaches it, so the shutdown's
+    # wait is short. A worker not yet reaped still has its pid.
+    for worker in list((getattr(pool, "_processes", None) or {}).values()):
+        if worker.is_alive():
+            with contextlib.suppress(OSError):
+                os.kill(worker.pid, signal.SIGINT)
+    pool.shutdown(wait=True, cancel_futures=True)
 
 
 def result_or_here(future: Future[R], fn: Callable[..., R], *args: Any) -> R:
