@@ -14,7 +14,9 @@ worker waiting for work only notes it (Python's handler printed each idle worker
 ``KeyboardInterrupt`` traceback under the run's own "interrupted"); a task is interrupted as in
 the calling process, so its own clean-up runs (a session zeroes its device); and the tasks
 still queued for the worker are refused at once. SIGINT is held back while a pool forks its
-workers, so none starts with Python's handler (:func:`worker_pool`).
+workers, so none starts with Python's handler (:func:`worker_pool`). A failed run's pool is
+interrupted and joined (:func:`cancel_pool`), and ``masking-lab`` does that to every pool still
+open before it exits (:func:`cancel_open_pools`), so none is left running at the exit.
 """
 
 from __future__ import annotations
@@ -267,8 +269,8 @@ def interrupts_held() -> Iterator[None]:
         yield
         return
     came: list[object] = []
-    handler = None
-    if threading.current_thread() is threading.main_thread():
+    handler = None  # also when a handler not set from Python is there: it stays
+    if threading.current_thread() is threading.main_thread() and signal.getsignal(signal.SIGINT):
         handler = signal.signal(signal.SIGINT, lambda *_: came.append(True))
     before = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
     try:
