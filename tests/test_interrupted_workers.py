@@ -3,7 +3,9 @@
 A terminal's Ctrl-C signals every process of the foreground group, the workers included. An
 idle worker used to print a ``KeyboardInterrupt`` traceback under the run's own message, and a
 worker whose task was interrupted went on with the tasks still queued for it, which the
-pool's shutdown waited for (~2 s of ``plan`` chunks). The unit cases signal a real pool's
+pool's shutdown waited for (~2 s of ``plan`` chunks); under load, a run interrupted while its
+logs were read often printed Python 3.11's exit-time ``OSError`` traceback (a pool left
+running at the exit) and now and then hung. The unit cases signal a real pool's
 real worker process; the end-to-end cases type Ctrl-C into a real pseudo-terminal that
 ``masking-lab analyze`` and ``plan`` have as their controlling terminal, so that the line
 discipline signals the whole process group, as at a lab's terminal.
