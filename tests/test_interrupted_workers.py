@@ -130,6 +130,19 @@ def test_ctrl_c_while_a_worker_is_forked_comes_after_the_fork():
     assert signal.getsignal(signal.SIGINT) is before
 
 
+def test_a_with_block_that_fails_does_not_wait_for_the_rest_of_its_tasks(tmp_path):
+    # The executor's own exit ran every queued task first (plan's chunks: seconds each).
+    marker = tmp_path / "running"
+    with pytest.raises(ValueError, match="the caller failed"), worker_pool(1) as pool:
+        busy = pool.submit(_mark_and_sleep, str(marker))
+        queued = [pool.submit(_touch, str(tmp_path / f"queued{i}")) for i in range(3)]
+        _wait_for(marker.exists, "the task to start")
+        raise ValueError("the caller failed")
+    assert isinstance(busy.exception(), KeyboardInterrupt)  # not after its 600 s sleep
+    assert all(f.cancelled() or isinstance(f.exception(), KeyboardInterrupt) for f in queued)
+    assert not list(tmp_path.glob("queued*"))
+
+
 def test_interruptible_in_this_process_restores_its_handler():
     before = signal.getsignal(signal.SIGINT)
     assert interruptible(divmod, 7, 2) == (3, 1)

@@ -172,7 +172,9 @@ def worker_pool(
     Returns
     -------
     ProcessPoolExecutor
-        Use it as any executor (``submit``, ``map``, ``shutdown``, ``with``).
+        Use it as any executor (``submit``, ``map``, ``shutdown``, ``with``); a ``with``
+        block left by an exception ends the pool with :func:`cancel_pool`, not after every
+        queued task.
 
     Examples
     --------
@@ -244,6 +246,14 @@ def _pool_class() -> type[ProcessPoolExecutor]:
             super().shutdown(wait, cancel_futures=cancel_futures)
             if wait:  # its thread and workers joined: nothing of it runs any more
                 _open_pools.discard(self)
+
+        def __exit__(self, exc_type: Any, *exc: Any) -> None:
+            # A block that fails does not wait for the rest of its tasks (the executor's own
+            # exit ran every queued one first): they are interrupted or cancelled.
+            if exc_type is None:
+                self.shutdown(wait=True)
+            else:
+                cancel_pool(self)
 
     return WorkerPool
 

@@ -178,11 +178,8 @@ def started_tasks(
                     got[i] = result_or_here(futures[i], fn, *args)
                 return got[i]
 
-            try:
-                yield TaskResults(fetch, len(calls))
-            except BaseException:
-                pool.shutdown(wait=True, cancel_futures=True)
-                raise
+            # on an error the pool's block interrupts the chunks still running (worker_pool)
+            yield TaskResults(fetch, len(calls))
     else:
         with _connect(scheduler) as client:
             futures = [client.submit(fn, *args, pure=False) for fn, args in calls]
