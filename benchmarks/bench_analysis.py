@@ -47,7 +47,7 @@ import threading
 import time
 from pathlib import Path
 
-from timing_setup import compile_tree, console_code
+from timing_setup import compile_tree, tree_console_code
 
 from masking_lab.simulation.synthetic_logs import simulate_study
 
@@ -170,12 +170,8 @@ def run_analyze(
     masking_lab | tar -x -C DIR``), imported instead of the installed one (an editable
     install's import hook would win over ``PYTHONPATH``, so it is dropped first).
     """
-    code = console_code(Path(src) if src else ROOT)  # the console script, as a user runs it
-    if src:
-        code = (
-            "import sys; sys.meta_path[:] = [f for f in sys.meta_path if 'editable' not in "
-            f"repr(f).lower()]; sys.path.insert(0, {src!r}); " + code
-        )
+    # the console script, as a user runs it
+    code = tree_console_code(Path(src) if src else ROOT, other_tree=bool(src))
     cmd = [sys.executable, "-c", code, "analyze", str(data), "--out", str(out), "--quiet", *extra]
     t = time.perf_counter()
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)

@@ -31,7 +31,7 @@ import time
 from pathlib import Path
 
 from bench_analysis import build_folder
-from timing_setup import compile_tree, console_code
+from timing_setup import compile_tree, tree_console_code
 
 from masking_lab.simulation.synthetic_logs import simulate_study
 
@@ -45,12 +45,7 @@ HUNG = -1000
 def interrupt_once(argv: list[str], src: Path | None, delay_s: float) -> tuple[float, int, bool]:
     """Seconds from SIGINT to exit, the exit code, and whether stderr held a traceback (inf,
     :data:`HUNG` and True for a run that hung)."""
-    code = console_code(src or ROOT)
-    if src is not None:  # this tree's editable install must not win over the other tree
-        code = (
-            "import sys; sys.meta_path[:] = [f for f in sys.meta_path if 'editable' not in "
-            f"repr(f).lower()]; sys.path.insert(0, {str(src)!r}); " + code
-        )
+    code = tree_console_code(src or ROOT, other_tree=src is not None)
     proc = subprocess.Popen(
         [sys.executable, "-c", code, *argv],
         stdout=subprocess.DEVNULL,

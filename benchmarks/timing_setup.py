@@ -29,3 +29,16 @@ def console_code(root: Path) -> str:
         entry = tomllib.load(fh)["project"]["scripts"]["masking-lab"]
     module, function = entry.split(":")
     return f"import sys; from {module} import {function}; sys.exit({function}())"
+
+
+def tree_console_code(root: Path, other_tree: bool) -> str:
+    """:func:`console_code` of ``root``; with ``other_tree``, run from ``root`` even where this
+    checkout is installed in editable mode (its import hook would win over ``sys.path``, so it
+    is dropped first)."""
+    code = console_code(root)
+    if other_tree:
+        code = (
+            "import sys; sys.meta_path[:] = [f for f in sys.meta_path if 'editable' not in "
+            f"repr(f).lower()]; sys.path.insert(0, {str(root)!r}); " + code
+        )
+    return code
