@@ -187,9 +187,9 @@ def test_sets_are_chunked_by_batch_group_and_come_back_in_their_order(monkeypatc
     seen_chunks: list[list[tuple[int, float, bool]]] = []
     real = pf_table._fit_chunk
 
-    def spy(chunk, then=None):
+    def spy(chunk, then=None, compiled=False):
         seen_chunks.append([psychometric.batch_group(j) for j in chunk])
-        return real(chunk, then)
+        return real(chunk, then, compiled)
 
     monkeypatch.setattr(pf_table, "_fit_chunk", spy)
     made = pf_table.fit_all_with(jobs, None, workers=1)

@@ -77,3 +77,10 @@ def test_tracks_placed_without_the_screen_update_with_numpy(monkeypatch, s):
     monkeypatch.setattr(quest_plus_batch, "compiled_loops", lambda name: pytest.fail(name))
     sim = simulate_quest_plus(s, np.full(8, 10.0), rng=np.random.default_rng(0))
     assert sim.n_trials.tolist() == [5] * 8
+
+
+def test_a_sum_of_negative_zeros_is_positive_as_numpys():
+    """numpy adds the pairwise sum to the reduction's identity 0.0: -0.0 + 0.0 = +0.0."""
+    for n in range(1, 300):
+        a = np.full(n, -0.0)
+        assert np.signbit(LOOPS.pairwise_sum(a)) == np.signbit(a.sum()) == False  # noqa: E712

@@ -319,7 +319,7 @@ def fit_pf(
     return fit_pf_many([job])[0]
 
 
-def fit_pf_many(jobs: Sequence[PFJob]) -> list[PFFit]:
+def fit_pf_many(jobs: Sequence[PFJob], *, compiled: bool = False) -> list[PFFit]:
     """:func:`fit_pf` of many sets at once: the same numbers, a fraction of the time.
 
     The climbs of all sets with the same number of distinct levels (the profile starts, then
@@ -331,6 +331,9 @@ def fit_pf_many(jobs: Sequence[PFJob]) -> list[PFFit]:
     ----------
     jobs : sequence of PFJob
         One per set (levels in dB; each job's own model, bootstrap size and seed).
+    compiled : bool
+        Climb with the compiled loops where numba is available (the same numbers,
+        :func:`~masking_lab.analysis.pf_likelihood.refit`).
 
     Returns
     -------
@@ -348,12 +351,13 @@ def fit_pf_many(jobs: Sequence[PFJob]) -> list[PFFit]:
     fits = [_prepare(job) for job in jobs]
     # The point estimates: every profile minimum of every set climbed together.
     search = [f for f in fits if f.result is None and f.start is None]
-    climbed = _climb([(f, np.tile(f.k, (len(_got(f.starts)), 1)), _got(f.starts)) for f in search])
+    starts = [(f, np.tile(f.k, (len(_got(f.starts)), 1)), _got(f.starts)) for f in search]
+    climbed = _climb(starts, compiled)
     for f, (th, good) in zip(search, climbed, strict=True):
         _pick_start(f, th, good)
     # The parametric bootstraps: every simulated data set of every set climbed together.
     boot = [f for f in fits if f.result is None and _draw_sims(f)]
-    climbed = _climb([(f, _got(f.sims).astype(float), _got(f.start)) for f in boot])
+    climbed = _climb([(f, _got(f.sims).astype(float), _got(f.start)) for f in boot], compiled)
     for f, (theta, good) in zip(boot, climbed, strict=True):
         _finish(f, theta, good)
     return [f.result for f in fits]  # type: ignore[misc]
@@ -439,6 +443,7 @@ def _profile_starts(
 
 def _climb(
     items: Sequence[tuple[_Fit, NDArray[np.float64], NDArray[np.float64]]],
+    compiled: bool = False,
 ) -> list[tuple[NDArray[np.float64], NDArray[np.bool_]]]:
     """:func:`_refit` of each item's data sets (rows of counts, from its start rows), the
     items with the same levels count, guess rate and lapse rule climbing as one batch."""
@@ -453,7 +458,7 @@ def _climb(
             batch.append(i)
             rows += len(items[i][1])
             if rows >= _BATCH_ROWS or pos == len(members) - 1:
-                _climb_batch(items, batch, guess, fit_lapse, out)
+                _climb_batch(items, batch, guess, fit_lapse, out, compiled)
                 batch, rows = [], 0
     return out
 
@@ -464,6 +469,7 @@ def _climb_batch(
     guess: float,
     fit_lapse: bool,
     out: list[tuple[NDArray[np.float64], NDArray[np.bool_]]],
+    compiled: bool = False,
 ) -> None:
     sizes = [len(items[i][1]) for i in batch]
     k = np.concatenate([items[i][1] for i in batch])
@@ -475,7 +481,7 @@ def _climb_batch(
     bounds = np.concatenate(
         [np.broadcast_to(items[i][0].bounds, (m, 3, 2)) for i, m in zip(batch, sizes, strict=True)]
     )
-    theta, good = _refit(x, n, k, start, bounds, guess, fit_lapse)
+    theta, good = _refit(x, n, k, start, bounds, guess, fit_lapse, compiled=compiled)
     edges = np.cumsum([0, *sizes])
     for i, a, b in zip(batch, edges[:-1], edges[1:], strict=True):
         out[i] = (theta[a:b], good[a:b])

@@ -31,10 +31,11 @@ COMPILED_FROM = 4
 
 
 @functools.cache
-def compiled_loops(name: str) -> ModuleType | None:
-    """The module ``masking_lab.procedures.<name>`` of numba loops, or None when numba is
-    missing, too old or too new for this numpy, has no writable cache directory, or runs with
+def compiled_loops(name: str, package: str = "masking_lab.procedures") -> ModuleType | None:
+    """The module ``<package>.<name>`` of numba loops, or None when numba is missing, too old
+    or too new for this numpy, has no writable cache directory, or runs with
     ``NUMBA_DISABLE_JIT=1`` (it would run the loops as Python, far slower than numpy).
+    ``package`` is the caller's own (the analysis's loops live in ``masking_lab.analysis``).
 
     Examples
     --------
@@ -44,7 +45,7 @@ def compiled_loops(name: str) -> ModuleType | None:
     if os.environ.get("NUMBA_DISABLE_JIT", "0") not in ("", "0"):
         return None
     try:
-        return importlib.import_module(f"masking_lab.procedures.{name}")
+        return importlib.import_module(f"{package}.{name}")
     except (ImportError, RuntimeError, OSError):
         return None  # every caller has a numpy route
 

@@ -45,11 +45,21 @@ def _block_sum(a, first, n):
 
 @numba.njit(cache=True, nogil=True)
 def pairwise_sum(a):
-    """Σ a (1-D float64) in the order of numpy's pairwise summation: blocks of ≤ 128, each
-    longer run split at half its length (rounded down to a multiple of 8), left + right.
+    """Σ a (1-D float64) as numpy sums it: pairwise, in blocks of ≤ 128 (each longer run
+    split at half its length, rounded down to a multiple of 8, left + right), added to the
+    reduction's identity 0.0 (so that a sum of negative zeros is +0.0, as numpy's is).
 
-    Written with explicit stacks: numba's cache mishandles a recursive function.
+    Short rows (a psychometric function's levels) take one block, without the stacks.
     """
+    if a.size <= 128:
+        return 0.0 + _block_sum(a, 0, a.size)
+    return 0.0 + _long_sum(a)
+
+
+@numba.njit(cache=True, nogil=True)
+def _long_sum(a):
+    """The pairwise sum of more than 128 values, with explicit stacks: numba's cache
+    mishandles a recursive function."""
     firsts = np.empty(192, dtype=np.int64)
     sizes = np.empty(192, dtype=np.int64)
     joins = np.empty(192, dtype=np.bool_)
