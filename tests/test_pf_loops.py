@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from masking_lab.analysis import pf_likelihood, pf_table
-from masking_lab.analysis.pf_likelihood import nll, refit, warm_compiled
+from masking_lab.analysis.pf_likelihood import nll, refit, set_nll, warm_compiled
 from masking_lab.analysis.pf_table import SetTrials, fit_all, pf_job
 from masking_lab.analysis.psychometric import PFJob, fit_pf_many, pf_curve
 from masking_lab.procedures.fused import compiled_loops
@@ -83,6 +83,18 @@ def test_the_compiled_likelihood_is_nlls_bit_for_bit():
         want = nll(xr[rows], nr[rows], k[rows], th[:30], 1 / 3)
         got = pf_likelihood._nll_rows(LOOPS, xr, nr, k, rows, th[:30], 1 / 3)
         np.testing.assert_array_equal(_bits(got), _bits(want))
+
+
+def test_a_profile_grids_compiled_likelihood_is_nlls_bit_for_bit():
+    rng = np.random.default_rng(4)
+    for levels in (1, 6, 9, 40):
+        x, n, k, _, bounds = _batch(rng, 1, levels, 1 / 3)
+        aa, ll = np.meshgrid(np.linspace(*bounds[0], 81), np.linspace(*bounds[1], 24))
+        grid = np.column_stack([aa.ravel(), ll.ravel(), np.full(aa.size, 0.02)])
+        want = nll(x, n, k, grid, 1 / 3)
+        got = set_nll(x, n, k[0], grid, 1 / 3, compiled=True)
+        np.testing.assert_array_equal(_bits(got), _bits(want))
+        np.testing.assert_array_equal(_bits(set_nll(x, n, k[0], grid, 1 / 3)), _bits(want))
 
 
 def test_the_compiled_score_and_information_are_einsums_bit_for_bit():

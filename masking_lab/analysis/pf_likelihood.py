@@ -18,7 +18,7 @@ from numpy.typing import NDArray
 
 from masking_lab.procedures.fused import compiled_loops
 
-__all__ = ["nll", "refit", "warm_compiled"]
+__all__ = ["nll", "refit", "set_nll", "warm_compiled"]
 
 _ITERATIONS = 25
 
@@ -68,6 +68,27 @@ def nll(x: NDArray, n: NDArray, k: NDArray, th: NDArray, guess: float) -> NDArra
     p = guess + (1.0 - guess - th[:, 2:3]) * (0.5 + 0.5 * np.tanh(0.5 * z))
     p = np.clip(p, 1e-12, 1 - 1e-12)
     return -(k * np.log(p) + (n - k) * np.log1p(-p)).sum(axis=1)
+
+
+def set_nll(
+    x: NDArray, n: NDArray, k: NDArray, th: NDArray, guess: float, *, compiled: bool = False
+) -> NDArray[np.float64]:
+    """:func:`nll` of one set's counts (``x``, ``n``, ``k``: 1-D) at each row of ``th`` (a
+    profile's grid), by the compiled loops when ``compiled`` and numba is available (the same
+    numbers).
+
+    Examples
+    --------
+    >>> th = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    >>> x, n, k = np.array([0.0]), np.array([10.0]), np.array([5.0])
+    >>> bool((set_nll(x, n, k, th, 1 / 3) == nll(x, n, k[None, :], th, 1 / 3)).all())
+    True
+    """
+    loops = _loops() if compiled else None
+    if loops is None:
+        return nll(x, n, k[None, :], th, guess)
+    one = [np.ascontiguousarray(a, dtype=np.float64)[None, :] for a in (x, n, k)]
+    return _nll_rows(loops, *one, np.zeros(th.shape[0], dtype=np.intp), th, guess)
 
 
 def refit(

@@ -37,6 +37,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from masking_lab.analysis.pf_likelihood import nll as _nll
 from masking_lab.analysis.pf_likelihood import refit as _refit
+from masking_lab.analysis.pf_likelihood import set_nll as _set_nll
 from masking_lab.core.errors import AnalysisError
 from masking_lab.core.psychometric import GUESS_3IFC, LEVITT_1U3D
 
@@ -348,7 +349,7 @@ def fit_pf_many(jobs: Sequence[PFJob], *, compiled: bool = False) -> list[PFFit]
     >>> fits[1] == fit_pf(x, r, n_boot=50, seed=2)
     True
     """
-    fits = [_prepare(job) for job in jobs]
+    fits = [_prepare(job, compiled) for job in jobs]
     # The point estimates: every profile minimum of every set climbed together.
     search = [f for f in fits if f.result is None and f.start is None]
     starts = [(f, np.tile(f.k, (len(_got(f.starts)), 1)), _got(f.starts)) for f in search]
@@ -371,7 +372,7 @@ def _got(a: NDArray[Any] | None) -> NDArray[Any]:
     return a
 
 
-def _prepare(job: PFJob) -> _Fit:
+def _prepare(job: PFJob, compiled: bool = False) -> _Fit:
     """Bin the trials, set the bounds, and either refuse the set or find where to climb from."""
     guess, lapse = job.guess, job.lapse
     x_all = np.asarray(job.levels_db, dtype=float).ravel()
@@ -407,12 +408,18 @@ def _prepare(job: PFJob) -> _Fit:
         e = job.estimate
         f.start = np.array([e[0], math.log(1.0 / e[1]), e[2]])
     else:
-        f.starts = _profile_starts(xu, n, k, bounds, guess, lapse)
+        f.starts = _profile_starts(xu, n, k, bounds, guess, lapse, compiled)
     return f
 
 
 def _profile_starts(
-    xu: NDArray, n: NDArray, k: NDArray, bounds: NDArray, guess: float, lapse: float | None
+    xu: NDArray,
+    n: NDArray,
+    k: NDArray,
+    bounds: NDArray,
+    guess: float,
+    lapse: float | None,
+    compiled: bool = False,
 ) -> NDArray[np.float64]:
     """Where to climb from: the profile's local minima (rows of α, log s, λ).
 
@@ -429,7 +436,7 @@ def _profile_starts(
     grid_ls = np.linspace(bounds[1, 0], bounds[1, 1], 25)[:-1]
     aa, ll = np.meshgrid(grid_a, grid_ls, indexing="ij")
     grid = np.column_stack([aa.ravel(), ll.ravel(), np.full(aa.size, lam0)])
-    prof_all = _nll(xu, n, k[None, :], grid, guess).reshape(aa.shape)
+    prof_all = _set_nll(xu, n, k, grid, guess, compiled=compiled).reshape(aa.shape)
     best = np.argmin(prof_all, axis=0)
     profile = prof_all[best, np.arange(grid_ls.size)]
     padded = np.concatenate([[np.inf], profile, [np.inf]])
