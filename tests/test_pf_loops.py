@@ -160,3 +160,23 @@ def test_without_numba_the_numpy_route_runs(monkeypatch):
     want = refit(x, n, k, start, bounds, 1 / 3, True)
     got = refit(x, n, k, start, bounds, 1 / 3, True, compiled=True)
     np.testing.assert_array_equal(_bits(got[0]), _bits(want[0]))
+
+
+def test_loops_that_fail_to_compile_leave_the_numpy_route(monkeypatch):
+    """A numba that imports but cannot compile here (a version mismatch) must not fail a run:
+    the study's fits are then made on numpy's route, with the same numbers."""
+
+    class Broken:
+        def __getattr__(self, name):
+            def fail(*args):
+                raise RuntimeError(f"numba cannot compile {name}")
+
+            return fail
+
+    monkeypatch.setattr(pf_likelihood, "_loops", lambda: Broken())
+    assert warm_compiled() is False
+    trials = SetTrials({"level_unit": "db_sl"}, [0.0, 2.0, 4.0, 6.0] * 12, [False, True] * 24)
+    jobs = [pf_job(trials, seed, 60) for seed in range(4)]
+    want = fit_all(jobs, workers=1)
+    monkeypatch.setattr(pf_table, "PF_COMPILED_FROM", 1)
+    assert repr(fit_all(jobs, workers=1)) == repr(want)

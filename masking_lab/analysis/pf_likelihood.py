@@ -48,7 +48,10 @@ def warm_compiled() -> bool:
     # A tiny climb calls every loop with the argument types of a real one.
     bounds = np.array([[-10.0, 10.0], [-2.0, 3.0], [0.0, 0.1]])
     x, n, k = np.array([-1.0, 1.0]), np.array([4.0, 4.0]), np.array([[1.0, 3.0]])
-    refit(x, n, k, np.array([0.0, 0.0, 0.02]), bounds, 1 / 3, True, compiled=True)
+    try:
+        refit(x, n, k, np.array([0.0, 0.0, 0.02]), bounds, 1 / 3, True, compiled=True)
+    except Exception:  # numba cannot compile here (versions, platform): numpy's route, the same
+        return False
     return True
 
 
