@@ -81,7 +81,7 @@ def test_the_compiled_likelihood_is_nlls_bit_for_bit():
         )
         rows = rng.permutation(50)[:30]
         want = nll(xr[rows], nr[rows], k[rows], th[:30], 1 / 3)
-        got = pf_likelihood._nll_rows(LOOPS, xr, nr, k, rows, th[:30], 1 / 3)
+        got = pf_likelihood._nll_rows(LOOPS, (xr, nr, k), rows, th[:30], 1 / 3)
         np.testing.assert_array_equal(_bits(got), _bits(want))
 
 
@@ -107,7 +107,7 @@ def test_the_compiled_score_and_information_are_einsums_bit_for_bit():
         )
         rows = np.arange(0, 200, 3)
         want = pf_likelihood._scoring(xr[rows], nr[rows], k[rows], th[rows], 1 / 3, n_par)
-        got = pf_likelihood._scoring_rows(LOOPS, xr, nr, k, rows, th[rows], 1 / 3, n_par)
+        got = pf_likelihood._scoring_rows(LOOPS, (xr, nr, k), rows, th[rows], 1 / 3, n_par)
         for w, g in zip(want, got, strict=True):
             np.testing.assert_array_equal(_bits(g), _bits(w))
 

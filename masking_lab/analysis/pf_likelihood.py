@@ -90,8 +90,8 @@ def set_nll(
     loops = _loops() if compiled else None
     if loops is None:
         return nll(x, n, k[None, :], th, guess)
-    one = [np.ascontiguousarray(a, dtype=np.float64)[None, :] for a in (x, n, k)]
-    return _nll_rows(loops, *one, np.zeros(th.shape[0], dtype=np.intp), th, guess)
+    x1, n1, k1 = (np.ascontiguousarray(a, dtype=np.float64)[None, :] for a in (x, n, k))
+    return _nll_rows(loops, (x1, n1, k1), np.zeros(th.shape[0], dtype=np.intp), th, guess)
 
 
 def refit(
@@ -139,7 +139,7 @@ def refit(
     if loops is None:
         cur = nll(xr, nr, k, theta, guess)
     else:
-        cur = _nll_rows(loops, xr, nr, k, np.arange(b), theta, guess)
+        cur = _nll_rows(loops, (xr, nr, k), np.arange(b), theta, guess)
     active = np.ones(b, dtype=bool)
     for _ in range(_ITERATIONS):
         idx = np.flatnonzero(active)
@@ -150,7 +150,7 @@ def refit(
         if loops is None:
             score, info = _scoring(xr[idx], nr[idx], k[idx], th, guess, n_par)
         else:
-            score, info = _scoring_rows(loops, xr, nr, k, idx, th, guess, n_par)
+            score, info = _scoring_rows(loops, (xr, nr, k), idx, th, guess, n_par)
         info += 1e-9 * np.eye(n_par)
         # A parameter on a bound with the score pushing outwards is held there (active set)
         # and the others step alone: clipping the joint step would stall the climb.
@@ -174,7 +174,7 @@ def refit(
                 rows = idx[pending]
                 cv = nll(xr[rows], nr[rows], k[rows], cand, guess)
             else:
-                cv = _nll_rows(loops, xr, nr, k, idx[pending], cand, guess)
+                cv = _nll_rows(loops, (xr, nr, k), idx[pending], cand, guess)
             ok = cv <= was[pending] + 1e-12
             new[pending[ok]] = cand[ok]
             val[pending[ok]] = cv[ok]
@@ -206,18 +206,22 @@ def _scoring(
     return score, np.einsum("bl,blp,blq->bpq", n / v, g, g)
 
 
+_Counts = tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]
+"""Levels x (dB), trials n and correct answers k of every data set: C-contiguous (B, L) rows."""
+
+
 def _scoring_rows(
     loops: ModuleType,
-    x: NDArray,
-    n: NDArray,
-    k: NDArray,
+    counts: _Counts,
     rows: NDArray[np.intp],
     th: NDArray,
     guess: float,
     n_par: int,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """:func:`_scoring` of ``rows`` by the compiled loops: numpy's ``exp`` and ``tanh`` on
-    arrays shaped as there, the arithmetic between them fused (the same numbers)."""
+    """:func:`_scoring` of the data sets ``rows`` of ``counts`` by the compiled loops: numpy's
+    ``exp`` and ``tanh`` on arrays shaped as there, the arithmetic between them fused (the
+    same numbers)."""
+    x, n, k = counts
     s = np.exp(th[:, 1:2])
     z = np.empty((rows.size, x.shape[1]))
     t = np.empty_like(z)
@@ -232,15 +236,11 @@ def _scoring_rows(
 
 
 def _nll_rows(
-    loops: ModuleType,
-    x: NDArray,
-    n: NDArray,
-    k: NDArray,
-    rows: NDArray[np.intp],
-    th: NDArray,
-    guess: float,
+    loops: ModuleType, counts: _Counts, rows: NDArray[np.intp], th: NDArray, guess: float
 ) -> NDArray[np.float64]:
-    """:func:`nll` of ``rows`` (parameters ``th``, one row each) by the compiled loops."""
+    """:func:`nll` of the data sets ``rows`` of ``counts`` (parameters ``th``, one row each)
+    by the compiled loops."""
+    x, n, k = counts
     e = np.exp(-th[:, 1:2])
     t = np.empty((rows.size, x.shape[1]))
     loops.half_z(x, rows, th[:, 0].copy(), e[:, 0].copy(), t)
