@@ -83,4 +83,5 @@ def test_a_sum_of_negative_zeros_is_positive_as_numpys():
     """numpy adds the pairwise sum to the reduction's identity 0.0: -0.0 + 0.0 = +0.0."""
     for n in range(1, 300):
         a = np.full(n, -0.0)
-        assert np.signbit(LOOPS.pairwise_sum(a)) == np.signbit(a.sum()) == False  # noqa: E712
+        assert not np.signbit(a.sum())
+        assert not np.signbit(LOOPS.pairwise_sum(a))
