@@ -112,6 +112,50 @@ def test_the_compiled_score_and_information_are_einsums_bit_for_bit():
             np.testing.assert_array_equal(_bits(g), _bits(w))
 
 
+def test_the_step_bookkeeping_is_numpys_bit_for_bit():
+    """The candidates (clip), their acceptance and the active set, on ties made on purpose:
+    values on the bounds, zero scores of both signs, likelihoods exactly 1e-12 above."""
+    rng = np.random.default_rng(12)
+    m = 4000
+    lo = np.tile([-5.0, -2.3, 0.0], (m, 1))
+    hi = np.tile([5.0, 3.0, 0.1], (m, 1))
+    th = np.where(rng.random((m, 3)) < 0.3, lo, np.where(rng.random((m, 3)) < 0.3, hi, 0.0))
+    th += np.where(th == 0.0, rng.uniform(-1, 1, (m, 3)) * [5, 2, 0.05], 0.0)
+    th[rng.random(m) < 0.1, 2] = -0.0  # a lapse of -0.0 stepping by -0.0 sits on 0.0 as +0.0
+    step = rng.choice([-1.0, -0.0, 0.0, 1.0, 1e-3, -0.05], (m, 3))
+    scale = rng.choice([1.0, 0.5, 0.25], m)
+    pending = np.sort(rng.choice(m, m // 2, replace=False))
+    want = np.clip(th[pending] + scale[pending, None] * step[pending], lo[pending], hi[pending])
+    got = np.empty_like(want)
+    LOOPS.candidates(th, scale, step, lo, hi, pending, got)
+    np.testing.assert_array_equal(_bits(got), _bits(want))
+
+    was = rng.uniform(0, 10, m)
+    cv = np.where(rng.random(pending.size) < 0.5, was[pending] + 1e-12, was[pending] + 2e-12)
+    new, val, sc = th.copy(), was.copy(), scale.copy()
+    left = LOOPS.accept(got, cv, was, pending, new, val, sc)
+    ok = cv <= was[pending] + 1e-12
+    new_np, val_np, sc_np = th.copy(), was.copy(), scale.copy()
+    new_np[pending[ok]], val_np[pending[ok]] = got[ok], cv[ok]
+    sc_np[pending[~ok]] /= 2
+    assert left.tolist() == pending[~ok].tolist() and 0 < ok.sum() < ok.size
+    for a, b in ((new, new_np), (val, val_np), (sc, sc_np)):
+        np.testing.assert_array_equal(_bits(a), _bits(b))
+
+    for n_par in (2, 3):
+        score = rng.choice([-1.0, -0.0, 0.0, 1.0], (m, n_par))
+        info = rng.normal(0, 1, (m, n_par, n_par))
+        info[rng.random((m, n_par, n_par)) < 0.2] = -0.0
+        on, l2, h2 = th[:, :n_par], lo[:, :n_par], hi[:, :n_par]
+        held = ((on <= l2) & (score < 0)) | ((on >= h2) & (score > 0))
+        free = (~held).astype(float)
+        info_np = info * free[:, :, None] * free[:, None, :] + held[:, :, None] * np.eye(n_par)
+        s2, i2 = score.copy(), info.copy()
+        assert LOOPS.hold(th, lo, hi, s2, i2, n_par) == bool(held.any())
+        np.testing.assert_array_equal(_bits(i2), _bits(info_np))
+        np.testing.assert_array_equal(_bits(s2), _bits(score * free))
+
+
 def _jobs() -> list[PFJob]:
     rng = np.random.default_rng(21)
     jobs = []

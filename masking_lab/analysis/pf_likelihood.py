@@ -154,34 +154,20 @@ def refit(
         info += 1e-9 * np.eye(n_par)
         # A parameter on a bound with the score pushing outwards is held there (active set)
         # and the others step alone: clipping the joint step would stall the climb.
-        on = th[:, :n_par]
-        held = ((on <= lo[:, :n_par]) & (score < 0)) | ((on >= hi[:, :n_par]) & (score > 0))
-        if held.any():
-            free = (~held).astype(float)
-            info = info * free[:, :, None] * free[:, None, :] + held[:, :, None] * np.eye(n_par)
-            score = score * free
+        if loops is None:
+            on = th[:, :n_par]
+            held = ((on <= lo[:, :n_par]) & (score < 0)) | ((on >= hi[:, :n_par]) & (score > 0))
+            if held.any():
+                free = (~held).astype(float)
+                info = info * free[:, :, None] * free[:, None, :] + held[:, :, None] * np.eye(n_par)
+                score = score * free
+        else:
+            loops.hold(th, np.ascontiguousarray(lo), np.ascontiguousarray(hi), score, info, n_par)
         step = np.zeros_like(th)
         step[:, :n_par] = np.linalg.solve(info, score[..., None])[..., 0]
         # Halve the step of the rows whose likelihood fell, and only theirs.
-        scale = np.ones(idx.size)
-        new, val, was = th.copy(), cur[idx], cur[idx]
-        pending = np.arange(idx.size)
-        for _half in range(10):
-            cand = np.clip(
-                th[pending] + scale[pending, None] * step[pending], lo[pending], hi[pending]
-            )
-            if loops is None:
-                rows = idx[pending]
-                cv = nll(xr[rows], nr[rows], k[rows], cand, guess)
-            else:
-                cv = _nll_rows(loops, (xr, nr, k), idx[pending], cand, guess)
-            ok = cv <= was[pending] + 1e-12
-            new[pending[ok]] = cand[ok]
-            val[pending[ok]] = cv[ok]
-            pending = pending[~ok]
-            if pending.size == 0:
-                break
-            scale[pending] /= 2
+        was = cur[idx]
+        new, val = _halved(loops, (xr, nr, k), idx, th, step, (lo, hi), was, guess)
         gain = was - val
         theta[idx], cur[idx] = new, val
         active[idx] = gain > 1e-6  # log-likelihood units: far below any difference that matters
@@ -233,6 +219,47 @@ def _scoring_rows(
     amp_, s_ = amp[:, 0].copy(), s[:, 0].copy()
     loops.scoring_terms(z, t, k, n, rows, amp_, s_, guess, n_par, score, info)
     return score, info
+
+
+def _halved(
+    loops: ModuleType | None,
+    counts: _Counts,
+    idx: NDArray[np.intp],
+    th: NDArray,
+    step: NDArray,
+    bounds: tuple[NDArray, NDArray],
+    was: NDArray,
+    guess: float,
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The climbing rows' (``idx``) next parameters and likelihoods: each row's step within
+    its ``bounds`` (low, high), halved up to ten times while its likelihood falls below
+    ``was``; on numpy's route or, the same numbers, the compiled loops' (the candidates and
+    their acceptance fused, the likelihood by :func:`_nll_rows`)."""
+    scale = np.ones(idx.size)
+    new, val = th.copy(), was.copy()
+    lo, hi = (np.ascontiguousarray(b) for b in bounds)
+    pending = np.arange(idx.size)
+    for _half in range(10):
+        if loops is None:
+            cand = np.clip(
+                th[pending] + scale[pending, None] * step[pending], lo[pending], hi[pending]
+            )
+            rows = idx[pending]
+            x, n, k = counts
+            cv = nll(x[rows], n[rows], k[rows], cand, guess)
+            ok = cv <= was[pending] + 1e-12
+            new[pending[ok]] = cand[ok]
+            val[pending[ok]] = cv[ok]
+            pending = pending[~ok]
+            scale[pending] /= 2
+        else:
+            cand = np.empty((pending.size, th.shape[1]))
+            loops.candidates(th, scale, step, lo, hi, pending, cand)
+            cv = _nll_rows(loops, counts, idx[pending], cand, guess)
+            pending = loops.accept(cand, cv, was, pending, new, val, scale)
+        if pending.size == 0:
+            break
+    return new, val
 
 
 def _nll_rows(

@@ -15,6 +15,7 @@ file's cache only once this file is touched too.
 from __future__ import annotations
 
 import numba
+import numpy as np
 
 from masking_lab.procedures.update_loops import pairwise_sum
 
@@ -131,3 +132,70 @@ def scoring_terms(z, t, k, n, rows, amp, scale, guess, n_par, score, info):
             score[i, 2] = s2
             info[i, 0, 2], info[i, 1, 2] = i02, i12
             info[i, 2, 0], info[i, 2, 1], info[i, 2, 2] = i20, i21, i22
+
+
+@numba.njit(cache=True, nogil=True)
+def candidates(th, scale, step, lo, hi, pending, cand):
+    """``cand[i]`` = clip(th[p] + scale[p]·step[p], lo[p], hi[p]) for p = ``pending[i]``: a
+    halved step's parameters as ``np.clip`` makes them (NaN kept; a value not above ``lo``
+    becomes ``lo`` and one not below ``hi`` becomes ``hi``, which decides the sign of a zero
+    as numpy's clip does)."""
+    for i in range(pending.size):
+        p = pending[i]
+        s = scale[p]
+        for c in range(th.shape[1]):
+            v = th[p, c] + s * step[p, c]
+            if v == v:
+                if not v > lo[p, c]:
+                    v = lo[p, c]
+                if not v < hi[p, c]:
+                    v = hi[p, c]
+            cand[i, c] = v
+
+
+@numba.njit(cache=True, nogil=True)
+def accept(cand, cv, was, pending, new, val, scale):
+    """Keep each pending row's candidate whose likelihood did not fall (``cv`` ≤ ``was`` +
+    1e-12, in ``new`` and ``val``); returns the rows still pending, their ``scale`` halved."""
+    left = np.empty(pending.size, dtype=pending.dtype)
+    n_left = 0
+    for i in range(pending.size):
+        p = pending[i]
+        if cv[i] <= was[p] + 1e-12:
+            for c in range(cand.shape[1]):
+                new[p, c] = cand[i, c]
+            val[p] = cv[i]
+        else:
+            left[n_left] = p
+            n_left += 1
+            scale[p] /= 2
+    return left[:n_left]
+
+
+@numba.njit(cache=True, nogil=True)
+def hold(th, lo, hi, score, info, n_par):
+    """The active set, in place: a parameter on a bound with the score pushing outwards is
+    held (its score 0, its row and column of ``info`` those of the identity), as the numpy
+    route does it: ``info·f_a·f_b + h_a·I_ab`` and ``score·f`` (f = 1 − h) for every row once
+    any row holds one (so that a −0.0 becomes +0.0 as there). Returns whether any did."""
+    n_r = th.shape[0]
+    held = np.zeros((n_r, n_par), dtype=np.bool_)
+    anyheld = False
+    for i in range(n_r):
+        for a in range(n_par):
+            s = score[i, a]
+            h = (th[i, a] <= lo[i, a] and s < 0) or (th[i, a] >= hi[i, a] and s > 0)
+            held[i, a] = h
+            anyheld |= h
+    if not anyheld:
+        return False
+    for i in range(n_r):
+        for a in range(n_par):
+            fa = 0.0 if held[i, a] else 1.0
+            ha = 1.0 if held[i, a] else 0.0
+            for b in range(n_par):
+                fb = 0.0 if held[i, b] else 1.0
+                eye = 1.0 if a == b else 0.0
+                info[i, a, b] = info[i, a, b] * fa * fb + ha * eye
+            score[i, a] = score[i, a] * fa
+    return True
