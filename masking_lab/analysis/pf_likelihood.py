@@ -6,7 +6,7 @@ negative log-likelihood of binomial counts at the levels; :func:`refit` maximise
 scoring within bounds, every operation per row, so the rows of many sets' data sets (profile
 starts, bootstrap samples) climb together and each row's fit is what it would be alone.
 A study's climbs can run compiled (:mod:`masking_lab.analysis.pf_loops`: numpy's numbers bit for
-bit in ~40 % less time).
+bit in about half the time).
 """
 
 from __future__ import annotations

@@ -4,10 +4,12 @@ Imported only through :func:`masking_lab.procedures.fused.compiled_loops`; the n
 :func:`~masking_lab.analysis.pf_likelihood.refit` is the reference and these loops give its
 numbers bit for bit, so ``psychometric.csv`` keeps its bytes whichever route made it. They fuse
 the arithmetic between numpy's transcendental functions (``exp``, ``tanh``, ``log``,
-``log1p`` stay numpy's: numba's are other implementations, rounded differently), one pass over
-the rows instead of one per operation: the same IEEE operations in the same order (numba
-compiles without fast-math, so no multiply-add is contracted), and the score and information
-summed over the levels in ``np.einsum``'s order, 0, 1, … (tests/test_pf_loops.py). numba
+``log1p`` stay numpy's: numba's are other implementations, rounded differently) and its
+batched ``linalg.solve`` (LAPACK's rounding), one pass over the rows instead of one per
+operation: the same IEEE operations in the same order (numba compiles without fast-math, so
+no multiply-add is contracted), the score and information summed over the levels in
+``np.einsum``'s order, 0, 1, …, and the steps' clipping and active set with numpy's signs of
+zero (tests/test_pf_loops.py). numba
 caches each loop by its own file: a change to ``update_loops.pairwise_sum`` alone reaches this
 file's cache only once this file is touched too.
 """
