@@ -143,6 +143,38 @@ def test_a_with_block_that_fails_does_not_wait_for_the_rest_of_its_tasks(tmp_pat
     assert not list(tmp_path.glob("queued*"))
 
 
+_CHUNK_FILES: dict[str, Path] = {}
+
+
+def _slow_or_failing_chunk(chunk, then=None, compiled=False):
+    """pf_table._fit_chunk's stand-in: a worker's chunk marks itself and sleeps (leaving
+    ``finished`` if it ever ends); this process's chunk fails once the worker's has begun."""
+    if os.getpid() != _HERE:
+        _CHUNK_FILES["running"].write_text(str(os.getpid()))
+        time.sleep(120)
+        _CHUNK_FILES["finished"].write_text("ran to the end")
+        return []
+    _wait_for(_CHUNK_FILES["running"].exists, "the worker's chunk to start")
+    raise ValueError("this process's chunk failed")
+
+
+def test_failing_psychometric_fits_do_not_wait_for_the_workers_chunks(tmp_path, monkeypatch):
+    # fit_all_with had a shutdown of its own that waited for the running chunks (seconds
+    # each at 1,000 sessions) before the pool's block interrupted them.
+    from masking_lab.analysis import pf_table
+    from masking_lab.analysis.pf_table import SetTrials, fit_all_with, pf_job
+
+    _CHUNK_FILES.update(running=tmp_path / "running", finished=tmp_path / "finished")
+    monkeypatch.setattr(pf_table, "_fit_chunk", _slow_or_failing_chunk)
+    trials = SetTrials({"level_unit": "db_sl"}, [0.0, 2.0, 4.0] * 10, [False, True, True] * 10)
+    jobs = [pf_job(trials, seed, 0) for seed in range(4)]  # two chunks: the worker's and ours
+    with pytest.raises(ValueError, match="chunk failed"):
+        fit_all_with(jobs, None, workers=2)
+    pid = int(_CHUNK_FILES["running"].read_text())
+    assert not alive(pid)  # interrupted and joined, not left sleeping
+    assert not _CHUNK_FILES["finished"].exists()
+
+
 def test_interruptible_in_this_process_restores_its_handler():
     before = signal.getsignal(signal.SIGINT)
     assert interruptible(divmod, 7, 2) == (3, 1)

@@ -302,36 +302,33 @@ def fit_all_with(
     # The pool takes chunks from the front, two per worker in hand (one running, one queued);
     # this process takes them from the back, topping the pool up after each, and always keeps
     # one for itself (the demo's two chunks went both to the pool: its fits ran on one core).
-    # Nothing is ever cancelled: Python 3.11's pool, once broken, fails on a cancelled future
-    # in its own thread.
+    # Short of an error nothing is cancelled: Python 3.11's pool, once broken, fails on a
+    # cancelled future in its own thread.
     futures: dict[int, Future[list[tuple[PFFit, T | None]]]] = {}
     front, back, broken = 0, len(chunks), False
+    # on an error the pool's block interrupts the chunks still running (worker_pool)
     with worker_pool(pool_size) as pool:
-        try:
-            while front < back:
-                in_hand = sum(not f.done() for f in futures.values())
-                while front < back - 1 and not broken and in_hand < 2 * pool_size:
-                    try:
-                        futures[front] = pool.submit(_fit_chunk, chunks[front], then, compiled)
-                    except BrokenProcessPool:
-                        broken = True
-                        break
-                    front, in_hand = front + 1, in_hand + 1
-                if front < back:
-                    back -= 1
-                    results[back] = _fit_chunk(chunks[back], then, compiled)
-                    done += len(chunks[back])
-                    if progress:
-                        progress(done, n)
-            for i, fut in sorted(futures.items()):
-                # a worker that died (killed for memory, say) leaves its chunks to this process
-                results[i] = result_or_here(fut, _fit_chunk, chunks[i], then, compiled)
-                done += len(chunks[i])
+        while front < back:
+            in_hand = sum(not f.done() for f in futures.values())
+            while front < back - 1 and not broken and in_hand < 2 * pool_size:
+                try:
+                    futures[front] = pool.submit(_fit_chunk, chunks[front], then, compiled)
+                except BrokenProcessPool:
+                    broken = True
+                    break
+                front, in_hand = front + 1, in_hand + 1
+            if front < back:
+                back -= 1
+                results[back] = _fit_chunk(chunks[back], then, compiled)
+                done += len(chunks[back])
                 if progress:
                     progress(done, n)
-        except BaseException:
-            pool.shutdown(wait=True, cancel_futures=True)
-            raise
+        for i, fut in sorted(futures.items()):
+            # a worker that died (killed for memory, say) leaves its chunks to this process
+            results[i] = result_or_here(fut, _fit_chunk, chunks[i], then, compiled)
+            done += len(chunks[i])
+            if progress:
+                progress(done, n)
     for part in results:
         assert part is not None
         made += part
