@@ -20,13 +20,12 @@ import statistics
 import sys
 import tempfile
 import time
-import zlib
 from pathlib import Path
 
 from threadpoolctl import threadpool_limits
 
 from masking_lab.analysis.pf_likelihood import warm_compiled
-from masking_lab.analysis.pf_table import pf_job, set_trials
+from masking_lab.analysis.pf_table import pf_job, pf_seed, set_trials
 from masking_lab.analysis.psychometric import PFJob, fit_pf_many
 from masking_lab.formats.session_log import read_log
 from masking_lab.simulation.synthetic_logs import simulate_study
@@ -43,8 +42,7 @@ def study_jobs(participants: int, n_boot: int, seed: int) -> list[PFJob]:
             who = log.header.get("participant")
             experiment = log.header.get("protocol", {}).get("experiment")
             for set_id, st in set_trials(log).items():
-                key = zlib.crc32(f"{who}|{experiment}|{set_id}|{rel}".encode())
-                jobs.append(pf_job(st, key, n_boot))
+                jobs.append(pf_job(st, pf_seed(who, experiment, set_id, rel), n_boot))
     return jobs
 
 

@@ -25,7 +25,6 @@ It returns the :class:`~masking_lab.analysis.report_lab.LabSection` the reports 
 from __future__ import annotations
 
 import json
-import zlib
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -43,6 +42,7 @@ from masking_lab.analysis.pf_table import (
     fit_all_with,
     pf_job,
     pf_row,
+    pf_seed,
 )
 from masking_lab.analysis.psychometric import PFFit, PFJob
 from masking_lab.analysis.report_lab import LabSection, PFPlot, PFRow, pf_plot
@@ -224,7 +224,7 @@ def write_lab_outputs(
                 "session_id": r.session_id,
                 "log": r.log,
             }
-            seed = zlib.crc32(f"{r.participant}|{r.experiment}|{r.set_id}|{r.log}".encode())
+            seed = pf_seed(r.participant, r.experiment, r.set_id, str(r.log))
             wanted.append((base, st, seed))
     # Every fit at once (batched, in parallel for many sets): the same numbers as one by one.
     # Each set's report plot is made where its fit was (at 1,000 sessions 11,000 plots, ~4 s

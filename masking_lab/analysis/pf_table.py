@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import functools
 import os
+import zlib
 from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import Future
 from concurrent.futures.process import BrokenProcessPool
@@ -35,6 +36,7 @@ __all__ = [
     "fit_all_with",
     "pf_job",
     "pf_row",
+    "pf_seed",
     "set_trials",
 ]
 
@@ -143,6 +145,19 @@ def _model(start: Mapping[str, Any]) -> tuple[str, float, float]:
     except (TypeError, ValueError, ArithmeticError):
         p = 0.5 ** (1 / 3)
     return "staircase", GUESS_3IFC, p
+
+
+def pf_seed(participant: Any, experiment: Any, set_id: Any, log: str) -> int:
+    """The bootstrap seed of a set's psychometric function: the same set of the same log, the
+    same draws, whichever run, batch or process fits it.
+
+    Examples
+    --------
+    >>> pf_seed("P1", "experiment1", "MV120_10", "P1/a.jsonl") == pf_seed(
+    ...     "P1", "experiment1", "MV120_10", "P1/a.jsonl")
+    True
+    """
+    return zlib.crc32(f"{participant}|{experiment}|{set_id}|{log}".encode())
 
 
 def pf_job(st: SetTrials, seed: int, n_boot: int = PF_BOOTSTRAP) -> PFJob:
