@@ -146,7 +146,7 @@ def refit(
         if idx.size == 0:
             break
         th = theta[idx]
-        lo, hi = lo_all[idx], hi_all[idx]
+        lo, hi = lo_all[idx], hi_all[idx]  # fresh C-ordered copies, as the compiled loops read them
         if loops is None:
             score, info = _scoring(xr[idx], nr[idx], k[idx], th, guess, n_par)
         else:
@@ -162,7 +162,7 @@ def refit(
                 info = info * free[:, :, None] * free[:, None, :] + held[:, :, None] * np.eye(n_par)
                 score = score * free
         else:
-            loops.hold(th, np.ascontiguousarray(lo), np.ascontiguousarray(hi), score, info, n_par)
+            loops.hold(th, lo, hi, score, info, n_par)
         step = np.zeros_like(th)
         step[:, :n_par] = np.linalg.solve(info, score[..., None])[..., 0]
         # Halve the step of the rows whose likelihood fell, and only theirs.
@@ -237,7 +237,7 @@ def _halved(
     their acceptance fused, the likelihood by :func:`_nll_rows`)."""
     scale = np.ones(idx.size)
     new, val = th.copy(), was.copy()
-    lo, hi = (np.ascontiguousarray(b) for b in bounds)
+    lo, hi = bounds
     pending = np.arange(idx.size)
     for _half in range(10):
         if loops is None:
