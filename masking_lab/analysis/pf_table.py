@@ -46,9 +46,10 @@ PF_BOOTSTRAP = 200  # parametric-bootstrap data sets per psychometric function
 PF_PARALLEL_FROM = 256  # fewer sets than this are fitted in-process (workers cost ~0.3 s)
 _PF_CHUNK = 128  # sets per worker task: batches large enough for numpy, small for progress
 # Bootstrap data sets from which a run's climbs run compiled (pf_likelihood.warm_compiled):
-# loading numba costs ~0.4 s and ~110 MB a process, a compiled fit saves ~15 µs a data set.
-# The demo's 68,000 stay below; 1,000 sessions' 2.26 million take about half the time.
-PF_COMPILED_FROM = 200_000
+# loading numba costs ~0.4 s and ~110 MB a process (and the first run after an install ~3.5 s
+# more, compiling into numba's cache). Measured with analyze (trial tables, 2 cores): at 100
+# sessions (225,000) no faster, at 300 (678,000) 4-12 % faster, at 1,000 (2.26 million) 32 %.
+PF_COMPILED_FROM = 500_000
 PF_COLUMNS = [
     "participant",
     "experiment",
