@@ -397,6 +397,53 @@ def test_ctrl_c_interrupts_and_restores_the_terminal():
         os.close(master)
 
 
+LATE_SIGINT_CHILD = textwrap.dedent(
+    """
+    import os, signal, sys, threading
+    from masking_lab.responders.keys import KeyReader
+
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    participant, rig = os.openpty()
+    keys = KeyReader(rig, rig)
+    main = threading.get_native_id()
+
+    def in_select():
+        with open(f"/proc/self/task/{main}/wchan") as wchan:
+            return wchan.read().startswith("poll_schedule")
+
+    def late_ctrl_c():
+        # SIGINT is blocked on the waiting thread, so the kernel hands it to this one: Python's
+        # C handler notes it, but the wait is not interrupted, as when a Ctrl-C lands just
+        # before the wait begins. Sent only once the reader sits in its wait.
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})  # inherited blocked
+        while not in_select():
+            pass
+        os.kill(os.getpid(), signal.SIGINT)
+        if not done.wait(10):  # a reader that never noticed: end its wait with a key instead
+            typed.set()
+            os.write(participant, b"1")
+
+    done, typed = threading.Event(), threading.Event()
+    signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    threading.Thread(target=late_ctrl_c, daemon=True).start()
+    try:
+        with keys.keypad():
+            key = keys.read_key(frozenset("123"))
+    except KeyboardInterrupt:
+        done.set()
+        sys.exit(3 if typed.is_set() else 130)  # 3: noticed only once a key ended the wait
+    print("ANSWERED", key, flush=True)
+    """
+)
+
+
+def test_ctrl_c_that_interrupts_no_wait_still_ends_the_wait_for_a_key():
+    child = subprocess.run(
+        [sys.executable, "-c", LATE_SIGINT_CHILD], capture_output=True, timeout=60
+    )
+    assert child.returncode == 130, (child.stdout, child.stderr)
+
+
 def test_answer_in_a_child_process_on_its_controlling_terminal():
     pid, master = pty.fork()
     if pid == 0:

@@ -29,6 +29,14 @@ INTERRUPT = "\x03"
 ESCAPE_WAIT_S = 0.05
 """How long an unfinished escape sequence waits for its next byte before it counts as Esc, s."""
 
+SIGNAL_CHECK_S = 0.2
+"""Longest single wait for a key, s: Python runs its SIGINT handler only between waits.
+
+A Ctrl-C that lands just before the wait begins (or on another thread) interrupts no system
+call; an unbounded wait would then sit on it until the next key. Waking this often makes such a
+Ctrl-C take effect within this time instead.
+"""
+
 _ESC = 0x1B
 
 
@@ -236,7 +244,8 @@ class KeyReader:
 
         Returns the key, or None when the deadline passes first; every other key is ignored.
         Keys typed after it in the same read wait for the next call (two answers typed fast
-        are two answers). Ctrl-C (arriving as a byte) raises KeyboardInterrupt.
+        are two answers). Ctrl-C (arriving as a byte) raises KeyboardInterrupt; as SIGINT, it
+        takes effect within :data:`SIGNAL_CHECK_S` even when it lands just before a wait.
         """
         pending = b""
         while True:
@@ -249,10 +258,11 @@ class KeyReader:
             left = None if deadline is None else deadline - self.now()
             if left is not None and left <= 0:
                 return None
-            wait = left if not pending else min(ESCAPE_WAIT_S, left or ESCAPE_WAIT_S)
+            most = ESCAPE_WAIT_S if pending else SIGNAL_CHECK_S
+            wait = most if left is None else min(most, left)
             ready, _, _ = select.select([self.in_fd], [], [], wait)
             if not ready:
-                pending = b""  # a lone Esc: nothing followed it
+                pending = b""  # a lone Esc: nothing followed it (no-op when nothing is pending)
                 continue
             try:
                 data = os.read(self.in_fd, 64)
