@@ -54,8 +54,11 @@ def test_the_compiled_loops_run_in_the_test_environment():
     assert compiled_loops("psi_loops") is not None
 
 
+@pytest.mark.parametrize("per_pass", [None, 7])  # 7: 24 tracks in passes of sorted tracks
 @pytest.mark.parametrize("name", GRIDS)
-def test_every_placement_of_simulated_tracks_is_the_float64_argmin(name):
+def test_every_placement_of_simulated_tracks_is_the_float64_argmin(name, per_pass, monkeypatch):
+    if per_pass is not None:
+        monkeypatch.setattr(psi_screen, "_TRACKS_PER_PASS", per_pass)
     s = GRIDS[name]
     t = tables(s)
     for k, post in enumerate(_tracks(s, 24, 80, seed=len(name))):
