@@ -399,7 +399,7 @@ def test_ctrl_c_interrupts_and_restores_the_terminal():
 
 LATE_SIGINT_CHILD = textwrap.dedent(
     """
-    import os, signal, sys, threading
+    import os, signal, sys, threading, time
     from masking_lab.responders.keys import KeyReader
 
     signal.signal(signal.SIGINT, signal.default_int_handler)
@@ -411,13 +411,17 @@ LATE_SIGINT_CHILD = textwrap.dedent(
         with open(f"/proc/self/task/{main}/wchan") as wchan:
             return wchan.read().startswith("poll_schedule")
 
+    def reader_waiting():  # a kernel that hides wait channels: the signal goes after 5 s
+        seen_from = time.monotonic()
+        while not in_select() and time.monotonic() - seen_from < 5:
+            time.sleep(0.001)
+
     def late_ctrl_c():
         # SIGINT is blocked on the waiting thread, so the kernel hands it to this one: Python's
         # C handler notes it, but the wait is not interrupted, as when a Ctrl-C lands just
         # before the wait begins. Sent only once the reader sits in its wait.
         signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})  # inherited blocked
-        while not in_select():
-            pass
+        reader_waiting()
         os.kill(os.getpid(), signal.SIGINT)
         if not done.wait(10):  # a reader that never noticed: end its wait with a key instead
             typed.set()
