@@ -208,16 +208,15 @@ def _scoring_rows(
     ``exp`` and ``tanh`` on arrays shaped as there, the arithmetic between them fused (the
     same numbers)."""
     x, n, k = counts
-    s = np.exp(th[:, 1:2])
+    s = np.exp(th[:, 1])  # a fresh C-ordered row of scales, as the loops read it
     z = np.empty((rows.size, x.shape[1]))
     t = np.empty_like(z)
-    loops.z_and_half(x, rows, th[:, 0].copy(), s[:, 0].copy(), z, t)
+    loops.z_and_half(x, rows, th[:, 0].copy(), s, z, t)
     np.tanh(t, out=t)
-    amp = 1.0 - guess - th[:, 2:3]
+    amp = 1.0 - guess - th[:, 2]
     score = np.empty((rows.size, n_par))
     info = np.empty((rows.size, n_par, n_par))
-    amp_, s_ = amp[:, 0].copy(), s[:, 0].copy()
-    loops.scoring_terms(z, t, k, n, rows, amp_, s_, guess, n_par, score, info)
+    loops.scoring_terms(z, t, k, n, rows, amp, s, guess, n_par, score, info)
     return score, info
 
 
@@ -238,6 +237,7 @@ def _halved(
     scale = np.ones(idx.size)
     new, val = th.copy(), was.copy()
     lo, hi = bounds
+    x, n, k = counts
     pending = np.arange(idx.size)
     for _half in range(10):
         if loops is None:
@@ -245,7 +245,6 @@ def _halved(
                 th[pending] + scale[pending, None] * step[pending], lo[pending], hi[pending]
             )
             rows = idx[pending]
-            x, n, k = counts
             cv = nll(x[rows], n[rows], k[rows], cand, guess)
             ok = cv <= was[pending] + 1e-12
             new[pending[ok]] = cand[ok]
