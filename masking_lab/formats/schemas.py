@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from collections.abc import Callable, Mapping
 from functools import cache
 from typing import Any
@@ -65,9 +66,111 @@ def schema_errors(instance: Any, name: str) -> list[jsonschema.ValidationError]:
     >>> [e.validator for e in schema_errors(cal, "calibration")]
     ['type']
     """
+    checked = _records_checked(instance, _record_arrays(name))
     return sorted(
-        _validator(name).iter_errors(instance), key=lambda e: [str(p) for p in e.absolute_path]
+        _validator(name).iter_errors(checked), key=lambda e: [str(p) for p in e.absolute_path]
     )
+
+
+# Schema keywords whose meaning a record array's check below fully covers (annotations aside);
+# any other keyword (a format, a bound, a branch, a reference) leaves the array to jsonschema.
+_NOTES = frozenset({"description", "title", "$comment", "examples"})
+_OBJECT_KEYS = _NOTES | {"type", "properties", "required", "additionalProperties"}
+_ROOT_KEYS = _OBJECT_KEYS | {"$schema", "$id", "$defs"}
+_ARRAY_KEYS = _NOTES | {"type", "items"}
+_STRING_KEYS = _NOTES | {"type", "pattern"}
+
+RecordCheck = Callable[[Any], bool]
+
+
+@cache
+def _record_arrays(name: str) -> tuple[tuple[tuple[str, ...], RecordCheck], ...]:
+    """Key paths of schema ``name``'s arrays of flat string records (reached through plain
+    objects' ``properties``), each with a check of one item that is true exactly when
+    jsonschema finds nothing wrong with it: a 10,000-log study's ``provenance.inputs`` took
+    jsonschema 0.35 s, ~35 µs per item, and a plain loop takes ~1 µs."""
+    found: list[tuple[tuple[str, ...], RecordCheck]] = []
+
+    def walk(node: Any, path: tuple[str, ...], allowed: frozenset[str]) -> None:
+        if not isinstance(node, dict) or not set(node) <= allowed:
+            return
+        if node.get("type", "object") != "object":
+            return
+        for key, sub in node.get("properties", {}).items():
+            check = _record_check(sub)
+            if check is not None:
+                found.append(((*path, key), check))
+            else:
+                walk(sub, (*path, key), _OBJECT_KEYS)
+
+    walk(load_schema(name), (), _ROOT_KEYS)
+    return tuple(found)
+
+
+def _record_check(array: Any) -> RecordCheck | None:
+    """The item check of an array of objects whose properties are all (patterned) strings, or
+    None for any other schema."""
+    if not isinstance(array, dict) or not set(array) <= _ARRAY_KEYS:
+        return None
+    item = array.get("items")
+    if array.get("type") != "array" or not isinstance(item, dict):
+        return None
+    if not set(item) <= _OBJECT_KEYS or item.get("type") != "object":
+        return None
+    extra_keys = item.get("additionalProperties", True)
+    props = item.get("properties", {})
+    required = item.get("required", [])
+    if (
+        extra_keys not in (True, False)
+        or not isinstance(props, dict)
+        or not isinstance(required, list)
+    ):
+        return None
+    strings: list[tuple[str, Callable[[str], Any] | None]] = []
+    for key, prop in props.items():
+        if not isinstance(prop, dict) or not set(prop) <= _STRING_KEYS:
+            return None
+        if prop.get("type") != "string" or not isinstance(prop.get("pattern", ""), str):
+            return None
+        pattern = prop.get("pattern")
+        strings.append((key, re.compile(pattern).search if pattern is not None else None))
+    known, needed = frozenset(props), frozenset(required)
+
+    def check(record: Any) -> bool:
+        if not isinstance(record, dict) or not needed <= record.keys():
+            return False
+        if not extra_keys and not record.keys() <= known:
+            return False
+        for key, search in strings:
+            if key in record:
+                value = record[key]
+                if not isinstance(value, str) or (search is not None and search(value) is None):
+                    return False
+        return True
+
+    return check
+
+
+def _records_checked(instance: Any, arrays: tuple[tuple[tuple[str, ...], RecordCheck], ...]) -> Any:
+    """``instance`` with each record array whose every item passes its check replaced by an
+    empty list (copies along the way; the caller's document is not changed). jsonschema then
+    reports exactly what it reports of ``instance``: such an array has no error of its own,
+    and its parents' keywords (type, required, closed keys) do not look at its items."""
+    for path, check in arrays:
+        instance = _emptied(instance, path, check)
+    return instance
+
+
+def _emptied(node: Any, path: tuple[str, ...], check: RecordCheck) -> Any:
+    if not isinstance(node, dict) or path[0] not in node:
+        return node
+    value = node[path[0]]
+    if len(path) > 1:
+        inner = _emptied(value, path[1:], check)
+        return node if inner is value else {**node, path[0]: inner}
+    if isinstance(value, list) and value and all(map(check, value)):
+        return {**node, path[0]: []}
+    return node
 
 
 def most_relevant(errors: list[jsonschema.ValidationError]) -> jsonschema.ValidationError:
