@@ -65,3 +65,41 @@ def test_bundle_refuses_an_unsupported_style():
     ax = Figure().add_subplot()
     with pytest.raises(ValueError, match="draws differently"):
         line_bundle.LineBundle(ax, Line2D([], [], linestyle="--"), [(np.zeros((1, 2)), "C0")])
+
+
+def test_the_layout_pass_is_told_apart_from_the_real_draw():
+    # matplotlib's pre-save layout pass swaps the renderer's draw methods for no-ops: the bundle
+    # skips its lines there (they would be walked for nothing) and draws them otherwise.
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    renderer = FigureCanvasAgg(Figure()).get_renderer()
+    assert not line_bundle._drawing_disabled(renderer)
+    with renderer._draw_disabled():
+        assert line_bundle._drawing_disabled(renderer)
+    assert not line_bundle._drawing_disabled(renderer)
+
+
+@pytest.mark.parametrize("n_points", [1, 127, 128, 400])
+def test_short_and_long_lines_draw_as_line2d_draws_them(n_points):
+    # Paths of 128 or more vertices may be simplified by Agg, so the bundle builds them with
+    # Path() as Line2D does; shorter ones skip its checks.
+    from matplotlib.lines import Line2D
+
+    from masking_lab.formats.png_figure import legible, png_bytes
+
+    x = np.linspace(0.0, 30.0, n_points)
+    lines = [(np.column_stack([x, np.sin(x / (k + 1)) * 5 + k]), f"C{k}") for k in range(3)]
+    style = {"marker": "o", "linestyle": "-", "linewidth": 0.9, "markersize": 3.5, "alpha": 0.7}
+
+    def draw(bundled: bool) -> bytes:
+        with legible() as plt:
+            fig, ax = plt.subplots(figsize=(3, 2))
+            if bundled:
+                line_bundle.LineBundle(ax, Line2D([], [], **style), lines)
+            else:
+                for xy, color in lines:
+                    ax.plot(xy[:, 0], xy[:, 1], color=color, **style)
+            return png_bytes(fig)
+
+    assert draw(True) == draw(False)

@@ -4,6 +4,7 @@ The AL-shift figure draws a thin line with markers per participant and panel: at
 sessions about 11,000 of them per figure. As ``Line2D`` artists each costs about 0.6 ms of
 Python (creating it through ``Axes.plot``, then drawing it twice: the constrained-layout pass
 and the real draw), most of the figure's time. :class:`LineBundle` holds the lines as paths
+(drawn in the real draw only: the layout pass draws nothing and a bundle has no extent)
 and makes, in the same order, the same renderer calls that ``Line2D.draw`` makes for each
 (``draw_path`` of the line, then ``draw_markers`` of its markers, with the same graphics-
 context settings, read off a template ``Line2D`` built with the same style), so the PNG bytes
@@ -24,6 +25,7 @@ import matplotlib as mpl
 import numpy as np
 from matplotlib import colors as mcolors
 from matplotlib.artist import Artist, allow_rasterization
+from matplotlib.backend_bases import RendererBase
 from matplotlib.lines import Line2D
 from matplotlib.path import Path
 
@@ -90,11 +92,17 @@ class LineBundle(Artist):
             raise ValueError("LineBundle: a style that Line2D draws differently")
         self._template = template
         alpha = template.get_alpha()
-        self._lines = [
-            (Path(np.asarray(xy, dtype=float)), mcolors.to_rgba(color, alpha))
-            for xy, color in lines
-            if len(xy)
-        ]
+        named: dict[str, tuple[float, float, float, float]] = {}  # "C0".."C9": many lines each
+        short = Path(np.zeros((1, 2)))
+        self._lines: list[tuple[Path, tuple[float, float, float, float]]] = []
+        for xy, color in lines:
+            if not len(xy):
+                continue
+            if isinstance(color, str):
+                rgba = named.get(color) or named.setdefault(color, mcolors.to_rgba(color, alpha))
+            else:
+                rgba = mcolors.to_rgba(color, alpha)
+            self._lines.append((_path(xy, short), rgba))
         self.set_zorder(template.get_zorder())
         ax.add_artist(self)  # axes, figure, transData and the clip to the axes patch
         if self._lines:
@@ -107,7 +115,7 @@ class LineBundle(Artist):
     @allow_rasterization
     def draw(self, renderer: Any) -> None:
         """Each line's path, then its markers, line by line (``Line2D.draw``'s calls)."""
-        if not self.get_visible() or not self._lines:
+        if not self.get_visible() or not self._lines or _drawing_disabled(renderer):
             return
         # Line2D's own attributes, as its draw reads them (the bytes tests pin this version's).
         t: Any = self._template
@@ -137,15 +145,44 @@ class LineBundle(Artist):
         marker_gc.set_capstyle(marker.get_capstyle())
         marker_path = marker.get_path()
         marker_trans = marker.get_transform().scale(renderer.points_to_pixels(t._markersize))
+        # Linear axes: the non-affine part is the identity, so each line's path is both what
+        # Line2D strokes and the points it puts markers on (the same vertices, the same flags).
+        linear = transform.is_affine
         renderer.open_group("line_bundle", self.get_gid())
         for path, rgba in self._lines:
             # the line, then its markers (face and edge: the line's colour and alpha)
             line_gc.set_foreground(rgba, isRGBA=True)
-            renderer.draw_path(line_gc, transform.transform_path_non_affine(path), affine)
+            line = path if linear else transform.transform_path_non_affine(path)
+            renderer.draw_path(line_gc, line, affine)
             marker_gc.set_foreground(rgba, isRGBA=True)
-            points = Path(transform.transform_non_affine(path.vertices))
+            points = path if linear else Path(transform.transform_non_affine(path.vertices))
             renderer.draw_markers(marker_gc, marker_path, marker_trans, points, affine, rgba)
         renderer.close_group("line_bundle")
         line_gc.restore()
         marker_gc.restore()
         self.stale = False
+
+
+# Paths this short are never simplified (Path() decides at 128 vertices).
+_SHORT_MAX = 127
+
+
+def _path(xy: Any, short: Path) -> Path:
+    """``Path(xy)`` for a line's (n, 2) points; a short one without the constructor's checks
+    (a tenth of its time: ~11,000 lines per figure at 10,000 sessions), taking its settings
+    from ``short``, a short path made by Path() under the same rcParams."""
+    verts = np.asarray(xy, dtype=float)
+    if verts.ndim == 2 and verts.shape[1] == 2 and len(verts) <= _SHORT_MAX:
+        return Path._fast_from_codes_and_verts(verts, None, internals_from=short)
+    return Path(verts)
+
+
+def _drawing_disabled(renderer: Any) -> bool:
+    """Whether this is matplotlib's layout pass before a save, whose renderer's draw methods
+    are no-ops (``RendererBase._draw_disabled``): the bundle's ~11,000 lines would be walked
+    for nothing."""
+    own = getattr(renderer, "__dict__", {})
+    return all(
+        getattr(own.get(name), "__wrapped__", None) is getattr(RendererBase, name)
+        for name in ("draw_path", "draw_markers")
+    )
