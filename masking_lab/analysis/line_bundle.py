@@ -173,7 +173,8 @@ def _path(xy: Any, short: Path) -> Path:
     from ``short``, a short path made by Path() under the same rcParams."""
     verts = np.asarray(xy, dtype=float)
     if verts.ndim == 2 and verts.shape[1] == 2 and len(verts) <= _SHORT_MAX:
-        return Path._fast_from_codes_and_verts(verts, None, internals_from=short)
+        made: Any = Path  # its constructor without the checks (not in matplotlib's stubs)
+        return made._fast_from_codes_and_verts(verts, None, internals_from=short)
     return Path(verts)
 
 
