@@ -9,14 +9,28 @@ import pytest
 
 import masking_lab.formats.schemas as schemas
 from masking_lab.formats.masking_params import MaskingParamsError, validate_masking_params
-from tests.test_masking_params import _doc
 
 SHA = "0123456789abcdef" * 4
 
 
+def _function(masker: str) -> dict:
+    return {
+        "target": "EV270", "masker": masker, "masker_frequencies_hz": [120],
+        "intercept_db": -6.26, "slope": 0.665, "intercept_se_db": 0.548, "slope_se": 0.0298,
+        "intercept_ci_db": [-7.5, -5.0], "slope_ci": [0.6, 0.73], "fitted_range_db_sl": [5, 25],
+        "knee_db_sl": 9.41, "adj_r2": 0.986, "n_points": 10, "pooled_pairs": [f"EV270|{masker}"],
+        "status": "fitted", "message": None,
+    }  # fmt: skip
+
+
 def _study_doc(n: int = 200) -> dict:
-    doc = _doc()
-    doc["provenance"]["source"] = "analyze"
+    doc = {
+        "schema_version": 1,
+        "software_version": "0.1.0",
+        "created_utc": "2024-05-01T12:00:00Z",
+        "provenance": {"source": "analyze", "settings": {}},
+        "functions": [_function("MV120"), _function("MV180")],
+    }
     doc["provenance"]["inputs"] = [
         {"path": f"P{k:04d}/P{k:04d}_experiment1.jsonl", "sha256": SHA} for k in range(n)
     ]
