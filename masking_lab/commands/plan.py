@@ -280,17 +280,15 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _run(args: argparse.Namespace) -> int:
-    import numpy as np
-
+    from masking_lab.commands.plan_simulation import simulation
     from masking_lab.commands.progress_bars import progress_wanted, step_bar
-    from masking_lab.core.errors import AnalysisError, ProtocolError
-    from masking_lab.core.psychometric import LEVITT_1U3D
+    from masking_lab.core.errors import AnalysisError
     from masking_lab.formats.fileio import write_bytes_atomic, write_text_atomic
     from masking_lab.formats.output_dir import staged_output
     from masking_lab.formats.protocol import load_protocol
     from masking_lab.planning import plan as P
     from masking_lab.planning.parallel import started_tasks
-    from masking_lab.planning.procedure_plan import compare_procedures, quest_tasks
+    from masking_lab.planning.procedure_plan import compare_procedures
     from masking_lab.planning.report import (
         answer_text,
         format_per_set,
@@ -300,8 +298,6 @@ def _run(args: argparse.Namespace) -> int:
     )
     from masking_lab.planning.report_html import render_plan_html
     from masking_lab.planning.settings import protocol_procedure_text, runs_staircase
-    from masking_lab.procedures.staircase_batch import Observer
-    from masking_lab.simulation.observer import load_ground_truth
 
     if (args.protocol is None) == (args.scene is None):
         raise AnalysisError(
@@ -314,62 +310,15 @@ def _run(args: argparse.Namespace) -> int:
     out = plan_folder(args.out, force=args.force)
     if _places_masker(protocol):
         return _masking_function_plan(args, protocol, out)
-    if args.quest_replicates is None:
-        from masking_lab.planning.procedure_plan import default_quest_replicates
-
-        args.quest_replicates = default_quest_replicates(protocol)
-    if args.ground_truth is not None and not Path(args.ground_truth).is_file():
-        raise ProtocolError(
-            args.ground_truth,
-            "",
-            "no such ground-truth file; check the path given to --ground-truth",
-        )
-    truth = load_ground_truth(args.ground_truth)
-    truth_name = args.ground_truth or "protocols/simulation/ground_truth.yaml"
-    scale = truth.scale_db if args.scale_db is None else args.scale_db
-    lapse = truth.lapse if args.lapse is None else args.lapse
-    # The threshold is the 0.794 point, so p(correct) must be able to exceed it.
-    for flag, value in (("--lapse", lapse), ("--ml-lapse", args.ml_lapse)):
-        if not value < 1 - LEVITT_1U3D:
-            raise AnalysisError(
-                f"{flag} {value:g}: p(correct) could never reach the 0.794 that defines the "
-                f"threshold; use a lapse rate below {1 - LEVITT_1U3D:.3f} (typically 0–0.05)"
-            )
-    observer = Observer(scale, lapse, truth.guess)
-
-    rules = (
-        P.parse_stop_rules(args.stop_rules) if args.stop_rules else P.default_stop_rules(protocol)
+    sim = simulation(args, protocol)
+    settings, thresholds, truth, truth_name = (
+        sim.settings,
+        sim.thresholds_db,
+        sim.truth,
+        sim.truth_name,
     )
-    ratios = P.parse_ratios(args.ratios) if args.ratios else None
-    if args.schedules:
-        schedules = P.parse_schedules(
-            args.schedules, ratios or (P.protocol_schedule(protocol).down_up_ratio,)
-        )
-    else:
-        schedules = P.default_schedules(protocol, ratios)
-    settings = P.PlanSettings(
-        stop_rules=rules,
-        schedules=schedules,
-        observer=observer,
-        replicates=args.replicates,
-        ml_replicates=args.ml_replicates,
-        response_s=args.response_s,
-        precision_db=args.precision_db,
-        z=args.z,
-        max_reversals=max(args.max_reversals, max(r.n_reversals for r in rules)),
-        ml_lapse=args.ml_lapse,
-        ml_fit_scale=not args.ml_fixed_scale,
-        seed=args.seed,
-    )
-    thresholds = P.true_thresholds_db(
-        protocol,
-        truth,
-        settings.replicates,
-        np.random.default_rng(np.random.SeedSequence([args.seed, 0x7412])),
-        spread=not args.no_spread,
-        override_db=args.true_threshold_db,
-        truth_source=truth_name,
-    )
+    staircase, quest, quest_kw = sim.staircase, sim.quest, sim.quest_kw
+    scale, lapse = settings.observer.scale_db, settings.observer.lapse
 
     progress = step_bar("plan", progress_wanted(args.progress))
 
@@ -377,10 +326,6 @@ def _run(args: argparse.Namespace) -> int:
     # run together on the workers; this process assembles the staircase plan and draws its
     # figure while the QUEST+ chunks still run, so no core idles at the end. Every chunk has
     # its own seed, so the tables do not depend on where or in which order it ran.
-    quest_kw = {"quest_replicates": args.quest_replicates, "psi": args.psi}
-    quest_kw["quest_max_trials"] = args.quest_max_trials
-    staircase = P.plan_tasks(protocol, settings, thresholds)
-    quest = quest_tasks(protocol, settings, thresholds, **quest_kw) if args.quest_replicates else []
     n_stair, n_quest = len(staircase), len(quest)
     progress(f"simulating {n_stair + n_quest} chunks ({args.scheduler})")
     pngs: dict[str, bytes] = {}
