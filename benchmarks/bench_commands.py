@@ -16,6 +16,15 @@ them), against a baseline in the same run:
   same machine load; ``plan``'s tables (CSV and text) of both are then compared byte for byte;
 * ``--baseline-json F``: figures stored by an earlier run's ``--save-json``.
 
+With ``--floors``, each ``plan`` row is followed by the time of its simulation alone: the
+chunks ``plan`` runs for that protocol with its defaults (the staircase plan's and the QUEST+
+comparison's, ``masking_lab.commands.plan_simulation.simulation``), run one after another in
+one fresh process with one BLAS thread (numba loaded once, by the first chunk that needs it),
+as process CPU seconds, and that CPU spread over the machine's cores: what ``plan`` cannot go
+below while its tables stay the same. It runs right after each of the command's runs (the
+machine's speed drifts within minutes) and the median is printed, with the command's wall time
+and CPU over it. (A functional protocol's plan simulates other routes: n/a.)
+
 The machine's load average is printed first: on a shared machine other processes inflate
 wall-clock times, not CPU times.
 """
@@ -73,6 +82,43 @@ def run_once(args: list[str], src: Path | None, out: Path) -> tuple[float, float
     return wall, cpu
 
 
+def simulation_cpu(protocol: Path) -> dict[str, float]:
+    """In a fresh process (this file with ``--simulation-cpu``): CPU seconds of ``plan``'s
+    simulation chunks for ``protocol``, run in that process one by one; ``{}`` when ``plan``
+    does not simulate chunks for it (a functional protocol)."""
+    done = subprocess.run(
+        [sys.executable, __file__, "--simulation-cpu", str(protocol)],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+    )
+    if done.returncode != 0:
+        raise SystemExit(f"--simulation-cpu {protocol} failed:\n{done.stderr[-2000:]}")
+    return json.loads(done.stdout)
+
+
+def _simulation_cpu_here(protocol: str) -> dict[str, float]:
+    """The child of :func:`simulation_cpu`: build the chunks as ``plan`` does, then time them."""
+    from threadpoolctl import threadpool_limits
+
+    from masking_lab.commands.cli import build_parser
+    from masking_lab.commands.plan_simulation import simulation
+    from masking_lab.formats.protocol import load_protocol
+    from masking_lab.procedures.registry import kind_of
+
+    loaded = load_protocol(protocol)
+    if any(kind_of(s.settings).places_masker for s in loaded.sets):
+        return {}
+    sim = simulation(build_parser().parse_args(["plan", protocol]), loaded)
+    chunks = [*sim.staircase, *sim.quest]
+    with threadpool_limits(1, user_api="blas"):  # as plan's workers run every chunk
+        t0 = time.process_time()
+        for fn, fn_args in chunks:
+            fn(*fn_args)
+        cpu = time.process_time() - t0
+    return {"cpu_s": cpu, "chunks": len(chunks)}
+
+
 def same_csvs(a: Path, b: Path) -> str:
     """'identical' or the tables (CSV, text) whose bytes differ between two plan folders."""
     names = sorted(p.name for p in [*a.glob("*.csv"), *a.glob("*.txt")])
@@ -92,7 +138,16 @@ def main() -> None:
         default=",".join(PLAN_PROTOCOLS),
         help="the plan protocols to time (comma-separated names in protocols/)",
     )
+    ap.add_argument(
+        "--floors",
+        action="store_true",
+        help="after each plan row, its simulation alone in one process (see above)",
+    )
+    ap.add_argument("--simulation-cpu", metavar="PROTOCOL", help=argparse.SUPPRESS)
     args = ap.parse_args()
+    if args.simulation_cpu:
+        print(json.dumps(_simulation_cpu_here(args.simulation_cpu)))
+        return
     wanted = set(args.only.split(","))
     protocols = set(args.protocols.split(","))
     todo = {
@@ -111,10 +166,13 @@ def main() -> None:
         for name, cmd in todo.items():
             slug = name.replace(" ", "_")
             mine, base = [], []
+            alone: list[dict[str, float]] = []
             for k in range(args.repeats):
                 if args.baseline_src is not None:
                     base.append(run_once(cmd, args.baseline_src, Path(tmp) / f"base{k}_{slug}"))
                 mine.append(run_once(cmd, None, Path(tmp) / f"this{k}_{slug}"))
+                if args.floors and name.startswith("plan"):  # interleaved: the same load
+                    alone.append(simulation_cpu(ROOT / "protocols" / f"{name.split()[1]}.yaml"))
             wall = statistics.median(w for w, _ in mine)
             cpu = statistics.median(c for _, c in mine)
             figures[name] = {"wall_s": wall, "cpu_s": cpu}
@@ -130,6 +188,18 @@ def main() -> None:
             if base and name.startswith("plan"):
                 verdict = same_csvs(Path(tmp) / f"base0_{slug}", Path(tmp) / f"this0_{slug}")
                 print(f"  its tables against the baseline's: {verdict}")
+            if alone and not alone[0]:
+                print("  its simulation alone: n/a (a functional protocol's routes)")
+            elif alone:
+                sim_cpu = statistics.median(a["cpu_s"] for a in alone)
+                figures[name] |= {"simulation_cpu_s": sim_cpu, "chunks": alone[0]["chunks"]}
+                cores = os.cpu_count() or 1
+                spread = sim_cpu / cores
+                print(
+                    f"  its simulation alone ({alone[0]['chunks']:.0f} chunks, one process): "
+                    f"{sim_cpu:.2f} s CPU = {spread:.2f} s on {cores} cores; the command "
+                    f"{wall:.2f} s = {wall / spread:.2f}x that, its CPU {cpu / sim_cpu:.2f}x"
+                )
     if args.save_json is not None:
         args.save_json.write_text(json.dumps(figures, indent=2) + "\n")
 
