@@ -19,6 +19,17 @@ process, start-up and imports included, as a user times it):
 
 Prints the times and the ratios analyze / typed (target: at most 2 at 10,000 sessions) and
 analyze / json (target: at most 1 at 1,000 sessions), and memory (target: 300 MB at 10,000).
+
+With ``--floors``, two more figures per size show what analyze's own work costs, whoever does
+it (process CPU seconds, each in a fresh process):
+
+- ``imports``: every module analyze's processes import (the top-level entries of one run's
+  ``python -X importtime`` over all its processes), each imported once in one process, Python's
+  start-up included: a run pays at least this before its first output;
+- ``pf fits`` (when the run wrote ``psychometric.csv``): the psychometric fits of exactly the
+  sets in that file, with its bootstrap size and analyze's seeds and route (compiled climb,
+  numba's load included), and each set's report plot, in one process: with ``c`` cores a run
+  cannot write those outputs in less than this CPU / ``c``.
 Nothing is asserted; the file cache is warm for all (the files were just written, and every
 row reads them), so the comparison is like for like.
 
@@ -29,6 +40,7 @@ Usage::
     python benchmarks/bench_analysis.py --sizes 100 --analyze-args=--no-trial-tables
     python benchmarks/bench_analysis.py --baseline-src DIR   # and analyze from DIR/masking_lab
     python benchmarks/bench_analysis.py --sizes 3 --repeat 5 --baseline-src DIR  # fixed cost
+    python benchmarks/bench_analysis.py --sizes 3,1000 --floors  # what analyze's work costs
 """
 
 from __future__ import annotations
@@ -46,6 +58,7 @@ import tempfile
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 from timing_setup import compile_tree, tree_console_code
 
@@ -120,6 +133,78 @@ def run_floor(kind: str, data: Path) -> float:
     t = time.perf_counter()
     subprocess.run([sys.executable, __file__, "--floor", kind, str(data)], check=True)
     return time.perf_counter() - t
+
+
+def imports_cpu(data: Path, out: Path, extra: list[str]) -> float:
+    """CPU seconds of importing, once and in one fresh process, every module that one run of
+    ``masking-lab analyze`` imports in any of its processes (``-X importtime``)."""
+    code = tree_console_code(ROOT, other_tree=False)
+    cmd = [sys.executable, "-X", "importtime", "-c", code, "analyze", str(data), "--out"]
+    cmd += [str(out), "--quiet", *extra]
+    done = subprocess.run(cmd, capture_output=True, text=True)
+    if done.returncode != 0:
+        raise SystemExit(f"analyze -X importtime failed: {done.stderr[-2000:]}")
+    names: dict[str, None] = {}  # top-level entries (one space after the last bar), in order
+    for line in done.stderr.splitlines():
+        if line.startswith("import time:") and "|" in line:
+            field = line.rsplit("|", 1)[1]
+            if field.startswith(" ") and not field.startswith("  ") and field.strip():
+                names.setdefault(field.strip(), None)
+    names.pop("imported package", None)  # the header line
+    load = "import importlib, sys\nfor n in sys.argv[1:]: importlib.import_module(n)"
+    env = dict(os.environ, MPLBACKEND="Agg")
+    before = os.times()
+    subprocess.run([sys.executable, "-c", load, *names], check=True, env=env)
+    after = os.times()
+    return (after.children_user - before.children_user) + (
+        after.children_system - before.children_system
+    )
+
+
+def pf_cpu(data: Path, out: Path) -> dict[str, float]:
+    """In a fresh process (this file with ``--pf-floor``): CPU seconds of the psychometric fits
+    and plots of the sets in ``out``/psychometric.csv; ``{}`` without that file."""
+    if not (out / "psychometric.csv").is_file():
+        return {}
+    done = subprocess.run(
+        [sys.executable, __file__, "--pf-floor", str(data), str(out)],
+        capture_output=True,
+        text=True,
+    )
+    if done.returncode != 0:
+        raise SystemExit(f"--pf-floor failed:\n{done.stderr[-2000:]}")
+    return json.loads(done.stdout)
+
+
+def _pf_plot(job: Any, fit: Any) -> Any:
+    from masking_lab.analysis.report_lab import pf_plot
+
+    return pf_plot(job.levels_db, job.correct, fit)
+
+
+def _pf_cpu_here(data: Path, out: Path) -> dict[str, float]:
+    """The child of :func:`pf_cpu`: the jobs as analyze makes them, then the fits timed."""
+    import csv
+
+    from threadpoolctl import threadpool_limits
+
+    from masking_lab.analysis.pf_table import fit_all_with, pf_job, pf_seed, set_trials
+    from masking_lab.formats.session_log import read_log
+
+    with open(out / "psychometric.csv", encoding="utf-8", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    by_log: dict[str, Any] = {}
+    jobs = []
+    for r in rows:
+        if r["log"] not in by_log:
+            by_log[r["log"]] = set_trials(read_log(data / r["log"]))
+        seed = pf_seed(r["participant"], r["experiment"], r["set_id"], r["log"])
+        jobs.append(pf_job(by_log[r["log"]][r["set_id"]], seed, int(r["n_bootstrap"])))
+    with threadpool_limits(1, user_api="blas"):  # as analyze fits
+        t0 = time.process_time()
+        fit_all_with(jobs, _pf_plot, workers=1)
+        cpu = time.process_time() - t0
+    return {"cpu_s": cpu, "sets": len(jobs), "n_boot": max(j.n_boot for j in jobs)}
 
 
 def _pss_kb(pid: int) -> int:
@@ -222,10 +307,19 @@ def main(argv: list[str] | None = None) -> int:
         metavar="N",
         help="time analyze (and the baseline, interleaved) N times; print medians",
     )
+    ap.add_argument(
+        "--floors",
+        action="store_true",
+        help="also time analyze's imports once and its psychometric fits alone (see above)",
+    )
     ap.add_argument("--floor", nargs=2, help=argparse.SUPPRESS)
+    ap.add_argument("--pf-floor", nargs=2, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.floor:
         floor(args.floor[0], Path(args.floor[1]))
+        return 0
+    if args.pf_floor:
+        print(json.dumps(_pf_cpu_here(Path(args.pf_floor[0]), Path(args.pf_floor[1]))))
         return 0
     sizes = sorted(
         {int(s) for s in args.sizes.split(",")} | ({10000} if args.with_10000 else set())
@@ -244,6 +338,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"simulated the pool of 30 sessions in {time.perf_counter() - t0:.1f} s", flush=True)
         results = []
         baselines: list[tuple[int, float, float, float, float]] = []
+        own: dict[int, dict[str, float]] = {}
         for n in sizes:
             data = work / f"data_{n}"
             size = build_folder(pool, data, n)
@@ -257,6 +352,10 @@ def main(argv: list[str] | None = None) -> int:
                     shutil.rmtree(work / f"base_{n}", ignore_errors=True)
             t_an, rss_main, rss_tree, cpu = _medians(runs)
             results.append((n, size, floors, t_an, rss_main, rss_tree, cpu))
+            if args.floors:
+                own[n] = {"imports": imports_cpu(data, work / f"imports_{n}", extra)}
+                shutil.rmtree(work / f"imports_{n}", ignore_errors=True)
+                own[n] |= {f"pf_{k}": v for k, v in pf_cpu(data, work / f"out_{n}").items()}
             if args.baseline_src:
                 baselines.append((n, *_medians(base_runs)))
             print(
@@ -291,6 +390,19 @@ def main(argv: list[str] | None = None) -> int:
             "MB: PSS summed over the process tree, sampled every 50 ms; CPU s: user + system "
             "of analyze and its workers."
         )
+        cores = os.cpu_count() or 1
+        for n, f in own.items():
+            t_an, t_json = next((r[3], r[2]["json"]) for r in results if r[0] == n)
+            line = f"analyze's own work at {n} sessions: imports once {f['imports']:.2f} s CPU"
+            if "pf_cpu_s" in f:
+                spread = f["pf_cpu_s"] / cores
+                line += (
+                    f"; psychometric fits and plots ({f['pf_sets']:.0f} sets x "
+                    f"{f['pf_n_boot']:.0f} bootstrap data sets, one process) {f['pf_cpu_s']:.2f} s "
+                    f"CPU = {spread:.2f} s on {cores} cores, {spread / t_json:.2f}x json, "
+                    f"{spread / t_an:.2f} of analyze's wall"
+                )
+            print(line)
         for n, t_base, rss_main, rss_tree, cpu_base in baselines:
             t_an, cpu = next((r[3], r[6]) for r in results if r[0] == n)
             print(
