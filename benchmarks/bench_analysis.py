@@ -20,18 +20,20 @@ process, start-up and imports included, as a user times it):
 Prints the times and the ratios analyze / typed (target: at most 2 at 10,000 sessions) and
 analyze / json (target: at most 1 at 1,000 sessions), and memory (target: 300 MB at 10,000).
 
+Nothing is asserted; the file cache is warm for all (the files were just written, and every
+row reads them), so the comparison is like for like.
+
 With ``--floors``, two more figures per size show what analyze's own work costs, whoever does
 it (process CPU seconds, each in a fresh process):
 
 - ``imports``: every module analyze's processes import (the top-level entries of one run's
   ``python -X importtime`` over all its processes), each imported once in one process, Python's
-  start-up included: a run pays at least this before its first output;
+  start-up included: however a run shares them among its processes, with ``c`` cores its
+  imports alone take at least this CPU / ``c`` of its wall time;
 - ``pf fits`` (when the run wrote ``psychometric.csv``): the psychometric fits of exactly the
   sets in that file, with its bootstrap size and analyze's seeds and route (compiled climb,
   numba's load included), and each set's report plot, in one process: with ``c`` cores a run
   cannot write those outputs in less than this CPU / ``c``.
-Nothing is asserted; the file cache is warm for all (the files were just written, and every
-row reads them), so the comparison is like for like.
 
 Usage::
 
