@@ -7,8 +7,9 @@ Runs ``masking-lab demo`` and ``masking-lab plan`` with defaults on each shipped
 ``plan`` takes (baseline, experiment1, experiment1_questplus, experiment1_functional,
 experiment2; usertest.yaml is a user test, not a measurement) in fresh child processes,
 ``--repeats`` times each, and prints the median wall-clock time and the
-median CPU time (user + system of the command and its children, as ``/usr/bin/time`` reports
-them), against a baseline in the same run:
+median CPU time (user + system of the command and of every process it started: its workers,
+and the workers those fork, which ``/usr/bin/time`` misses once their parent has ended;
+``timing_setup.adopt_orphans``), against a baseline in the same run:
 
 * ``--baseline-src DIR``: a source tree of the previous version (e.g.
   ``git archive HEAD~3 masking_lab protocols data_schema | tar -x -C /tmp/prev``) run with the
@@ -42,7 +43,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from timing_setup import compile_tree, console_code
+from timing_setup import adopt_orphans, compile_tree, console_code, reap_orphans
 
 ROOT = Path(__file__).resolve().parents[1]
 PLAN_PROTOCOLS = (
@@ -75,6 +76,7 @@ def run_once(args: list[str], src: Path | None, out: Path) -> tuple[float, float
     t0 = time.perf_counter()
     done = subprocess.run(argv, env=env, capture_output=True, text=True, cwd=out.parent)
     wall = time.perf_counter() - t0
+    reap_orphans()  # the demo's analysis forks a worker from a worker (timing_setup.adopt_orphans)
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     if done.returncode != 0:
         raise SystemExit(f"{' '.join(argv)} failed ({done.returncode}):\n{done.stderr[-2000:]}")
@@ -148,6 +150,7 @@ def main() -> None:
     if args.simulation_cpu:
         print(json.dumps(_simulation_cpu_here(args.simulation_cpu)))
         return
+    adopt_orphans()  # so that every run's CPU includes the workers its workers fork
     wanted = set(args.only.split(","))
     protocols = set(args.protocols.split(","))
     todo = {
