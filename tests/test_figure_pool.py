@@ -174,6 +174,39 @@ def test_the_second_worker_is_forked_from_the_first_once_warm(tmp_path) -> None:
         pool.close()
 
 
+def _burn_cpu(seconds: float) -> tuple[int, float]:
+    """Spend ``seconds`` of this process's CPU time; its pid and its CPU time so far."""
+    end = time.process_time() + seconds
+    while time.process_time() < end:
+        pass
+    return os.getpid(), time.process_time()
+
+
+def test_the_second_workers_cpu_time_is_counted_with_this_process_children(tmp_path) -> None:
+    # The first worker waits for the second at its end: its CPU reaches this process's
+    # RUSAGE_CHILDREN (and a run's wait4, /usr/bin/time) instead of being re-parented.
+    import resource
+
+    def children_cpu() -> float:
+        ru = resource.getrusage(resource.RUSAGE_CHILDREN)
+        return ru.ru_utime + ru.ru_stime
+
+    gate = tmp_path / "go"
+    before = children_cpu()
+    pool = FigurePool()
+    try:
+        held = pool.submit(_pid_once_file_exists, str(gate))  # holds the first worker
+        burnt = pool.submit(_burn_cpu, 1.5)  # so this goes to the second
+        w2, w2_cpu = burnt()
+        gate.touch()
+        w1 = held()
+        assert w2 != w1 and w2_cpu >= 1.5
+    finally:
+        pool.close()
+    # Without the wait, only the first worker (its matplotlib import, ~0.5 s) would be counted.
+    assert children_cpu() - before >= w2_cpu
+
+
 def test_an_error_in_the_second_worker_is_raised_here(tmp_path) -> None:
     gate = tmp_path / "go"
     pool = FigurePool()

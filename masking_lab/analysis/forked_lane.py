@@ -7,7 +7,8 @@ workers draw for one import. Tasks reach it over a queue this process made befor
 worker was forked (the first worker, and so the second, inherit it); results come back in
 order over another.
 
-The second worker ends with the first (which ends with this process), and a lane whose worker
+The second worker ends with the first (which ends with this process), and the first waits for
+it at its own end, so that its CPU time is counted with the run's. A lane whose worker
 is gone (never forked, killed, or the first worker died first) gives each of its tasks back to
 be run in this process: :meth:`ForkedLane.result` raises :class:`LaneGone`.
 """
@@ -15,9 +16,11 @@ be run in this process: :meth:`ForkedLane.result` raises :class:`LaneGone`.
 from __future__ import annotations
 
 import multiprocessing
+import multiprocessing.util
 import os
 import pickle
 import queue
+import time
 from collections.abc import Callable
 from concurrent.futures import Future
 from typing import Any
@@ -33,6 +36,7 @@ from masking_lab.core.worker_processes import (
 __all__ = ["ForkedLane", "LaneGone", "fork_second"]
 
 _POLL_S = 0.2  # how often a wait for a result looks whether the worker still exists
+_REAP_S = 2.0  # how long the first worker waits for the second at its end (it ends in ms)
 _LANE: ForkedLane | None = None  # the lane being set up: what the first worker inherits
 
 
@@ -156,7 +160,25 @@ def fork_second() -> int | None:
             _serve(lane)
         finally:
             os._exit(0)
+    # Waited for when this worker ends, so that its CPU time is counted with this one's (by
+    # the run's wait4 and /usr/bin/time): not waited for, it was re-parented and never counted.
+    multiprocessing.util.Finalize(None, _reap, args=(pid,), exitpriority=10)
     return pid
+
+
+def _reap(pid: int, timeout_s: float = _REAP_S) -> None:
+    """Wait (at most ``timeout_s``) for the second worker, which ends once the lane is
+    closed (:meth:`ForkedLane.close`, before the first worker's pool is shut down); one still
+    running then ends with this process, as before."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            done, _ = os.waitpid(pid, os.WNOHANG)
+        except ChildProcessError:  # already waited for
+            return
+        if done or time.monotonic() > deadline:
+            return
+        time.sleep(0.002)
 
 
 def _serve(lane: ForkedLane) -> None:
