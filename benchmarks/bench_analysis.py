@@ -276,7 +276,7 @@ def run_analyze(
     seconds = time.perf_counter() - t
     stop.set()
     sampler.join()
-    orphans = reap_orphans()  # the second figure worker (timing_setup.adopt_orphans)
+    orphans = reap_orphans()  # a baseline's unwaited second figure worker (timing_setup)
     if os.waitstatus_to_exitcode(status) != 0:
         raise SystemExit(f"analyze failed: {err.decode(errors='replace')[-2000:]}")
     cpu = usage.ru_utime + usage.ru_stime + orphans

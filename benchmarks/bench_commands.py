@@ -76,7 +76,7 @@ def run_once(args: list[str], src: Path | None, out: Path) -> tuple[float, float
     t0 = time.perf_counter()
     done = subprocess.run(argv, env=env, capture_output=True, text=True, cwd=out.parent)
     wall = time.perf_counter() - t0
-    reap_orphans()  # the demo's analysis forks a worker from a worker (timing_setup.adopt_orphans)
+    reap_orphans()  # workers forked by workers and left unwaited (timing_setup.adopt_orphans)
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     if done.returncode != 0:
         raise SystemExit(f"{' '.join(argv)} failed ({done.returncode}):\n{done.stderr[-2000:]}")

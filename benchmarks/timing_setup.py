@@ -48,10 +48,11 @@ def adopt_orphans() -> bool:
     """Make this process the reaper of its descendants' orphans (Linux ``prctl``
     ``PR_SET_CHILD_SUBREAPER``); False where that is not available.
 
-    ``analyze`` forks its second figure worker from the first, which does not wait for it: when
-    the first ends, the second (killed with it) is re-parented and its CPU time never reaches the
-    command's ``wait4``/``getrusage`` figures, nor ``/usr/bin/time``'s (0.4–0.5 s of a 3-session
-    run's ~2.5 s). Adopted here, it is waited for by :func:`reap_orphans` and counted.
+    A worker forked by a worker that does not wait for it is re-parented when its parent ends,
+    and its CPU time then never reaches the command's ``wait4``/``getrusage`` figures, nor
+    ``/usr/bin/time``'s: ``analyze``'s second figure worker until session 45 (0.4–0.5 s of a
+    3-session run's ~3 s; its first worker now waits for it). Adopted here, such a process is
+    waited for by :func:`reap_orphans` and counted, so a baseline tree is measured like this one.
     """
     import ctypes
 
