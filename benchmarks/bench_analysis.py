@@ -28,8 +28,9 @@ it (process CPU seconds, each in a fresh process):
 
 - ``imports``: every module analyze's processes import (the top-level entries of one run's
   ``python -X importtime`` over all its processes), each imported once in one process, Python's
-  start-up included: however a run shares them among its processes, with ``c`` cores its
-  imports alone take at least this CPU / ``c`` of its wall time;
+  start-up included: with ``c`` cores, about this CPU / ``c`` of a run's wall time goes to its
+  imports (spread over processes, some of them forked, a run's imports cost somewhat less: the
+  sum of ``-X importtime`` over a 3-session run's processes was 1.2–1.4 s against 1.6–2.3 s);
 - ``pf fits`` (when the run wrote ``psychometric.csv``): the psychometric fits of exactly the
   sets in that file, with its bootstrap size and analyze's seeds and route (compiled climb,
   numba's load included), and each set's report plot, in one process: with ``c`` cores a run
