@@ -32,9 +32,9 @@ it (process CPU seconds, each in a fresh process):
   imports (spread over processes, some of them forked, a run's imports cost somewhat less: the
   sum of ``-X importtime`` over a 3-session run's processes was 1.2–1.4 s against 1.6–2.3 s);
 - ``pf fits`` (when the run wrote ``psychometric.csv``): the psychometric fits of exactly the
-  sets in that file, with its bootstrap size and analyze's seeds and route (compiled climb,
-  numba's load included), and each set's report plot, in one process: with ``c`` cores a run
-  cannot write those outputs in less than this CPU / ``c``.
+  sets in that file, with the bootstrap size analyze was given (``--pf-boot``), its seeds and
+  route (compiled climb, numba's load included), and each set's report plot, in one process:
+  with ``c`` cores a run cannot write those outputs in less than this CPU / ``c``.
 
 Usage::
 
@@ -65,6 +65,7 @@ from typing import Any
 
 from timing_setup import adopt_orphans, compile_tree, reap_orphans, tree_console_code
 
+from masking_lab.analysis.pf_table import PF_BOOTSTRAP
 from masking_lab.simulation.synthetic_logs import simulate_study
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -164,13 +165,18 @@ def imports_cpu(data: Path, out: Path, extra: list[str]) -> float:
     )
 
 
-def pf_cpu(data: Path, out: Path) -> dict[str, float]:
+def pf_cpu(data: Path, out: Path, extra: list[str]) -> dict[str, float]:
     """In a fresh process (this file with ``--pf-floor``): CPU seconds of the psychometric fits
-    and plots of the sets in ``out``/psychometric.csv; ``{}`` without that file."""
+    and plots of the sets in ``out``/psychometric.csv, each with the bootstrap size analyze was
+    given (``--pf-boot`` in ``extra``; the file's ``n_bootstrap`` counts the refits that stayed
+    in bounds, often fewer); ``{}`` without that file."""
     if not (out / "psychometric.csv").is_file():
         return {}
+    option = argparse.ArgumentParser(add_help=False)
+    option.add_argument("--pf-boot", type=int, default=PF_BOOTSTRAP)
+    n_boot = option.parse_known_args(extra)[0].pf_boot
     done = subprocess.run(
-        [sys.executable, __file__, "--pf-floor", str(data), str(out)],
+        [sys.executable, __file__, "--pf-floor", str(data), str(out), str(n_boot)],
         capture_output=True,
         text=True,
     )
@@ -185,7 +191,7 @@ def _pf_plot(job: Any, fit: Any) -> Any:
     return pf_plot(job.levels_db, job.correct, fit)
 
 
-def _pf_cpu_here(data: Path, out: Path) -> dict[str, float]:
+def _pf_cpu_here(data: Path, out: Path, n_boot: int) -> dict[str, float]:
     """The child of :func:`pf_cpu`: the jobs as analyze makes them, then the fits timed."""
     import csv
 
@@ -202,12 +208,12 @@ def _pf_cpu_here(data: Path, out: Path) -> dict[str, float]:
         if r["log"] not in by_log:
             by_log[r["log"]] = set_trials(read_log(data / r["log"]))
         seed = pf_seed(r["participant"], r["experiment"], r["set_id"], r["log"])
-        jobs.append(pf_job(by_log[r["log"]][r["set_id"]], seed, int(r["n_bootstrap"])))
+        jobs.append(pf_job(by_log[r["log"]][r["set_id"]], seed, n_boot))
     with threadpool_limits(1, user_api="blas"):  # as analyze fits
         t0 = time.process_time()
         fit_all_with(jobs, _pf_plot, workers=1)
         cpu = time.process_time() - t0
-    return {"cpu_s": cpu, "sets": len(jobs), "n_boot": max(j.n_boot for j in jobs)}
+    return {"cpu_s": cpu, "sets": len(jobs), "n_boot": n_boot}
 
 
 def _pss_kb(pid: int) -> int:
@@ -317,13 +323,14 @@ def main(argv: list[str] | None = None) -> int:
         help="also time analyze's imports once and its psychometric fits alone (see above)",
     )
     ap.add_argument("--floor", nargs=2, help=argparse.SUPPRESS)
-    ap.add_argument("--pf-floor", nargs=2, help=argparse.SUPPRESS)
+    ap.add_argument("--pf-floor", nargs=3, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.floor:
         floor(args.floor[0], Path(args.floor[1]))
         return 0
     if args.pf_floor:
-        print(json.dumps(_pf_cpu_here(Path(args.pf_floor[0]), Path(args.pf_floor[1]))))
+        data, out, n_boot = args.pf_floor
+        print(json.dumps(_pf_cpu_here(Path(data), Path(out), int(n_boot))))
         return 0
     sizes = sorted(
         {int(s) for s in args.sizes.split(",")} | ({10000} if args.with_10000 else set())
@@ -360,7 +367,7 @@ def main(argv: list[str] | None = None) -> int:
             if args.floors:
                 own[n] = {"imports": imports_cpu(data, work / f"imports_{n}", extra)}
                 shutil.rmtree(work / f"imports_{n}", ignore_errors=True)
-                own[n] |= {f"pf_{k}": v for k, v in pf_cpu(data, work / f"out_{n}").items()}
+                own[n] |= {f"pf_{k}": v for k, v in pf_cpu(data, work / f"out_{n}", extra).items()}
             if args.baseline_src:
                 baselines.append((n, *_medians(base_runs)))
             print(
