@@ -10,6 +10,9 @@ about 0.3 s that no user pays. Both trees of a before/after comparison are compi
 from __future__ import annotations
 
 import compileall
+import ctypes
+import os
+import time
 import tomllib
 from pathlib import Path
 
@@ -54,8 +57,6 @@ def adopt_orphans() -> bool:
     3-session run's ~3 s; its first worker now waits for it). Adopted here, such a process is
     waited for by :func:`reap_orphans` and counted, so a baseline tree is measured like this one.
     """
-    import ctypes
-
     try:
         libc = ctypes.CDLL(None, use_errno=True)
         return bool(libc.prctl(36, 1, 0, 0, 0) == 0)  # PR_SET_CHILD_SUBREAPER = 36
@@ -67,9 +68,6 @@ def reap_orphans(timeout_s: float = 30.0) -> float:
     """Wait for every descendant this process adopted (:func:`adopt_orphans`) and return their
     CPU seconds (user + system); call it when no child of its own is running. Orphans still
     running after ``timeout_s`` are left (their CPU is then missing from the figures)."""
-    import os
-    import time
-
     cpu = 0.0
     deadline = time.monotonic() + timeout_s
     while True:

@@ -62,9 +62,6 @@ def simulation(args: argparse.Namespace, protocol: ThresholdProtocol) -> Simulat
     """The simulation ``plan`` runs for a staircase or QUEST+ protocol with these options: its
     settings, observers and chunks (run anywhere, in any order: each has its own seed).
 
-    ``benchmarks/bench_commands.py --floors`` runs the same chunks in one process to time the
-    simulation alone.
-
     Raises
     ------
     ProtocolError
