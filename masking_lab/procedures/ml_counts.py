@@ -13,12 +13,14 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
+from types import ModuleType
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from masking_lab.core.errors import AnalysisError
 from masking_lab.core.psychometric import GUESS_3IFC, LEVITT_1U3D
+from masking_lab.procedures.fused import compiled_loops
 
 __all__ = [
     "LevelCounts",
@@ -233,11 +235,15 @@ class LogisticModel:
         λ, p(wrong) far above threshold.
     c : float
         logit((p_target − γ)/(1 − γ − λ)): threshold = α + s·c (dimensionless).
+    compiled : bool
+        Evaluate with the compiled loops of :mod:`masking_lab.procedures.ml_loops` when numba
+        loads (the same numbers; worth numba's load only for many tracks).
     """
 
     guess: float
     lapse: float
     c: float
+    compiled: bool = False
 
     @property
     def rise(self) -> float:
@@ -249,6 +255,17 @@ class LogisticModel:
     ) -> NDArray[np.float64]:
         """Log-likelihood (natural log) per track at threshold ``threshold_db`` and scale
         ``scale_db`` (both dB, shape (R,))."""
+        fused = self._fused_args(counts, threshold_db, scale_db)
+        if fused is not None:
+            loops, step, e = fused
+            k, m = counts.n_correct, counts.n_wrong
+            p, q = np.empty_like(e), np.empty_like(e)
+            loops.answer_probabilities(step, e, k, m, self.rise, self.guess, self.lapse, p, q)
+            np.log(p, out=p)
+            np.log(q, out=q)
+            ll = np.empty(e.shape[0])
+            loops.weighed_sums(p, q, k, m, ll)
+            return ll
         # The arithmetic of _logistic_parts, then p and q, in a few work arrays updated in
         # place (the fits call this ~10⁴ times: fresh temporaries cost more than the maths).
         # Every rounded operation and its order are those of _logistic_parts and derivatives,
@@ -289,6 +306,23 @@ class LogisticModel:
         if np.isnan(ll).any():
             return self._log_likelihood_masked(counts, self._z(counts, threshold_db, scale_db))
         return ll
+
+    def _fused_args(
+        self, counts: LevelCounts, threshold_db: NDArray[np.float64], scale_db: NDArray[np.float64]
+    ) -> tuple[ModuleType, NDArray[np.float64], NDArray[np.float64]] | None:
+        """For the compiled route: its loops, heaviside(z, 1) and exp(−|z|) at every level; None
+        for the numpy route (not :attr:`compiled`, numba missing, or a NaN in z, whose terms
+        only the numpy route weighs as it should)."""
+        if not self.compiled:
+            return None
+        loops = compiled_loops("ml_loops")
+        if loops is None:
+            return None
+        step, e = np.empty_like(counts.level_db), np.empty_like(counts.level_db)
+        if loops.logistic_args(counts.level_db, threshold_db, scale_db, self.c, step, e):
+            return None
+        np.exp(e, out=e)
+        return loops, step, e
 
     def _z(
         self, counts: LevelCounts, threshold_db: NDArray[np.float64], scale_db: NDArray[np.float64]
@@ -337,6 +371,15 @@ class LogisticModel:
         Returns (g_t, g_u, H_tt, H_tu, H_uu, I_tt, I_tu, I_uu): gradient, observed Hessian and
         expected (Fisher) information, each of shape (R,).
         """
+        fused = self._fused_args(counts, threshold_db, scale_db)
+        if fused is not None:
+            loops, step, e = fused
+            out = np.empty((8, e.shape[0]))
+            loops.slope_sums(
+                counts.level_db, threshold_db, scale_db, step, e, counts.n_trials,
+                counts.n_correct, counts.n_wrong, self.rise, self.guess, self.lapse, out,
+            )  # fmt: skip
+            return tuple(out)
         y, p, q, h, h2, w, curv = self._slopes(counts, threshold_db, scale_db)
         # The products of the formulas (−h/s, −h·y, h″/s², (h″·y + h)/s, h″·y² + h·y, then
         # w·a + curv·b·c), in order, into few arrays: fresh ones cost more than the maths.
@@ -391,6 +434,15 @@ class LogisticModel:
     ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Score and observed curvature in t alone (g_t, H_tt of :meth:`derivatives`, the same
         numbers), for the fixed-scale fits that need no more."""
+        fused = self._fused_args(counts, threshold_db, scale_db)
+        if fused is not None:
+            loops, step, e = fused
+            out = np.empty((2, e.shape[0]))
+            loops.threshold_slope_sums(
+                scale_db, step, e, counts.n_correct, counts.n_wrong, self.rise, self.guess,
+                self.lapse, out,
+            )  # fmt: skip
+            return out[0], out[1]
         _, _, _, h, h2, w, curv = self._slopes(counts, threshold_db, scale_db)
         s = scale_db[:, None]
         dt = -h / s
