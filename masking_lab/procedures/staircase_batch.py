@@ -8,6 +8,8 @@ reversal
 count, down/up ratio, optional initial 1-down-1-up phase, bounds with clamp/stop and hit counting,
 trial cap, stop after ``n_reversals`` — so that, fed the same responses, it yields the same level
 tracks, reversal levels, statuses and ALs (tests/test_simulate.py checks this with hypothesis).
+From :data:`COMPILED_TRACKS` tracks on, each trial's bookkeeping is one compiled pass instead
+(:mod:`masking_lab.procedures.staircase_loops`, the same numbers bit for bit).
 
 Responses come either from a matrix (:func:`replay_many`, used to check conformance) or from a
 simulated observer (:func:`simulate`): p(correct) from :class:`~masking_lab.core.psychometric.
@@ -31,6 +33,7 @@ from numpy.typing import ArrayLike, NDArray
 from masking_lab.core.errors import StaircaseError
 from masking_lab.core.psychometric import GUESS_3IFC, Psychometric
 from masking_lab.procedures.batch import TrackBatch
+from masking_lab.procedures.fused import compiled_loops
 from masking_lab.procedures.staircase import StaircaseSettings
 
 #: Status names indexed by the integer codes in :attr:`SimulatedTracks.status_code`.
@@ -40,6 +43,10 @@ RUNNING, COMPLETED, CEILING, FLOOR, TRIAL_CAP = range(5)
 #: Trials simulated at most when the settings have no ``max_trials`` (tracks still going then
 #: are reported as ``running``: the simulator never invents a stop the staircase would not make).
 DEFAULT_TRIAL_LIMIT = 1000
+#: From this many tracks on, each trial's bookkeeping runs compiled
+#: (:mod:`masking_lab.procedures.staircase_loops`) when numba loads: numba's ~0.3 s load pays off
+#: only for a simulation's thousands of tracks.
+COMPILED_TRACKS = 256
 
 #: ``respond(trial_index, rows, levels_db) -> correct``: answers trial ``trial_index`` of the
 #: replicates ``rows`` (int array) presented at ``levels_db`` (dB), one bool per row.
@@ -183,6 +190,13 @@ def run_staircases(
     level_cols: list[NDArray[np.float64]] = []
     correct_cols: list[NDArray[np.bool_]] = []
 
+    # Many tracks take one compiled pass per trial (the same numbers; numba's load pays off).
+    loops = compiled_loops("staircase_loops") if n >= COMPILED_TRACKS else None
+    rules = np.array(
+        [s.n_up, s.n_down, s.down_up_ratio, s.initial_one_down_one_up, s.n_reversals, clamp,
+         s.max_bound_hits], dtype=float,
+    )  # fmt: skip
+
     active = np.arange(n)
     for t in range(limit):
         if active.size == 0:
@@ -200,6 +214,13 @@ def run_staircases(
             ccol = np.zeros(n, dtype=bool)
             ccol[a] = c
             correct_cols.append(ccol)
+        if loops is not None:
+            capped = s.max_trials is not None and t + 1 >= s.max_trials
+            active = loops.staircase_trial(
+                t, a, lv, c, level, run, direction, n_rev, hits, status, last_correct,
+                rev_levels, rev_trials, steps, rules, hi, lo, capped,
+            )  # fmt: skip
+            continue
 
         # Run counter, as Staircase.update: continue a run of equal answers, else restart it.
         same = (last_correct[a] == c) if t > 0 else np.zeros(a.size, dtype=bool)
