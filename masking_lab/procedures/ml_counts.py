@@ -318,7 +318,7 @@ class LogisticModel:
         loops = compiled_loops("ml_loops")
         if loops is None:
             return None
-        step, e = np.empty_like(counts.level_db), np.empty_like(counts.level_db)
+        step, e = np.empty(counts.level_db.shape), np.empty(counts.level_db.shape)
         if loops.logistic_args(counts.level_db, threshold_db, scale_db, self.c, step, e):
             return None
         np.exp(e, out=e)

@@ -14,8 +14,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-# the status codes of masking_lab.procedures.staircase_batch (imported there, not from there:
-# this module stays a leaf that numba compiles alone)
+# staircase_batch's status codes, repeated so that this module stays a leaf that numba compiles
+# alone (tests/test_staircase_loops.py checks that they agree)
 RUNNING, COMPLETED, CEILING, FLOOR, TRIAL_CAP = range(5)
 
 
