@@ -8,6 +8,7 @@ fresh random examples instead, for hunting locally.
 from __future__ import annotations
 
 import os
+import signal
 
 import pytest
 from hypothesis import settings
@@ -16,6 +17,12 @@ from xdisplay import virtual_display
 settings.register_profile("repeatable", derandomize=True, print_blob=True)
 settings.register_profile("explore", derandomize=False, print_blob=True)
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "repeatable"))
+
+# A suite started in the background (a shell's `&`, `nohup`) inherits SIGINT ignored, and every
+# command it starts keeps it ignored across exec: the tests that press Ctrl-C on a command, or
+# on this process, would fail for want of a Ctrl-C. They get the terminal's default.
+if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 # The files with the longest tests, longest first. pytest-xdist hands tests to its workers in

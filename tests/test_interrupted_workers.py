@@ -121,9 +121,11 @@ def test_ctrl_c_while_a_worker_is_forked_comes_after_the_fork():
     waiter.start()
     went_on = []
     before = signal.getsignal(signal.SIGINT)
-    with pytest.raises(KeyboardInterrupt), interrupts_held():
+    with pytest.raises(KeyboardInterrupt), interrupts_held() as noted:
         os.kill(os.getpid(), signal.SIGINT)  # to the process: the waiting thread takes it
-        time.sleep(0.05)  # Python code runs meanwhile (where the handler would raise)
+        # Python code runs until the handler has run (where it would raise); on a busy
+        # machine the waiting thread may take a while to be scheduled and pass the signal on
+        _wait_for(lambda: bool(noted), "the held SIGINT to be noted")
         went_on.append(True)
     other.set()
     assert went_on == [True]

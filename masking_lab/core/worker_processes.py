@@ -259,7 +259,7 @@ def _pool_class() -> type[ProcessPoolExecutor]:
 
 
 @contextmanager
-def interrupts_held() -> Iterator[None]:
+def interrupts_held() -> Iterator[list[object]]:
     """Ctrl-C held back for the block, then delivered: around forking a worker.
 
     SIGINT is blocked in this thread, so a process forked in the block starts with it held
@@ -269,22 +269,25 @@ def interrupts_held() -> Iterator[None]:
     an "Exception ignored" traceback; so, in the main thread, the handler only notes it for
     the block, and the ``KeyboardInterrupt`` (or whatever the handler does) comes after it.
 
+    Yields the list in which the block's handler notes each SIGINT it took (empty: none yet;
+    a signal that another thread takes reaches it only when that thread next runs).
+
     Examples
     --------
     >>> with interrupts_held():
     ...     signal.SIGINT in signal.pthread_sigmask(signal.SIG_BLOCK, set())
     True
     """
-    if not hasattr(signal, "pthread_sigmask"):
-        yield
-        return
     came: list[object] = []
+    if not hasattr(signal, "pthread_sigmask"):
+        yield came
+        return
     handler = None  # also when a handler not set from Python is there: it stays
     if threading.current_thread() is threading.main_thread() and signal.getsignal(signal.SIGINT):
         handler = signal.signal(signal.SIGINT, lambda *_: came.append(True))
     before = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
     try:
-        yield
+        yield came
     finally:
         signal.pthread_sigmask(signal.SIG_SETMASK, before)  # one held back arrives here
         if handler is not None:
