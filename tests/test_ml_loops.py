@@ -25,7 +25,9 @@ def test_the_compiled_loops_run_in_the_test_environment():
     assert compiled_loops("ml_loops") is not None
 
 
-def _case(rng: np.random.Generator, n_rows: int, width: int) -> tuple[LevelCounts, ...]:
+def _case(
+    rng: np.random.Generator, n_rows: int, width: int
+) -> tuple[LevelCounts, np.ndarray, np.ndarray]:
     level = np.sort(rng.normal(-20.0, 6.0, (n_rows, width)), axis=1)
     n = rng.integers(0, 6, (n_rows, width)).astype(float)
     k = np.minimum(rng.integers(0, 6, (n_rows, width)), n).astype(float)
@@ -54,7 +56,7 @@ def test_likelihood_and_derivatives_are_numpys_bit_for_bit(seed):
 def test_extremes_are_numpys_bit_for_bit(method):
     rng = np.random.default_rng(5)
     counts, t, s = _case(rng, 6, 12)
-    s[0], s[1] = 1e-300, 1e300  # z overflows to ±inf; z is ±0 at any level
+    s[0], s[1] = 1e-300, 1e300  # (x − t)/s overflows to ±inf; underflows to ±0 (z = c)
     t[2], t[3] = 1e308, -1e308  # level − t overflows
     counts.n_correct[4] = 0.0  # no correct answer anywhere: ln p weighs nothing
     counts.n_trials[5] = counts.n_correct[5]  # no wrong answer anywhere
