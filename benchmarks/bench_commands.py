@@ -27,13 +27,16 @@ machine's speed drifts within minutes) and the median is printed, with the comma
 and CPU over it. (A functional protocol's plan simulates other routes: n/a.)
 
 The machine's load average is printed first: on a shared machine other processes inflate
-wall-clock times, not CPU times.
+wall-clock times, not CPU times. The last column says whether each median is within issue 22's
+target (10 s for the demo and for every ``plan`` with defaults); without a baseline its columns
+print ``-``.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import resource
 import statistics
@@ -46,6 +49,8 @@ from pathlib import Path
 from timing_setup import adopt_orphans, compile_tree, console_code, reap_orphans
 
 ROOT = Path(__file__).resolve().parents[1]
+#: Issue 22's target for the demo and for every ``plan`` with defaults: the median within 10 s.
+TARGET_WALL_S = 10.0
 PLAN_PROTOCOLS = (
     "baseline",
     "experiment1",
@@ -163,7 +168,10 @@ def main() -> None:
         compile_tree(tree)  # as installed: bytecode present (benchmarks/timing_setup.py)
     load = ", ".join(f"{v:.1f}" for v in os.getloadavg())
     print(f"{os.cpu_count()} cores, load average {load}; median of {args.repeats} runs")
-    print(f"{'command':<28}{'wall s':>8}{'cpu s':>8}{'base wall':>11}{'base cpu':>10}{'ratio':>8}")
+    print(
+        f"{'command':<28}{'wall s':>8}{'cpu s':>8}{'base wall':>11}{'base cpu':>10}{'ratio':>8}"
+        f"  target (issue 22)"
+    )
     figures: dict[str, dict[str, float]] = {}
     with tempfile.TemporaryDirectory(prefix="bench_commands_") as tmp:
         for name, cmd in todo.items():
@@ -185,9 +193,12 @@ def main() -> None:
             else:
                 b_wall = stored.get(name, {}).get("wall_s", float("nan"))
                 b_cpu = stored.get(name, {}).get("cpu_s", float("nan"))
-            print(
-                f"{name:<28}{wall:8.2f}{cpu:8.2f}{b_wall:11.2f}{b_cpu:10.2f}{wall / b_wall:7.2f}x"
-            )
+            if math.isfinite(b_wall):
+                base_text = f"{b_wall:11.2f}{b_cpu:10.2f}{wall / b_wall:7.2f}x"
+            else:  # no baseline given: its columns stay empty
+                base_text = f"{'-':>11}{'-':>10}{'-':>8}"
+            verdict = "met" if wall <= TARGET_WALL_S else "over"
+            print(f"{name:<28}{wall:8.2f}{cpu:8.2f}{base_text}  ≤ {TARGET_WALL_S:g} s: {verdict}")
             if base and name.startswith("plan"):
                 verdict = same_csvs(Path(tmp) / f"base0_{slug}", Path(tmp) / f"this0_{slug}")
                 print(f"  its tables against the baseline's: {verdict}")
