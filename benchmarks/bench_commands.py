@@ -1,7 +1,7 @@
 """``demo`` and ``plan`` timed as whole commands, as a user times them, beside a baseline.
 
     python benchmarks/bench_commands.py [--repeats 3] [--baseline-src DIR] [--baseline-json F]
-                                        [--save-json F] [--only demo,plan]
+                                        [--save-json F] [--only demo,plan] [--floors] [--cold]
 
 Runs ``masking-lab demo`` and ``masking-lab plan`` with defaults on each shipped protocol that
 ``plan`` takes (baseline, experiment1, experiment1_questplus, experiment1_functional,
@@ -16,6 +16,10 @@ and the workers those fork, which ``/usr/bin/time`` misses once their parent has
   same interpreter (``PYTHONPATH=DIR``), interleaved with this version's runs so both see the
   same machine load; ``plan``'s tables (CSV and text) of both are then compared byte for byte;
 * ``--baseline-json F``: figures stored by an earlier run's ``--save-json``.
+
+With ``--cold``, every run (this tree's and the baseline's) starts with an empty numba cache
+(``NUMBA_CACHE_DIR``, a fresh folder per run): the first ``plan`` after an install, which
+compiles the simulation's loops before it can use them (~10 s of CPU for the QUEST+ protocol).
 
 With ``--floors``, each ``plan`` row is followed by the time of its simulation alone: the
 chunks ``plan`` runs for that protocol with its defaults (the staircase plan's and the QUEST+
@@ -69,11 +73,21 @@ def commands() -> dict[str, list[str]]:
     return out
 
 
-def run_once(args: list[str], src: Path | None, out: Path) -> tuple[float, float]:
-    """Wall and CPU seconds (user + system, children included) of one command."""
+def run_once(
+    args: list[str], src: Path | None, out: Path, *, cold: bool = False
+) -> tuple[float, float]:
+    """Wall and CPU seconds (user + system, children included) of one command.
+
+    ``cold``: numba's cache starts empty (``NUMBA_CACHE_DIR``, a fresh folder beside ``out``),
+    as on the first run after an install, so the command compiles every loop it uses.
+    """
     env = dict(os.environ)
     if src is not None:
         env["PYTHONPATH"] = str(src)
+    if cold:
+        cache = out.parent / f"{out.name}_numba_cache"
+        cache.mkdir()
+        env["NUMBA_CACHE_DIR"] = str(cache)
     # The tree's console script, as a user runs it (PYTHONPATH above picks the tree's package).
     argv = [sys.executable, "-c", console_code(src if src is not None else ROOT)]
     argv += [a.replace("{out}", str(out)) for a in args]
@@ -150,6 +164,12 @@ def main() -> None:
         action="store_true",
         help="after each plan row, its simulation alone in one process (see above)",
     )
+    ap.add_argument(
+        "--cold",
+        action="store_true",
+        help="every run starts with an empty numba cache, as the first run after an install "
+        "(plan then compiles its simulation's loops; the demo uses none)",
+    )
     ap.add_argument("--simulation-cpu", metavar="PROTOCOL", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.simulation_cpu:
@@ -180,8 +200,9 @@ def main() -> None:
             alone: list[dict[str, float]] = []
             for k in range(args.repeats):
                 if args.baseline_src is not None:
-                    base.append(run_once(cmd, args.baseline_src, Path(tmp) / f"base{k}_{slug}"))
-                mine.append(run_once(cmd, None, Path(tmp) / f"this{k}_{slug}"))
+                    out = Path(tmp) / f"base{k}_{slug}"
+                    base.append(run_once(cmd, args.baseline_src, out, cold=args.cold))
+                mine.append(run_once(cmd, None, Path(tmp) / f"this{k}_{slug}", cold=args.cold))
                 if args.floors and name.startswith("plan"):  # interleaved: the same load
                     alone.append(simulation_cpu(ROOT / "protocols" / f"{name.split()[1]}.yaml"))
             wall = statistics.median(w for w, _ in mine)
