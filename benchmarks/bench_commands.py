@@ -218,8 +218,8 @@ def main() -> None:
                 base_text = f"{b_wall:11.2f}{b_cpu:10.2f}{wall / b_wall:7.2f}x"
             else:  # no baseline given: its columns stay empty
                 base_text = f"{'-':>11}{'-':>10}{'-':>8}"
-            verdict = "met" if wall <= TARGET_WALL_S else "over"
-            print(f"{name:<28}{wall:8.2f}{cpu:8.2f}{base_text}  ≤ {TARGET_WALL_S:g} s: {verdict}")
+            within = "met" if wall <= TARGET_WALL_S else "over"
+            print(f"{name:<28}{wall:8.2f}{cpu:8.2f}{base_text}  ≤ {TARGET_WALL_S:g} s: {within}")
             if base and name.startswith("plan"):
                 verdict = same_csvs(Path(tmp) / f"base0_{slug}", Path(tmp) / f"this0_{slug}")
                 print(f"  its tables against the baseline's: {verdict}")
