@@ -20,6 +20,8 @@ and the workers those fork, which ``/usr/bin/time`` misses once their parent has
 With ``--cold``, every run (this tree's and the baseline's) starts with an empty numba cache
 (``NUMBA_CACHE_DIR``, a fresh folder per run): the first ``plan`` after an install, which
 compiles the simulation's loops before it can use them (~10 s of CPU for the QUEST+ protocol).
+``--floors`` beside it still times the simulation with numba's cache as it is: the loops, not
+their compilation.
 
 With ``--floors``, each ``plan`` row is followed by the time of its simulation alone: the
 chunks ``plan`` runs for that protocol with its defaults (the staircase plan's and the QUEST+
@@ -172,6 +174,8 @@ def main() -> None:
     )
     ap.add_argument("--simulation-cpu", metavar="PROTOCOL", help=argparse.SUPPRESS)
     args = ap.parse_args()
+    if args.repeats < 1:
+        ap.error(f"--repeats must be at least 1 (a median needs a run), got {args.repeats}")
     if args.simulation_cpu:
         print(json.dumps(_simulation_cpu_here(args.simulation_cpu)))
         return
