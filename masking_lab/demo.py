@@ -1,12 +1,15 @@
 """``masking-lab demo``: the whole system on its embedded defaults, in one command.
 
 Ten simulated participants (ground truth: ``protocols/simulation/ground_truth.yaml``) run the
-baseline and both masking experiments through the firmware emulator over a real
-pseudo-terminal on a virtual clock; the logs are analysed (ALs, statistics, pooling, ramp fits),
-the masking parameters exported, and the paper's bump-with-rough-texture scene rendered with and
-without compensation. The summary puts the fitted parameters beside the ground truth.
+baseline and both masking experiments over real pseudo-terminals on a virtual clock: through
+the C firmware's host build where this machine has a C compiler (built once, then cached:
+:mod:`masking_lab.device.host_build`), else through the firmware emulator, which answers alike
+(the same trials). The logs are analysed (ALs, statistics, pooling, ramp fits), the masking
+parameters exported, and the paper's bump-with-rough-texture scene rendered with and without
+compensation. The summary puts the fitted parameters beside the ground truth.
 
-Sessions run in parallel worker processes (one emulator each). A participant's two masked
+Sessions run in parallel worker processes (each session on a firmware process or an emulator
+of its own). A participant's two masked
 experiments need the baseline's calibration, so they start when that baseline has finished,
 and then run side by side. Every session has its own seed, so the logs do not depend on the
 order or the number of workers. While the workers run, this process imports what the analysis
@@ -26,7 +29,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from concurrent.futures import FIRST_COMPLETED, Future, wait
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, TextIO
 
@@ -43,6 +46,7 @@ __all__ = [
     "SessionDone",
     "default_jobs",
     "new_demo_folder",
+    "resolved_device",
     "run_demo",
     "sample_truth",
 ]
@@ -65,7 +69,10 @@ class DemoSettings:
     seed : int
         Master seed: session seeds and the analysis bootstrap derive from it.
     device : str
-        ``emulator`` (real pty, virtual clock) or ``sim`` (in-process).
+        ``auto`` (the C firmware's host build if one can be built here, else the emulator),
+        ``firmware`` (the host build, or an error saying why there is none), ``emulator``
+        (real pty, virtual clock) or ``sim`` (in-process). The workers get ``firmware:PROGRAM``
+        for the host build (:func:`resolved_device`).
     jobs : int
         Worker processes running participants in parallel.
     n_boot : int
@@ -77,7 +84,7 @@ class DemoSettings:
     out: Path
     participants: int = 10
     seed: int = 2020
-    device: str = "emulator"
+    device: str = "auto"
     jobs: int = 2
     n_boot: int = 1000
     force: bool = False
@@ -136,7 +143,20 @@ def session_seed(master: int, participant_index: int, protocol_index: int) -> in
 
 
 def _run_one(out: str, device: str, master_seed: int, index: int, k: int) -> SessionDone:
-    """Worker: one session (participant ``index``, ``PROTOCOLS[k]``). Runs in a child process."""
+    """Worker: one session (participant ``index``, ``PROTOCOLS[k]``). Runs in a child process.
+
+    ``device`` ``firmware:PROGRAM`` runs the session on that host build, started for it on a
+    fresh pseudo-terminal in virtual time and stopped after it (the emulator's defaults: the
+    same onset lateness, so the same trials)."""
+    if device.startswith("firmware:"):
+        from masking_lab.device.host_build import running_host_firmware
+
+        with running_host_firmware(Path(device.partition(":")[2]), "--virtual-time") as port:
+            return _run_session(out, f"serial:{port}", master_seed, index, k)
+    return _run_session(out, device, master_seed, index, k)
+
+
+def _run_session(out: str, device: str, master_seed: int, index: int, k: int) -> SessionDone:
     from masking_lab.session.runner import RunOptions, run_session
 
     participant = f"S{index:02d}"
@@ -221,6 +241,8 @@ def run_demo(
     out = Path(settings.out)
     if out.exists() and not out.is_dir():
         raise MaskingLabError(f"--out {out}: a file, not a folder; name a folder for the demo")
+    device, where = resolved_device(settings.device)  # may compile the firmware (~1 s, once)
+    settings = replace(settings, device=device)
     if _holds_logs(out):
         if not settings.force:
             raise MaskingLabError(
@@ -234,7 +256,7 @@ def run_demo(
             shutil.rmtree(out / part, ignore_errors=True)
     say = progress or (lambda line: print(line, file=err, flush=True))
     t_start = time.perf_counter()
-    sessions = _collect(settings, err, say)
+    sessions = _collect(settings, err, say, where)
     failed = [s for s in sessions if s.exit_code != 0]
     if failed:
         for s in failed:
@@ -281,14 +303,63 @@ def run_demo(
     return 0
 
 
-def _collect(settings: DemoSettings, err: TextIO, say: Callable[[str], None]) -> list[SessionDone]:
+def resolved_device(device: str) -> tuple[str, str]:
+    """The device the demo's workers open, and the words that name it.
+
+    Parameters
+    ----------
+    device : str
+        ``auto``, ``firmware``, ``emulator`` or ``sim`` (:class:`DemoSettings`).
+
+    Returns
+    -------
+    spec : str
+        ``firmware:PROGRAM`` (the host build, compiled first if the cache lacks it),
+        ``emulator`` or ``sim``.
+    where : str
+        What the sessions run through, for the demo's first line (with ``auto``, why it is the
+        emulator when it is).
+
+    Raises
+    ------
+    MaskingLabError
+        ``firmware`` asked for and no host build can be made (the reason is in the message).
+
+    Examples
+    --------
+    >>> resolved_device("sim")
+    ('sim', 'the in-process device')
+    """
+    if device in ("sim", "emulator"):
+        where = "the in-process device" if device == "sim" else "the firmware emulator"
+        return device, where + ("" if device == "sim" else " on a pseudo-terminal")
+    from masking_lab.device.host_build import host_firmware
+
+    built = host_firmware()
+    if built.program is not None:
+        return f"firmware:{built.program}", (
+            f"the C firmware (host build {built.build}) on pseudo-terminals"
+        )
+    if device == "firmware":
+        raise MaskingLabError(
+            f"--device firmware: the C firmware's host build cannot be made here: {built.reason}; "
+            "install a C compiler (or set CC), or use --device emulator"
+        )
+    return "emulator", (
+        f"the firmware emulator on a pseudo-terminal (no host build of the C firmware: "
+        f"{built.reason})"
+    )
+
+
+def _collect(
+    settings: DemoSettings, err: TextIO, say: Callable[[str], None], where: str | None = None
+) -> list[SessionDone]:
+    """Every session; ``where`` names ``settings.device`` once resolved (else resolved here)."""
+    if where is None:
+        device, where = resolved_device(settings.device)
+        settings = replace(settings, device=device)
     n = settings.participants
     total = n * len(PROTOCOLS)
-    where = (
-        "the firmware emulator on a pseudo-terminal"
-        if settings.device == "emulator"
-        else "the in-process device"
-    )
     print(
         f"running {n} simulated participants x {len(PROTOCOLS)} protocols through {where} "
         f"({settings.jobs} worker{'s' if settings.jobs > 1 else ''}, virtual clock)",

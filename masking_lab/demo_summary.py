@@ -152,7 +152,7 @@ class DemoSummary:
     participants, n_sessions, n_sets, n_completed, n_trials : int
         What ran.
     device : str
-        ``emulator`` or ``sim``.
+        ``firmware`` (the C firmware's host build), ``emulator`` or ``sim``.
     timings : mapping or None
         Seconds: ``collect``, ``analyse``, ``total``.
     params : tuple of ParamRow
@@ -250,7 +250,7 @@ def build_summary(
         n_sets=sum(s.n_sets for s in sessions),
         n_completed=sum(s.n_completed for s in sessions),
         n_trials=sum(s.n_trials for s in sessions),
-        device=settings.device,
+        device=settings.device.partition(":")[0],  # firmware:PROGRAM -> firmware
         timings=timings,
         params=tuple(_param_row(f, truth, people) for f in params.get("functions", [])),
         scene=(rendering["scene"], mm["mv"], mm["ev"], float(mm["bd"])) if mm else None,

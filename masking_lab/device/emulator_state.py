@@ -252,15 +252,22 @@ def build_hash(root: Path | None = None) -> str:
     The emulator is the twin of the host build, so it reports the host build's ``FW_BUILD``, by
     the Makefile's recipe: the bytes of ``firmware/core/*.c *.h`` and ``firmware/host/*.c *.h
     *.ld``, in byte-wise sorted path order (relative to ``firmware/``), concatenated.
-    ``000000000000`` when the sources are not found (an installed package without the
-    firmware tree).
+    ``root`` holds ``firmware/``; by default the checkout's, else the copy a plain install
+    ships as ``masking_lab/firmware`` (core and host board). ``000000000000`` when the sources
+    are not found.
 
     Examples
     --------
     >>> len(build_hash()), build_hash(Path("/nonexistent"))
     (12, '000000000000')
     """
-    firmware = (root or Path(__file__).resolve().parents[2]) / "firmware"
+    if root is None:
+        here = Path(__file__).resolve()
+        root = next(
+            (r for r in (here.parents[2], here.parents[1]) if (r / "firmware" / "core").is_dir()),
+            here.parents[2],
+        )
+    firmware = root / "firmware"
     wanted = {"core": (".c", ".h"), "host": (".c", ".h", ".ld")}
     files = [
         p

@@ -1,0 +1,230 @@
+"""The C firmware's host build, compiled on this machine and started on a pseudo-terminal
+(*shell*: a C compiler, a cache folder, child processes).
+
+``firmware/`` holds the firmware a board runs: its portable core and, in ``host/main.c``, a
+POSIX board that serves the device protocol on a new pseudo-terminal (``firmware/README.md``).
+A plain install ships the core and that board as ``masking_lab.firmware``, so the firmware can be
+built wherever masking_lab is installed, not only in a source checkout.
+
+:func:`host_firmware` compiles it once per version of its sources (its ``FW_BUILD``, the
+Makefile's hash; :func:`~masking_lab.device.emulator_state.build_hash`) with the Makefile's host
+recipe into a per-user cache, and hands back the program, or why there is none (no C compiler,
+no sources, a failed compile) so that a caller can fall back to the Python emulator, which
+answers every frame alike. :func:`running_host_firmware` runs it for the length of a ``with``
+block and gives its port, for ``serial:PORT``.
+
+The demo runs its sessions on it: in virtual time a trial's round trip through the C firmware
+costs the host half the CPU it costs through the emulator's thread in the same process
+(``benchmarks/bench_device.py``), and the trial records are the same (both draw onset lateness
+from the same xorshift32 generator; ``tests/test_firmware_session.py``).
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+
+from masking_lab.core.errors import DeviceError
+from masking_lab.device.emulator_state import build_hash
+
+__all__ = [
+    "CACHE_ENV",
+    "HostFirmware",
+    "firmware_tree",
+    "host_firmware",
+    "running_host_firmware",
+]
+
+#: Environment variable naming the cache folder (default ``$XDG_CACHE_HOME/masking_lab`` or
+#: ``~/.cache/masking_lab``); each build lives in ``firmware-host/<FW_BUILD>/`` inside it.
+CACHE_ENV = "MASKING_LAB_CACHE"
+#: The Makefile's host recipe (``firmware/Makefile``: ``CSTD``, then ``-O2 -g``).
+_FLAGS = ("-std=c11", "-Wall", "-Wextra", "-Werror", "-Wshadow", "-Wstrict-prototypes", "-O2", "-g")
+_PROGRAM = "masking-fw"
+
+
+@dataclass(frozen=True)
+class HostFirmware:
+    """The outcome of :func:`host_firmware`.
+
+    Attributes
+    ----------
+    program : Path or None
+        The compiled host build, or None when there is none (see ``reason``).
+    build : str
+        Its ``FW_BUILD`` (12 hex digits), the id its HELLO reports; ``000000000000`` without
+        sources.
+    reason : str
+        Why ``program`` is None (empty when it is not): what was missing or what the compiler
+        said.
+    """
+
+    program: Path | None
+    build: str
+    reason: str = ""
+
+
+def firmware_tree() -> Path | None:
+    """The firmware's source folder: a checkout's ``firmware/``, else the installed copy.
+
+    Returns
+    -------
+    Path or None
+        The folder holding ``core/`` and ``host/main.c``; None if neither is there.
+
+    Examples
+    --------
+    >>> tree = firmware_tree()
+    >>> tree is None or (tree / "host" / "main.c").is_file()
+    True
+    """
+    package = Path(__file__).resolve().parents[1]
+    for candidate in (package.parent / "firmware", package / "firmware"):
+        if (candidate / "host" / "main.c").is_file() and (candidate / "core").is_dir():
+            return candidate
+    return None
+
+
+def _cache_root() -> Path:
+    if os.environ.get(CACHE_ENV):
+        return Path(os.environ[CACHE_ENV])
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "masking_lab"
+
+
+def _compiler(cc: str | None) -> str | None:
+    """The C compiler to use: ``cc``, else ``$CC``, else the first of cc, gcc, clang found."""
+    for name in (
+        (cc, os.environ.get("CC")) if cc or os.environ.get("CC") else ("cc", "gcc", "clang")
+    ):
+        if name and (found := shutil.which(name)):
+            return found
+    return None
+
+
+def host_firmware(
+    *, tree: Path | None = None, cache: Path | None = None, cc: str | None = None
+) -> HostFirmware:
+    """The host build of the firmware, compiled into the cache the first time it is asked for.
+
+    Parameters
+    ----------
+    tree : Path, optional
+        The firmware's source folder (default: :func:`firmware_tree`).
+    cache : Path, optional
+        The cache folder (default: ``$MASKING_LAB_CACHE``, else ``$XDG_CACHE_HOME/masking_lab``
+        or ``~/.cache/masking_lab``).
+    cc : str, optional
+        The C compiler (default: ``$CC``, else cc, gcc or clang, whichever is found first).
+
+    Returns
+    -------
+    HostFirmware
+        The program, or None and why. A compile that fails leaves nothing in the cache; two
+        processes compiling at once each write their own file and the last rename wins (the
+        same bytes' program either way).
+
+    Examples
+    --------
+    >>> host_firmware(cc="/nonexistent/cc", cache=Path("/nonexistent")).reason[:25]
+    'no C compiler found (/non'
+    """
+    tree = tree if tree is not None else firmware_tree()
+    if tree is None:
+        return HostFirmware(None, "000000000000", "the firmware's sources are not installed")
+    if not (tree / "host" / "main.c").is_file():
+        return HostFirmware(None, "000000000000", f"no firmware sources in {tree}")
+    build = build_hash(tree.parent)
+    folder = (cache if cache is not None else _cache_root()) / "firmware-host" / build
+    program = folder / _PROGRAM
+    if program.is_file() and os.access(program, os.X_OK):
+        return HostFirmware(program, build)
+    compiler = _compiler(cc)
+    if compiler is None:
+        asked = cc or os.environ.get("CC") or "cc, gcc or clang"
+        return HostFirmware(None, build, f"no C compiler found ({asked})")
+    sources = [*sorted(str(p) for p in (tree / "core").glob("*.c")), str(tree / "host" / "main.c")]
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{_PROGRAM}.", dir=folder)
+        os.close(fd)
+    except OSError as exc:
+        return HostFirmware(None, build, f"cannot write the cache folder {folder} ({exc.strerror})")
+    try:
+        done = subprocess.run(
+            [compiler, *_FLAGS, f'-DFW_BUILD="{build}"', "-o", tmp, *sources, "-lm"],
+            capture_output=True,
+            text=True,
+            check=False,
+        )
+        if done.returncode != 0:
+            said = (done.stderr or done.stdout).strip().splitlines()
+            first = said[0][:200] if said else f"exit status {done.returncode}"
+            return HostFirmware(None, build, f"{Path(compiler).name} failed: {first}")
+        os.chmod(tmp, 0o755)
+        os.replace(tmp, program)
+    except OSError as exc:
+        return HostFirmware(None, build, f"{Path(compiler).name} could not run ({exc.strerror})")
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    return HostFirmware(program, build)
+
+
+@contextmanager
+def running_host_firmware(program: Path, *options: str) -> Iterator[str]:
+    """Run the host build (``--virtual-time`` and the like in ``options``) for the block; yields
+    the path of its pseudo-terminal.
+
+    Leaving the block stops it (SIGTERM: it zeroes its outputs and exits).
+
+    Raises
+    ------
+    DeviceError
+        If it does not start or prints no port (its own message is in the error).
+
+    Examples
+    --------
+    >>> built = host_firmware()
+    >>> if built.program is not None:
+    ...     with running_host_firmware(built.program, "--virtual-time") as port:
+    ...         port.startswith("/dev/")
+    ... else:
+    ...     True
+    True
+    """
+    # Its banner and last words go to stderr: kept in a file (a pipe nobody reads could fill,
+    # and closed it would kill the program mid-sentence), read back only if it fails to start.
+    with tempfile.TemporaryFile("w+") as said:
+        try:
+            proc = subprocess.Popen(
+                [str(program), *options],
+                stdin=subprocess.DEVNULL,
+                stdout=subprocess.PIPE,
+                stderr=said,
+                text=True,
+            )
+        except OSError as exc:
+            raise DeviceError(
+                f"{program}: cannot start the host firmware ({exc.strerror})"
+            ) from None
+        assert proc.stdout is not None
+        try:
+            port = proc.stdout.readline().strip()
+            if not port.startswith("/"):
+                proc.wait()
+                said.seek(0)
+                text = said.read().strip()[:300] or port or f"exit status {proc.returncode}"
+                raise DeviceError(f"{program} {' '.join(options)} did not start: {text}")
+            yield port
+        finally:
+            if proc.poll() is None:
+                proc.terminate()
+            proc.wait()
+            proc.stdout.close()
