@@ -9,15 +9,19 @@ and, as ratios to it:
   overhead = time ``play_trial`` returns after the trial's scheduled end, and onset jitter =
   actual − planned onset (median, p99);
 - virtual time: full ``play_trial`` round trip through the pty, with the emulator in its own
-  process and in-process (what ``--device emulator`` uses), and the projected time of the
-  demo's ~17,000 trials.
+  process, in-process (what ``--device emulator`` uses) and the C firmware's host build (what
+  the demo uses where a C compiler is found: ``masking_lab.device.host_build``), each with its
+  CPU per trial (this process, whose threads include an in-process emulator, plus the device's
+  own process), and the projected time and CPU of the demo's ~17,000 trials.
 
-Takes about 30 s. Timings depend on the machine and its load; compare ratios within one run.
+Takes about 40 s. Timings depend on the machine and its load; compare ratios within one run.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
+import resource
 import statistics
 import subprocess
 import sys
@@ -32,6 +36,7 @@ from masking_lab.core.stimulus import parse_stimulus
 from masking_lab.core.trial import TrialPlan
 from masking_lab.device import protocol as proto
 from masking_lab.device.config import default_device_config
+from masking_lab.device.host_build import host_firmware
 from masking_lab.device.registry import open_device
 from masking_lab.device.serial_device import SerialDevice
 
@@ -50,6 +55,32 @@ PAPER_PLAN = TrialPlan(
 )
 
 
+def cpu_s(pid: int | None = None) -> float:
+    """CPU seconds (user + system) of this process (all its threads), or of process ``pid``."""
+    if pid is None:
+        r = resource.getrusage(resource.RUSAGE_SELF)
+        return r.ru_utime + r.ru_stime
+    with open(f"/proc/{pid}/stat") as fh:
+        fields = fh.read().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+@contextmanager
+def firmware_process(*extra: str):
+    """The C firmware's host build (compiled into the cache first if need be): (port, pid)."""
+    built = host_firmware()
+    if built.program is None:
+        raise SystemExit(f"no host build of the C firmware: {built.reason}")
+    proc = subprocess.Popen(
+        [str(built.program), *extra], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True
+    )
+    try:
+        yield proc.stdout.readline().strip(), proc.pid
+    finally:
+        proc.terminate()
+        proc.wait(timeout=10)
+
+
 @contextmanager
 def emulator_process(*extra: str):
     proc = subprocess.Popen(
@@ -62,7 +93,7 @@ def emulator_process(*extra: str):
         line = proc.stdout.readline()
         if not line.startswith("emulator listening on "):
             raise SystemExit(f"emulator did not start: {line!r}")
-        yield line.split()[-1]
+        yield line.split()[-1], proc.pid
     finally:
         proc.terminate()
         proc.wait(timeout=10)
@@ -99,13 +130,21 @@ def real_time_trials(port: str, n: int) -> tuple[list[float], list[float]]:
     return overhead, jitter
 
 
-def virtual_trials(dev, clock: VirtualClock, n: int) -> list[float]:
+def virtual_trials(
+    dev, clock: VirtualClock, n: int, device_pid: int | None = None
+) -> tuple[list[float], float]:
+    """Wall time of each of ``n`` trials, and their CPU per trial: this process's and the device
+    process's (after 100 trials not timed: the first frames, the caches)."""
+    for _ in range(100):
+        dev.play_trial(PAPER_PLAN, clock.now() + 0.5)
     out = []
+    cpu0 = cpu_s() + (cpu_s(device_pid) if device_pid else 0.0)
     for _ in range(n):
         t0 = time.perf_counter()
         dev.play_trial(PAPER_PLAN, clock.now() + 0.5)
         out.append(time.perf_counter() - t0)
-    return out
+    cpu1 = cpu_s() + (cpu_s(device_pid) if device_pid else 0.0)
+    return out, (cpu1 - cpu0) / n
 
 
 def stats(xs: list[float]) -> tuple[float, float]:
@@ -119,19 +158,23 @@ def main() -> None:
     ap.add_argument("--pings", type=int, default=500)
     args = ap.parse_args()
 
-    with emulator_process() as port:
+    with emulator_process() as (port, _):
         base_med, base_p99 = stats(ping_round_trips(port, args.pings))
         overhead, jitter = real_time_trials(port, args.trials)
-    with emulator_process("--virtual-time") as port:
+    with emulator_process("--virtual-time") as (port, pid):
         clock = VirtualClock()
         with SerialDevice(port, default_device_config(), clock) as dev:
-            v_proc = virtual_trials(dev, clock, args.virtual_trials)
+            v_proc, cpu_proc = virtual_trials(dev, clock, args.virtual_trials, pid)
     clock = VirtualClock()
     dev = open_device("emulator", None, clock)
     try:
-        v_thread = virtual_trials(dev, clock, args.virtual_trials)
+        v_thread, cpu_thread = virtual_trials(dev, clock, args.virtual_trials)
     finally:
         dev.close()
+    with firmware_process("--virtual-time") as (port, pid):
+        clock = VirtualClock()
+        with SerialDevice(port, default_device_config(), clock) as dev:
+            v_fw, cpu_fw = virtual_trials(dev, clock, args.virtual_trials, pid)
 
     def row(name: str, xs: list[float]) -> None:
         med, p99 = stats(xs)
@@ -154,11 +197,18 @@ def main() -> None:
     )
     row("virtual time: play_trial, emulator process", v_proc)
     row("virtual time: play_trial, in-process emulator", v_thread)
-    for name, xs in (("process", v_proc), ("in-process", v_thread)):
+    row("virtual time: play_trial, C firmware host build", v_fw)
+    runs = (
+        ("emulator process", v_proc, cpu_proc),
+        ("in-process emulator", v_thread, cpu_thread),
+        ("C firmware host build", v_fw, cpu_fw),
+    )
+    for name, xs, cpu in runs:
         per = statistics.fmean(xs)
         print(
-            f"  virtual time, {name}: {1 / per:7.0f} trials/s -> 17,000 trials in "
-            f"{17000 * per:5.1f} s of device time"
+            f"  virtual time, {name:<21}: {1 / per:6.0f} trials/s, CPU {cpu * 1e3:.3f} ms/trial "
+            f"({cpu / cpu_thread:.2f}x the in-process emulator's) -> 17,000 trials in "
+            f"{17000 * per:5.1f} s, {17000 * cpu:5.1f} s of CPU"
         )
 
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 import shutil
 import subprocess
 import sys
+import time
 
 import pytest
 
@@ -97,9 +98,49 @@ def test_a_program_that_does_not_start_is_a_device_error(tmp_path):
     prog = _fake_program(
         tmp_path / "fw", "print('masking-fw: --lin-ev too large', file=sys.stderr)\nsys.exit(2)"
     )
-    with pytest.raises(DeviceError, match="did not start: masking-fw: --lin-ev too large"):
-        with running_host_firmware(prog, "--virtual-time"):
-            pass
-    with pytest.raises(DeviceError, match="cannot start the host firmware"):
-        with running_host_firmware(tmp_path / "absent"):
-            pass
+    with (
+        pytest.raises(DeviceError, match="did not start: masking-fw: --lin-ev too large"),
+        running_host_firmware(prog, "--virtual-time"),
+    ):
+        pass
+    with (
+        pytest.raises(DeviceError, match="cannot start the host firmware"),
+        running_host_firmware(tmp_path / "absent"),
+    ):
+        pass
+
+
+def test_a_killed_client_leaves_no_firmware_running(tmp_path):
+    """SIGKILL of the process that started the firmware (a demo worker killed from outside):
+    the firmware is told to stop with it, zeroing its outputs, instead of running on."""
+    cache = tmp_path / "cache"
+    built = host_firmware(cache=cache)
+    assert built.program is not None
+    client = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            "import sys, time\n"
+            "from pathlib import Path\n"
+            "from masking_lab.device.host_build import running_host_firmware\n"
+            "with running_host_firmware(Path(sys.argv[1]), '--virtual-time') as port:\n"
+            "    print(port, flush=True)\n"
+            "    time.sleep(600)\n",
+            str(built.program),
+        ],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    assert client.stdout.readline().startswith("/dev/")
+    running = subprocess.run(["pgrep", "-f", str(built.program)], capture_output=True, text=True)
+    assert running.stdout.split(), "the firmware was not running"
+    client.kill()
+    client.wait()
+    # The kernel sends SIGTERM at the client's death; the firmware zeroes and exits within
+    # one poll (≤ 100 ms). The loop bounds a failure, it is not the measurement.
+    for _ in range(200):
+        left = subprocess.run(["pgrep", "-f", str(built.program)], capture_output=True, text=True)
+        if not left.stdout.strip():
+            break
+        time.sleep(0.05)
+    assert left.stdout.strip() == "", "the firmware outlived the killed client"

@@ -23,9 +23,11 @@ from __future__ import annotations
 
 import os
 import shutil
+import signal
 import subprocess
+import sys
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -47,6 +49,7 @@ CACHE_ENV = "MASKING_LAB_CACHE"
 #: The Makefile's host recipe (``firmware/Makefile``: ``CSTD``, then ``-O2 -g``).
 _FLAGS = ("-std=c11", "-Wall", "-Wextra", "-Werror", "-Wshadow", "-Wstrict-prototypes", "-O2", "-g")
 _PROGRAM = "masking-fw"
+_PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
 
 
 @dataclass(frozen=True)
@@ -177,12 +180,36 @@ def host_firmware(
     return HostFirmware(program, build)
 
 
+def _stop_with_parent() -> Callable[[], None] | None:
+    """A ``preexec_fn`` asking Linux to send the child SIGTERM when this process dies (None
+    elsewhere). It only calls ``prctl``, resolved here before the fork."""
+    if not sys.platform.startswith("linux"):
+        return None
+    import ctypes
+
+    try:
+        prctl = ctypes.CDLL(None, use_errno=True).prctl
+    except (OSError, AttributeError):
+        return None
+    parent = os.getpid()
+
+    def stop_with_parent() -> None:
+        prctl(_PR_SET_PDEATHSIG, signal.SIGTERM, 0, 0, 0)
+        if os.getppid() != parent:  # the parent died before prctl took effect
+            os._exit(1)
+
+    return stop_with_parent
+
+
 @contextmanager
 def running_host_firmware(program: Path, *options: str) -> Iterator[str]:
     """Run the host build (``--virtual-time`` and the like in ``options``) for the block; yields
     the path of its pseudo-terminal.
 
-    Leaving the block stops it (SIGTERM: it zeroes its outputs and exits).
+    Leaving the block stops it (SIGTERM: it zeroes its outputs and exits). Like a board, the
+    program would outlive a client that is killed; on Linux it is told to stop when the
+    process that started it dies (``PR_SET_PDEATHSIG``), so a killed demo worker leaves none
+    behind.
 
     Raises
     ------
@@ -209,6 +236,7 @@ def running_host_firmware(program: Path, *options: str) -> Iterator[str]:
                 stdout=subprocess.PIPE,
                 stderr=said,
                 text=True,
+                preexec_fn=_stop_with_parent(),
             )
         except OSError as exc:
             raise DeviceError(
