@@ -12,7 +12,8 @@ and the workers those fork, which ``/usr/bin/time`` misses once their parent has
 ``timing_setup.adopt_orphans``), against a baseline in the same run:
 
 * ``--baseline-src DIR``: a source tree of the previous version (e.g.
-  ``git archive HEAD~3 masking_lab protocols data_schema | tar -x -C /tmp/prev``) run with the
+  ``git archive HEAD~3 masking_lab protocols data_schema firmware | tar -x -C /tmp/prev``: with
+  ``firmware/``, a version whose demo runs on the C firmware does so there too) run with the
   same interpreter (``PYTHONPATH=DIR``), interleaved with this version's runs so both see the
   same machine load; ``plan``'s tables (CSV and text) of both are then compared byte for byte;
 * ``--baseline-json F``: figures stored by an earlier run's ``--save-json``.
@@ -20,6 +21,8 @@ and the workers those fork, which ``/usr/bin/time`` misses once their parent has
 With ``--cold``, every run (this tree's and the baseline's) starts with an empty numba cache
 (``NUMBA_CACHE_DIR``, a fresh folder per run): the first ``plan`` after an install, which
 compiles the simulation's loops before it can use them (~10 s of CPU for the QUEST+ protocol).
+masking_lab's own cache starts empty too (``MASKING_LAB_CACHE``): the first demo compiles the C
+firmware's host build it runs its sessions on (~1.3 s of CPU).
 ``--floors`` beside it still times the simulation with numba's cache as it is: the loops, not
 their compilation.
 
@@ -80,8 +83,9 @@ def run_once(
 ) -> tuple[float, float]:
     """Wall and CPU seconds (user + system, children included) of one command.
 
-    ``cold``: numba's cache starts empty (``NUMBA_CACHE_DIR``, a fresh folder beside ``out``),
-    as on the first run after an install, so the command compiles every loop it uses.
+    ``cold``: numba's cache and masking_lab's start empty (``NUMBA_CACHE_DIR``,
+    ``MASKING_LAB_CACHE``: fresh folders beside ``out``), as on the first run after an install,
+    so the command compiles every loop it uses, and the demo its firmware.
     """
     env = dict(os.environ)
     if src is not None:
@@ -90,6 +94,9 @@ def run_once(
         cache = out.parent / f"{out.name}_numba_cache"
         cache.mkdir()
         env["NUMBA_CACHE_DIR"] = str(cache)
+        own = out.parent / f"{out.name}_masking_lab_cache"
+        own.mkdir()
+        env["MASKING_LAB_CACHE"] = str(own)
     # The tree's console script, as a user runs it (PYTHONPATH above picks the tree's package).
     argv = [sys.executable, "-c", console_code(src if src is not None else ROOT)]
     argv += [a.replace("{out}", str(out)) for a in args]
@@ -169,8 +176,8 @@ def main() -> None:
     ap.add_argument(
         "--cold",
         action="store_true",
-        help="every run starts with an empty numba cache, as the first run after an install "
-        "(plan then compiles its simulation's loops; the demo uses none)",
+        help="every run starts with empty numba and masking_lab caches, as the first run after "
+        "an install (plan then compiles its simulation's loops, the demo its C firmware)",
     )
     ap.add_argument("--simulation-cpu", metavar="PROTOCOL", help=argparse.SUPPRESS)
     args = ap.parse_args()

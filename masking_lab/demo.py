@@ -8,14 +8,13 @@ the C firmware's host build where this machine has a C compiler (built once, the
 parameters exported, and the paper's bump-with-rough-texture scene rendered with and without
 compensation. The summary puts the fitted parameters beside the ground truth.
 
-Sessions run in parallel worker processes (each session on a firmware process or an emulator
-of its own). A participant's two masked
-experiments need the baseline's calibration, so they start when that baseline has finished,
-and then run side by side. Every session has its own seed, so the logs do not depend on the
-order or the number of workers. While the workers run, this process imports what the analysis
-and the scene need. The analysis hands over the text of ``masking_params.json`` as soon as the
-ramp fits are done, and the scene is rendered from it in a worker while the analysis writes
-its per-trial outputs and psychometric fits.
+Sessions run in parallel worker processes, each session on a firmware process or an emulator
+of its own. A participant's two masked experiments need the baseline's calibration, so they
+start when that baseline has finished, and then run side by side. Every session has its own
+seed, so the logs do not depend on the order or the number of workers. While the workers run,
+this process imports what the analysis and the scene need. The analysis hands over the text of
+``masking_params.json`` as soon as the ramp fits are done, and the scene is rendered from it in
+a worker while the analysis writes its per-trial outputs and psychometric fits.
 """
 
 from __future__ import annotations
@@ -241,15 +240,17 @@ def run_demo(
     out = Path(settings.out)
     if out.exists() and not out.is_dir():
         raise MaskingLabError(f"--out {out}: a file, not a folder; name a folder for the demo")
+    old_demo = _holds_logs(out)
+    if old_demo and not settings.force:
+        raise MaskingLabError(
+            f"{out}/data already holds session logs; pass --force to overwrite that demo, "
+            "or leave out --out to write a new folder, so the demo's analysis sees only its "
+            "own sessions"
+        )
+    # before an earlier demo is removed: --device firmware may be refused
     device, where = resolved_device(settings.device)  # may compile the firmware (~1 s, once)
     settings = replace(settings, device=device)
-    if _holds_logs(out):
-        if not settings.force:
-            raise MaskingLabError(
-                f"{out}/data already holds session logs; pass --force to overwrite that demo, "
-                "or leave out --out to write a new folder, so the demo's analysis sees only its "
-                "own sessions"
-            )
+    if old_demo:
         import shutil
 
         for part in DEMO_PARTS:

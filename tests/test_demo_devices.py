@@ -60,16 +60,20 @@ def test_without_a_compiler_auto_runs_the_emulator_and_says_why(tmp_path, monkey
     assert "trials through the emulator" in out.out
 
 
-def test_the_firmware_asked_for_without_a_compiler_is_refused_before_any_session(
+def test_the_firmware_asked_for_without_a_compiler_is_refused_before_anything_is_removed(
     tmp_path, monkeypatch
 ):
     monkeypatch.setenv("CC", "/nonexistent/cc")
     monkeypatch.setenv("MASKING_LAB_CACHE", str(tmp_path / "cache"))
-    settings = DemoSettings(out=tmp_path / "d", participants=2, device="firmware")
+    earlier = tmp_path / "d" / "data" / "S01" / "baseline-S01-20260101T000000Z.jsonl"
+    earlier.parent.mkdir(parents=True)
+    earlier.write_text('{"record":"header"}\n')  # an earlier demo's log, --force or not
+    settings = DemoSettings(out=tmp_path / "d", participants=2, device="firmware", force=True)
     with pytest.raises(
         MaskingLabError,
         match=r"--device firmware: .*no C compiler found .*"
         r"install a C compiler \(or set CC\), or use --device emulator",
     ):
         run_demo(settings)
-    assert not (tmp_path / "d" / "data").exists()
+    assert earlier.read_text() == '{"record":"header"}\n'  # refused before it was removed
+    assert sorted(p.name for p in (tmp_path / "d" / "data").rglob("*")) == ["S01", earlier.name]
