@@ -144,3 +144,11 @@ def test_a_killed_client_leaves_no_firmware_running(tmp_path):
             break
         time.sleep(0.05)
     assert left.stdout.strip() == "", "the firmware outlived the killed client"
+
+
+def test_a_cache_that_cannot_be_written_is_a_reason_not_a_traceback(tmp_path):
+    blocker = tmp_path / "not-a-folder"
+    blocker.write_text("a file where the cache folder would go\n")
+    built = host_firmware(cache=blocker)
+    assert built.program is None
+    assert built.reason.startswith(f"cannot write the cache folder {blocker}/firmware-host/")
