@@ -65,11 +65,12 @@ def test_no_compiler_says_so_and_writes_nothing(tmp_path, monkeypatch):
 def test_a_failed_compile_names_the_error_and_leaves_no_file(tmp_path):
     cc = _fake_program(
         tmp_path / "broken-cc",
-        "print('fw.c:1: error: the compiler says no', file=sys.stderr)\nsys.exit(1)",
+        "print('In file included from fw.c:1:', file=sys.stderr)\n"
+        "print('fw.h:3: error: the compiler says no', file=sys.stderr)\nsys.exit(1)",
     )
     built = host_firmware(cache=tmp_path / "cache", cc=str(cc))
     assert built.program is None
-    assert built.reason == "broken-cc failed: fw.c:1: error: the compiler says no"
+    assert built.reason == "broken-cc failed: fw.h:3: error: the compiler says no"
     folder = tmp_path / "cache" / "firmware-host" / built.build
     assert list(folder.iterdir()) == []  # its temporary output was removed
 

@@ -103,10 +103,9 @@ def _cache_root() -> Path:
 
 def _compiler(cc: str | None) -> str | None:
     """The C compiler to use: ``cc``, else ``$CC``, else the first of cc, gcc, clang found."""
-    for name in (
-        (cc, os.environ.get("CC")) if cc or os.environ.get("CC") else ("cc", "gcc", "clang")
-    ):
-        if name and (found := shutil.which(name)):
+    asked = cc or os.environ.get("CC")
+    for name in [asked] if asked else ["cc", "gcc", "clang"]:
+        if found := shutil.which(name):
             return found
     return None
 
@@ -168,7 +167,9 @@ def host_firmware(
         )
         if done.returncode != 0:
             said = (done.stderr or done.stdout).strip().splitlines()
-            first = said[0][:200] if said else f"exit status {done.returncode}"
+            # the first error, not the "In file included from" lines before it
+            errors = [line for line in said if "error" in line.lower()] or said
+            first = errors[0][:200] if errors else f"exit status {done.returncode}"
             return HostFirmware(None, build, f"{Path(compiler).name} failed: {first}")
         os.chmod(tmp, 0o755)
         os.replace(tmp, program)
