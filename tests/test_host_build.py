@@ -153,3 +153,19 @@ def test_a_cache_that_cannot_be_written_is_a_reason_not_a_traceback(tmp_path):
     built = host_firmware(cache=blocker)
     assert built.program is None
     assert built.reason.startswith(f"cannot write the cache folder {blocker}/firmware-host/")
+
+
+def test_a_cached_program_that_cannot_run_here_is_a_reason(tmp_path):
+    """A cache on a noexec file system, or a program that is no program: found, tried with
+    ``--check-hello``, and refused with why, so the demo takes the emulator."""
+    folder = tmp_path / "firmware-host" / build_hash()
+    folder.mkdir(parents=True)
+    program = folder / "masking-fw"
+    program.write_bytes(b"\x00not an executable\n")
+    program.chmod(0o755)
+    built = host_firmware(cache=tmp_path, cc=str(tmp_path / "no-cc"))
+    assert built.program is None
+    assert built.reason.startswith(f"{program} does not run here (Exec format error")
+    _fake_program(program, "print('masking-fw: HELLO too long', file=sys.stderr)\nsys.exit(2)")
+    built = host_firmware(cache=tmp_path, cc=str(tmp_path / "no-cc"))
+    assert built.reason == f"{program} --check-hello failed: masking-fw: HELLO too long"

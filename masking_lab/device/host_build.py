@@ -146,7 +146,7 @@ def host_firmware(
     folder = (cache if cache is not None else _cache_root()) / "firmware-host" / build
     program = folder / _PROGRAM
     if program.is_file() and os.access(program, os.X_OK):
-        return HostFirmware(program, build)
+        return _runs(program, build)
     compiler = _compiler(cc)
     if compiler is None:
         asked = cc or os.environ.get("CC") or "cc, gcc or clang"
@@ -178,6 +178,21 @@ def host_firmware(
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
+    return _runs(program, build)
+
+
+def _runs(program: Path, build: str) -> HostFirmware:
+    """The program if it runs here (``--check-hello``, ~1 ms; a cache on a ``noexec`` file
+    system, say, compiles but cannot run), else why not."""
+    try:
+        done = subprocess.run(
+            [str(program), "--check-hello"], capture_output=True, text=True, check=False
+        )
+    except OSError as exc:
+        return HostFirmware(None, build, f"{program} does not run here ({exc.strerror})")
+    if done.returncode != 0:
+        said = done.stderr.strip()[:200] or f"exit status {done.returncode}"
+        return HostFirmware(None, build, f"{program} --check-hello failed: {said}")
     return HostFirmware(program, build)
 
 
