@@ -77,3 +77,15 @@ def test_the_firmware_asked_for_without_a_compiler_is_refused_before_anything_is
         run_demo(settings)
     assert earlier.read_text() == '{"record":"header"}\n'  # refused before it was removed
     assert sorted(p.name for p in (tmp_path / "d" / "data").rglob("*")) == ["S01", earlier.name]
+
+
+def test_a_firmware_that_cannot_start_in_a_worker_is_a_device_error(tmp_path):
+    """The program went missing between the demo's check and a session: the session's worker
+    says which program could not start; no log is begun."""
+    from masking_lab.core.errors import DeviceError
+    from masking_lab.demo import _run_one
+
+    missing = tmp_path / "gone" / "masking-fw"
+    with pytest.raises(DeviceError, match=f"{missing}: cannot start the host firmware"):
+        _run_one(str(tmp_path / "d"), f"firmware:{missing}", 2020, 1, 0)
+    assert not (tmp_path / "d").exists()
