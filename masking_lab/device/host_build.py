@@ -14,9 +14,10 @@ answers every frame alike. :func:`running_host_firmware` runs it for the length 
 block and gives its port, for ``serial:PORT``.
 
 The demo runs its sessions on it: in virtual time a trial's round trip through the C firmware
-costs the host half the CPU it costs through the emulator's thread in the same process
-(``benchmarks/bench_device.py``), and the trial records are the same (both draw onset lateness
-from the same xorshift32 generator; ``tests/test_firmware_session.py``).
+costs 0.57x the CPU it costs through the emulator's thread in the session's process
+(``benchmarks/bench_device.py``, both processes counted), and the trial records are the same
+(both draw onset lateness from the same xorshift32 generator; ``tests/test_firmware_session.py``,
+``tests/test_demo_devices.py``).
 """
 
 from __future__ import annotations
@@ -66,6 +67,11 @@ class HostFirmware:
     reason : str
         Why ``program`` is None (empty when it is not): what was missing or what the compiler
         said.
+
+    Examples
+    --------
+    >>> HostFirmware(None, "000000000000", "no C compiler found (cc)").program is None
+    True
     """
 
     program: Path | None
