@@ -30,8 +30,10 @@ def _trials(folder):
 
 def test_the_firmware_and_the_emulator_play_the_same_trials(tmp_path, capsys):
     assert main(["demo", "--out", str(tmp_path / "fw"), *SMALL]) == 0  # auto: a compiler is here
-    first = capsys.readouterr().err.splitlines()[0]
+    said = capsys.readouterr()
+    first = said.err.splitlines()[0]
     assert f"through the C firmware (host build {build_hash()}) on pseudo-terminals" in first
+    assert "trials through the firmware" in said.out
     assert main(["demo", "--out", str(tmp_path / "emu"), *SMALL, "--device", "emulator"]) == 0
     fw, emu = _trials(tmp_path / "fw"), _trials(tmp_path / "emu")
     assert sorted(fw) == sorted(emu) and len(fw) == 6
