@@ -45,6 +45,7 @@ __all__ = [
     "interruptible",
     "interrupts_held",
     "note_interrupts",
+    "parent_death_signal",
     "rest_here",
     "result_or_here",
     "worker_pool",
@@ -90,13 +91,34 @@ def end_with_parent(parent: int) -> None:
 
 
 def _arm_parent_death_signal() -> bool:
+    arm = parent_death_signal(signal.SIGKILL)
+    return arm is not None and arm()
+
+
+def parent_death_signal(sig: int) -> Callable[[], bool] | None:
+    """A function asking the kernel to send ``sig`` to the process that calls it when that
+    process's parent ends (Linux ``prctl(PR_SET_PDEATHSIG)``); None where there is none.
+
+    It is resolved here, so a child can call it between fork and exec (a ``preexec_fn``)
+    without importing anything. It returns whether the kernel took the request.
+
+    Examples
+    --------
+    >>> arm = parent_death_signal(signal.SIGTERM)
+    >>> arm is None or callable(arm)
+    True
+    """
     try:
         import ctypes
 
-        libc = ctypes.CDLL(None, use_errno=True)
-        return bool(libc.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0) == 0)  # Linux
-    except (OSError, AttributeError):
-        return False
+        prctl = ctypes.CDLL(None, use_errno=True).prctl
+    except (OSError, AttributeError):  # no prctl: not Linux
+        return None
+
+    def arm() -> bool:
+        return bool(prctl(_PR_SET_PDEATHSIG, sig, 0, 0, 0) == 0)
+
+    return arm
 
 
 def alive(pid: int) -> bool:

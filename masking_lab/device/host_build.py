@@ -26,7 +26,6 @@ import os
 import shutil
 import signal
 import subprocess
-import sys
 import tempfile
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -34,6 +33,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from masking_lab.core.errors import DeviceError
+from masking_lab.core.worker_processes import parent_death_signal
 from masking_lab.device.emulator_state import build_hash
 
 __all__ = [
@@ -50,7 +50,6 @@ CACHE_ENV = "MASKING_LAB_CACHE"
 #: The Makefile's host recipe (``firmware/Makefile``: ``CSTD``, then ``-O2 -g``).
 _FLAGS = ("-std=c11", "-Wall", "-Wextra", "-Werror", "-Wshadow", "-Wstrict-prototypes", "-O2", "-g")
 _PROGRAM = "masking-fw"
-_PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
 
 
 @dataclass(frozen=True)
@@ -203,21 +202,16 @@ def _runs(program: Path, build: str) -> HostFirmware:
 
 
 def _stop_with_parent() -> Callable[[], None] | None:
-    """A ``preexec_fn`` asking Linux to send the child SIGTERM when this process dies (None
-    elsewhere). It only calls ``prctl``, resolved here before the fork."""
-    if not sys.platform.startswith("linux"):
-        return None
-    import ctypes
-
-    try:
-        prctl = ctypes.CDLL(None, use_errno=True).prctl
-    except (OSError, AttributeError):
+    """A ``preexec_fn`` that has the kernel send the child SIGTERM when this process dies
+    (Linux; None elsewhere)."""
+    arm = parent_death_signal(signal.SIGTERM)
+    if arm is None:
         return None
     parent = os.getpid()
 
     def stop_with_parent() -> None:
-        prctl(_PR_SET_PDEATHSIG, signal.SIGTERM, 0, 0, 0)
-        if os.getppid() != parent:  # the parent died before prctl took effect
+        arm()
+        if os.getppid() != parent:  # the parent died before the request took effect
             os._exit(1)
 
     return stop_with_parent
