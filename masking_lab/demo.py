@@ -2,11 +2,11 @@
 
 Ten simulated participants (ground truth: ``protocols/simulation/ground_truth.yaml``) run the
 baseline and both masking experiments over real pseudo-terminals on a virtual clock: through
-the C firmware's host build where this machine has a C compiler (built once, then cached:
-:mod:`masking_lab.device.host_build`), else through the firmware emulator, which answers alike
-(the same trials). The logs are analysed (ALs, statistics, pooling, ramp fits), the masking
-parameters exported, and the paper's bump-with-rough-texture scene rendered with and without
-compensation. The summary puts the fitted parameters beside the ground truth.
+the firmware emulator, or with ``--device firmware`` through the C firmware's host build
+(compiled with this machine's C compiler, then cached: :mod:`masking_lab.device.host_build`),
+which answers alike (the same trials). The logs are analysed (ALs, statistics, pooling, ramp
+fits), the masking parameters exported, and the paper's bump-with-rough-texture scene rendered
+with and without compensation. The summary puts the fitted parameters beside the ground truth.
 
 Sessions run in parallel worker processes, each session on a firmware process or an emulator
 of its own. A participant's two masked experiments need the baseline's calibration, so they
@@ -68,10 +68,10 @@ class DemoSettings:
     seed : int
         Master seed: session seeds and the analysis bootstrap derive from it.
     device : str
-        ``auto`` (the C firmware's host build if one can be built here, else the emulator),
-        ``firmware`` (the host build, or an error saying why there is none), ``emulator``
-        (real pty, virtual clock) or ``sim`` (in-process). The workers get ``firmware:PROGRAM``
-        for the host build (:func:`resolved_device`).
+        ``emulator`` (real pty, virtual clock; the default), ``firmware`` (the C firmware's
+        host build, or an error saying why there is none), ``auto`` (the host build if one
+        can be made here, else the emulator) or ``sim`` (in-process). The workers get
+        ``firmware:PROGRAM`` for the host build (:func:`resolved_device`).
     jobs : int
         Worker processes running participants in parallel.
     n_boot : int
@@ -83,7 +83,7 @@ class DemoSettings:
     out: Path
     participants: int = 10
     seed: int = 2020
-    device: str = "auto"
+    device: str = "emulator"
     jobs: int = 2
     n_boot: int = 1000
     force: bool = False
