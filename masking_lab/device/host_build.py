@@ -13,11 +13,12 @@ no sources, a failed compile) so that a caller can fall back to the Python emula
 answers every frame alike. :func:`running_host_firmware` runs it for the length of a ``with``
 block and gives its port, for ``serial:PORT``.
 
-The demo runs its sessions on it: in virtual time a trial's round trip through the C firmware
-costs 0.57x the CPU it costs through the emulator's thread in the session's process
-(``benchmarks/bench_device.py``, both processes counted), and the trial records are the same
-(both draw onset lateness from the same xorshift32 generator; ``tests/test_firmware_session.py``,
-``tests/test_demo_devices.py``).
+The demo can run its sessions on it (``--device firmware``): in virtual time a trial's round
+trip through the C firmware costs 0.57x the CPU it costs through the emulator's thread in the
+session's process (``benchmarks/bench_device.py``, both processes counted), though in the whole
+demo, both cores busy, the gain did not show beyond the machine's noise (docs/speed-accuracy.md,
+"Session 48"). The trial records are the same (both draw onset lateness from the same xorshift32
+generator; ``tests/test_firmware_session.py``, ``tests/test_demo_devices.py``).
 """
 
 from __future__ import annotations
