@@ -342,9 +342,11 @@ def resolved_device(device: str) -> tuple[str, str]:
             f"the C firmware (host build {built.build}) on pseudo-terminals"
         )
     if device == "firmware":
+        # the advice that fits the reason: a compiler only where none was found
+        fix = "install a C compiler (or set CC), or" if "no C compiler" in built.reason else "or"
         raise MaskingLabError(
             f"--device firmware: the C firmware's host build cannot be made here: {built.reason}; "
-            "install a C compiler (or set CC), or use --device emulator"
+            f"{fix} use --device emulator"
         )
     return "emulator", (
         f"the firmware emulator on a pseudo-terminal (no host build of the C firmware: "

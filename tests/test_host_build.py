@@ -153,6 +153,7 @@ def test_a_cache_that_cannot_be_written_is_a_reason_not_a_traceback(tmp_path):
     built = host_firmware(cache=blocker)
     assert built.program is None
     assert built.reason.startswith(f"cannot write the cache folder {blocker}/firmware-host/")
+    assert built.reason.endswith("; point MASKING_LAB_CACHE at a writable folder")
 
 
 def test_a_cached_program_that_cannot_run_here_is_a_reason(tmp_path):

@@ -163,7 +163,12 @@ def host_firmware(
         fd, tmp = tempfile.mkstemp(prefix=f".{_PROGRAM}.", dir=folder)
         os.close(fd)
     except OSError as exc:
-        return HostFirmware(None, build, f"cannot write the cache folder {folder} ({exc.strerror})")
+        return HostFirmware(
+            None,
+            build,
+            f"cannot write the cache folder {folder} ({exc.strerror}); point {CACHE_ENV} at a "
+            "writable folder",
+        )
     try:
         done = subprocess.run(
             [compiler, *_FLAGS, f'-DFW_BUILD="{build}"', "-o", tmp, *sources, "-lm"],
