@@ -225,18 +225,13 @@ def _forked_pool(workers: int) -> Any:
     """A pool of ``workers`` processes forked from this one (they start with its imports)."""
     import multiprocessing
 
+    from masking_lab.core.blas_threads import one_blas_thread_here
     from masking_lab.core.worker_processes import worker_pool
 
     methods = multiprocessing.get_all_start_methods()
     context = multiprocessing.get_context("fork" if "fork" in methods else None)
-    return worker_pool(workers, mp_context=context, initializer=_one_blas_thread)
-
-
-def _one_blas_thread() -> None:
-    """A worker's BLAS runs on one thread: the workers already fill the cores."""
-    from threadpoolctl import threadpool_limits
-
-    threadpool_limits(1, user_api="blas")
+    # a worker's BLAS runs on one thread: the workers already fill the cores
+    return worker_pool(workers, mp_context=context, initializer=one_blas_thread_here)
 
 
 def _cores() -> int:
