@@ -2,11 +2,12 @@
 
 Ten simulated participants (ground truth: ``protocols/simulation/ground_truth.yaml``) run the
 baseline and both masking experiments over real pseudo-terminals on a virtual clock: through
-the firmware emulator, or with ``--device firmware`` through the C firmware's host build
-(compiled with this machine's C compiler, then cached: :mod:`masking_lab.device.host_build`),
-which answers alike (the same trials). The logs are analysed (ALs, statistics, pooling, ramp
-fits), the masking parameters exported, and the paper's bump-with-rough-texture scene rendered
-with and without compensation. The summary puts the fitted parameters beside the ground truth.
+the C firmware's host build where it can be built here (compiled with this machine's C
+compiler once, then cached: :mod:`masking_lab.device.host_build`), else through the firmware
+emulator, which answers alike (the same trials). The logs are analysed (ALs, statistics,
+pooling, ramp fits), the masking parameters exported, and the paper's bump-with-rough-texture
+scene rendered with and without compensation. The summary puts the fitted parameters beside
+the ground truth.
 
 Sessions run in parallel worker processes, each session on a firmware process or an emulator
 of its own. A participant's two masked experiments need the baseline's calibration, so they
@@ -34,6 +35,7 @@ from typing import Any, TextIO
 
 import numpy as np
 
+from masking_lab.core.blas_threads import one_blas_thread_here
 from masking_lab.core.errors import MaskingLabError
 from masking_lab.core.worker_processes import Beside, worker_pool
 from masking_lab.demo_summary import PROTOCOLS, build_summary, sample_truth, summary_text
@@ -68,9 +70,9 @@ class DemoSettings:
     seed : int
         Master seed: session seeds and the analysis bootstrap derive from it.
     device : str
-        ``emulator`` (real pty, virtual clock; the default), ``firmware`` (the C firmware's
-        host build, or an error saying why there is none), ``auto`` (the host build if one
-        can be made here, else the emulator) or ``sim`` (in-process). The workers get
+        ``auto`` (the C firmware's host build if one can be made here, else the emulator; the
+        default), ``firmware`` (the host build, or an error saying why there is none),
+        ``emulator`` (real pty, virtual clock) or ``sim`` (in-process). The workers get
         ``firmware:PROGRAM`` for the host build (:func:`resolved_device`).
     jobs : int
         Worker processes running participants in parallel.
@@ -83,7 +85,7 @@ class DemoSettings:
     out: Path
     participants: int = 10
     seed: int = 2020
-    device: str = "emulator"
+    device: str = "auto"
     jobs: int = 2
     n_boot: int = 1000
     force: bool = False
@@ -405,7 +407,10 @@ def _run_in_pool(
     ready = [(0, i) for i in range(1, n + 1)]  # (protocol index, participant index)
     running: dict[Future[SessionDone], tuple[int, int]] = {}
     warm: threading.Thread | None = None
-    with worker_pool(jobs) as pool:
+    # One BLAS thread per worker for good: a session's own one-thread block then ends at one
+    # thread, so the fork that starts a firmware process (--device firmware) does not make
+    # OpenBLAS start a fresh, spinning thread after every session (core/blas_threads).
+    with worker_pool(jobs, initializer=one_blas_thread_here) as pool:
         while ready or running:
             ready.sort()
             while ready and len(running) < jobs:

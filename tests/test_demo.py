@@ -26,7 +26,7 @@ def demo_run(tmp_path_factory):
     return out, code
 
 
-def test_demo_runs_every_stage_through_the_emulator(demo_run, capsys):
+def test_demo_runs_every_stage_through_the_c_firmware(demo_run, capsys):
     out, code = demo_run
     assert code == 0
     logs = sorted((out / "data").rglob("*.jsonl"))
@@ -35,7 +35,10 @@ def test_demo_runs_every_stage_through_the_emulator(demo_run, capsys):
     assert len(statuses) == 340 and set(statuses) == {"completed"}
     for path in logs[:3]:
         log = read_log(path)
-        assert log.header["device"]["backend"] == "emulator"
+        assert (log.header["device"]["backend"], log.header["device"]["model"]) == (
+            "serial",
+            "ML-FW-2CH",
+        )
         assert log.header["clock"] == "virtual"
         assert all(not schema_errors(r, "session_log") for r in [log.header, *log.records])
     for name in ("thresholds.csv", "anova.csv", "masking_params.json", "report.txt"):

@@ -1,6 +1,6 @@
-"""The demo's device: the firmware emulator (the default) or the C firmware's host build
-(``--device firmware``, or ``auto`` where a C compiler is found), with the same trials either
-way (real compiler, real pseudo-terminals, real files)."""
+"""The demo's device: the C firmware's host build where a C compiler is found (``auto``, the
+default), else the firmware emulator, with the same trials either way (real compiler, real
+pseudo-terminals, real files)."""
 
 from __future__ import annotations
 
@@ -30,12 +30,12 @@ def _trials(folder):
 
 
 def test_the_firmware_and_the_emulator_play_the_same_trials(tmp_path, capsys):
-    assert main(["demo", "--out", str(tmp_path / "fw"), *SMALL, "--device", "auto"]) == 0
+    assert main(["demo", "--out", str(tmp_path / "fw"), *SMALL]) == 0  # auto: a compiler is here
     said = capsys.readouterr()
     first = said.err.splitlines()[0]
     assert f"through the C firmware (host build {build_hash()}) on pseudo-terminals" in first
     assert "trials through the firmware" in said.out
-    assert main(["demo", "--out", str(tmp_path / "emu"), *SMALL]) == 0  # the default
+    assert main(["demo", "--out", str(tmp_path / "emu"), *SMALL, "--device", "emulator"]) == 0
     fw, emu = _trials(tmp_path / "fw"), _trials(tmp_path / "emu")
     assert sorted(fw) == sorted(emu) and len(fw) == 6
     for key in fw:
@@ -53,7 +53,7 @@ def test_the_firmware_and_the_emulator_play_the_same_trials(tmp_path, capsys):
 def test_without_a_compiler_auto_runs_the_emulator_and_says_why(tmp_path, monkeypatch, capsys):
     monkeypatch.setenv("CC", "/nonexistent/cc")
     monkeypatch.setenv("MASKING_LAB_CACHE", str(tmp_path / "cache"))
-    assert main(["demo", "--out", str(tmp_path / "d"), *SMALL, "--device", "auto"]) == 0
+    assert main(["demo", "--out", str(tmp_path / "d"), *SMALL]) == 0  # auto, the default
     out = capsys.readouterr()
     assert (
         "through the firmware emulator on a pseudo-terminal (no host build of the C firmware: "

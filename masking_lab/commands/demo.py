@@ -1,8 +1,8 @@
-"""``masking-lab demo --out DIR``: simulated study end to end: sessions over the emulator,
+"""``masking-lab demo --out DIR``: simulated study end to end: sessions over the firmware,
 analysis, export, a scene.
 
-Run baseline, experiment I and experiment II for simulated participants through the firmware
-emulator (or, with --device firmware, the C firmware's host build) on pseudo-terminals
+Run baseline, experiment I and experiment II for simulated participants through the C
+firmware's host build (or, where it cannot be built, the firmware emulator) on pseudo-terminals
 (virtual clock), analyse the logs, export masking_params.json and
 render the paper's bump-with-rough-texture scene with and without compensation. Prints where
 everything went and the fitted masking parameters beside the simulation's ground truth.
@@ -34,12 +34,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=2020, help="master seed [2020]")
     p.add_argument(
         "--device",
-        choices=("emulator", "firmware", "auto", "sim"),
-        default="emulator",
-        help="emulator: the Python firmware emulator over a real pseudo-terminal [default]; "
-        "firmware: the C firmware's host build over real pseudo-terminals (compiled once with "
-        "the system's C compiler, then cached; the same trials); auto: firmware if it can be "
-        "built here, else emulator; sim: in-process",
+        choices=("auto", "firmware", "emulator", "sim"),
+        default="auto",
+        help="firmware: the C firmware's host build over real pseudo-terminals (compiled once "
+        "with the system's C compiler, then cached); emulator: the Python firmware emulator "
+        "over a real pseudo-terminal (the same trials); auto: firmware if it can be built "
+        "here, else emulator [default]; sim: in-process",
     )
     p.add_argument("--jobs", type=int, default=None, help="worker processes [cores, at most 4]")
     p.add_argument("--n-boot", type=int, default=1000, help="bootstrap replicates of the fits")
