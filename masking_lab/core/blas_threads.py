@@ -16,15 +16,14 @@ and beside the figure workers a second OpenBLAS thread spin-waited (at 10,000 se
 A BLAS thread costs CPU even when it has no work. OpenBLAS's server threads spin for about
 2**28 cycles (~0.1 s) each time they are started before they sleep, and OpenBLAS stops them
 before every ``fork`` of the process (``subprocess`` with a ``preexec_fn`` included); the next
-call that asks for two threads again (the end of a :func:`one_blas_thread` block, which
-restores the previous limit) starts new ones, which spin again. A demo session run on the C
-firmware's host build forks once, so each of its 30 sessions cost ~0.1 s of CPU in such spins
-(1.5–2.8 s of the demo's ~20 s, session 49). Even a call that asks for one thread starts one
-after a fork. So the ``masking-lab`` command asks for one BLAS thread per process before numpy
-loads (:func:`one_blas_thread_from_start`, an environment default that a user's own setting
-overrides: OpenBLAS then starts no thread at all), pool workers limit the pools already loaded
-for good (:func:`one_blas_thread_here`), and :func:`one_blas_thread` leaves pools that are at
-one thread already alone.
+call that sets a thread count, even to one (a :func:`one_blas_thread` block's start or end),
+starts new ones, which spin again. A demo session run on the C firmware's host build forks
+once, so each of its 30 sessions cost ~0.1 s of CPU in such spins (1.5–2.8 s of the demo's
+~20 s, session 49). So the ``masking-lab`` command asks for one BLAS thread per process before
+numpy loads (:func:`one_blas_thread_from_start`, an environment default that a user's own
+setting overrides: OpenBLAS then starts no thread at all), pool workers limit the pools already
+loaded for good (:func:`one_blas_thread_here`), and :func:`one_blas_thread` leaves pools that
+are at one thread already alone.
 """
 
 from __future__ import annotations
