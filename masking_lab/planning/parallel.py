@@ -187,9 +187,9 @@ def started_tasks(
 
 
 def _one_thread_call(fn: Callable[..., Any], args: tuple[Any, ...]) -> Any:
-    from threadpoolctl import threadpool_limits
+    from masking_lab.core.blas_threads import one_blas_thread
 
-    with threadpool_limits(1, user_api="blas"):
+    with one_blas_thread():
         return fn(*args)
 
 
