@@ -407,9 +407,9 @@ def _run_in_pool(
     ready = [(0, i) for i in range(1, n + 1)]  # (protocol index, participant index)
     running: dict[Future[SessionDone], tuple[int, int]] = {}
     warm: threading.Thread | None = None
-    # One BLAS thread per worker for good: a session's own one-thread block then ends at one
-    # thread, so the fork that starts a firmware process (--device firmware) does not make
-    # OpenBLAS start a fresh, spinning thread after every session (core/blas_threads).
+    # One BLAS thread per worker for good: a session's own one-thread block then leaves
+    # OpenBLAS alone, so the fork that starts each session's firmware process does not make it
+    # start a fresh, spinning thread after every session (core/blas_threads).
     with worker_pool(jobs, initializer=one_blas_thread_here) as pool:
         while ready or running:
             ready.sort()

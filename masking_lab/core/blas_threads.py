@@ -9,21 +9,23 @@ batch products ((tracks × 131) · (131 × 131) per trial) are small too: on a s
 machine its QUEST+ simulation took 2.9 s CPU on one thread and 8.4 s on two (spin-waits), 9 s
 wall against 27 s. threadpoolctl is the maintained way to limit the BLAS/OpenMP pools already
 loaded, whatever the build (OpenBLAS, MKL, BLIS), without environment variables that must be set
-before numpy loads. ``analyze``'s statistics run on one thread too: their products are small,
-and beside the figure workers a second OpenBLAS thread spin-waited (at 10,000 sessions 5.3 →
-3.5 s CPU after the read); one thread also sums a long dot product in one order on any machine.
+before numpy loads (the command line sets those too, below). ``analyze``'s statistics run on
+one thread too: their products are small, and beside the figure workers a second OpenBLAS
+thread spin-waited (at 10,000 sessions 5.3 → 3.5 s CPU after the read); one thread also sums a
+long dot product in one order on any machine.
 
 A BLAS thread costs CPU even when it has no work. OpenBLAS's server threads spin for about
 2**28 cycles (~0.1 s) each time they are started before they sleep, and OpenBLAS stops them
 before every ``fork`` of the process (``subprocess`` with a ``preexec_fn`` included); the next
 call that sets a thread count, even to one (a :func:`one_blas_thread` block's start or end),
 starts new ones, which spin again. A demo session run on the C firmware's host build forks
-once, so each of its 30 sessions cost ~0.1 s of CPU in such spins (1.5–2.8 s of the demo's
-~20 s, session 49). So the ``masking-lab`` command asks for one BLAS thread per process before
-numpy loads (:func:`one_blas_thread_from_start`, an environment default that a user's own
-setting overrides: OpenBLAS then starts no thread at all), pool workers limit the pools already
-loaded for good (:func:`one_blas_thread_here`), and :func:`one_blas_thread` leaves pools that
-are at one thread already alone.
+once, so each of its 30 sessions cost ~0.1 s of CPU in such spins (the demo took 0.8–2.8 s
+less of its ~20 s of CPU without them, in three pairs; session 49). So the ``masking-lab``
+command asks for one BLAS thread per process before numpy loads
+(:func:`one_blas_thread_from_start`, an environment default that a user's own setting
+overrides: OpenBLAS then starts no thread at all), pool workers limit the pools already loaded
+for good (:func:`one_blas_thread_here`), and :func:`one_blas_thread` leaves pools that are at
+one thread already alone.
 """
 
 from __future__ import annotations
