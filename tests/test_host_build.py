@@ -170,3 +170,16 @@ def test_a_cached_program_that_cannot_run_here_is_a_reason(tmp_path):
     _fake_program(program, "print('masking-fw: HELLO too long', file=sys.stderr)\nsys.exit(2)")
     built = host_firmware(cache=tmp_path, cc=str(tmp_path / "no-cc"))
     assert built.reason == f"{program} --check-hello failed: masking-fw: HELLO too long"
+
+
+def test_a_damaged_cached_program_is_compiled_again_where_a_compiler_is_found(tmp_path):
+    folder = tmp_path / "firmware-host" / build_hash()
+    folder.mkdir(parents=True)
+    program = folder / "masking-fw"
+    program.write_bytes(b"\x00half a program\n")  # a damaged cache, say
+    program.chmod(0o755)
+    built = host_firmware(cache=tmp_path)
+    assert built.reason == "" and built.program == program
+    assert b"half a program" not in program.read_bytes()
+    with running_host_firmware(program, "--virtual-time") as port:
+        assert port.startswith("/dev/")

@@ -13,12 +13,13 @@ no sources, a failed compile) so that a caller can fall back to the Python emula
 answers every frame alike. :func:`running_host_firmware` runs it for the length of a ``with``
 block and gives its port, for ``serial:PORT``.
 
-The demo can run its sessions on it (``--device firmware``): in virtual time a trial's round
-trip through the C firmware costs 0.57x the CPU it costs through the emulator's thread in the
-session's process (``benchmarks/bench_device.py``, both processes counted), though in the whole
-demo, both cores busy, the gain did not show beyond the machine's noise (docs/speed-accuracy.md,
-"Session 48"). The trial records are the same (both draw onset lateness from the same xorshift32
-generator; ``tests/test_firmware_session.py``, ``tests/test_demo_devices.py``).
+The demo runs its sessions on it where it can be built (``--device auto``, the default): in
+virtual time a trial's round trip through the C firmware costs 0.5–0.6x the CPU it costs
+through the emulator's thread in the session's process (``benchmarks/bench_device.py``, both
+processes counted), and the whole demo takes 0.79–0.96x its time on the emulator
+(docs/speed-accuracy.md, "Session 49").
+The trial records are the same (both draw onset lateness from the same xorshift32 generator;
+``tests/test_firmware_session.py``, ``tests/test_demo_devices.py``).
 """
 
 from __future__ import annotations
@@ -136,7 +137,8 @@ def host_firmware(
     HostFirmware
         The program, or None and why. A compile that fails leaves nothing in the cache; two
         processes compiling at once each write their own file and the last rename wins (the
-        same bytes' program either way).
+        same bytes' program either way). A cached program that does not run here is compiled
+        again when a compiler is found, and is the reason otherwise.
 
     Examples
     --------
@@ -151,9 +153,12 @@ def host_firmware(
     build = build_hash(tree.parent)
     folder = (cache if cache is not None else _cache_root()) / "firmware-host" / build
     program = folder / _PROGRAM
-    if program.is_file() and os.access(program, os.X_OK):
-        return _runs(program, build)
     compiler = _compiler(cc)
+    if program.is_file() and os.access(program, os.X_OK):
+        found = _runs(program, build)
+        # one that does not run (damaged, say) is compiled again where a compiler is found
+        if found.program is not None or compiler is None:
+            return found
     if compiler is None:
         asked = cc or os.environ.get("CC") or "cc, gcc or clang"
         return HostFirmware(None, build, f"no C compiler found ({asked})")
