@@ -21,8 +21,8 @@ and the workers those fork, which ``/usr/bin/time`` misses once their parent has
 With ``--cold``, every run (this tree's and the baseline's) starts with an empty numba cache
 (``NUMBA_CACHE_DIR``, a fresh folder per run): the first ``plan`` after an install, which
 compiles the simulation's loops before it can use them (~10 s of CPU for the QUEST+ protocol).
-masking_lab's own cache starts empty too (``MASKING_LAB_CACHE``), where a demo run with
-``--device firmware`` compiles the C firmware's host build (~1.3 s of CPU).
+masking_lab's own cache starts empty too (``MASKING_LAB_CACHE``), where the demo compiles the C
+firmware's host build it runs its sessions on (~1.3 s of CPU).
 ``--floors`` beside it still times the simulation with numba's cache as it is: the loops, not
 their compilation.
 
@@ -85,7 +85,7 @@ def run_once(
 
     ``cold``: numba's cache and masking_lab's start empty (``NUMBA_CACHE_DIR``,
     ``MASKING_LAB_CACHE``: fresh folders beside ``out``), as on the first run after an install,
-    so the command compiles every loop it uses (and a firmware demo its firmware).
+    so the command compiles every loop it uses (and the demo its firmware).
     """
     env = dict(os.environ)
     if src is not None:
@@ -177,7 +177,7 @@ def main() -> None:
         "--cold",
         action="store_true",
         help="every run starts with empty numba and masking_lab caches, as the first run after "
-        "an install (plan then compiles its simulation's loops)",
+        "an install (plan then compiles its simulation's loops, the demo its C firmware)",
     )
     ap.add_argument("--simulation-cpu", metavar="PROTOCOL", help=argparse.SUPPRESS)
     args = ap.parse_args()

@@ -10,7 +10,7 @@ and, as ratios to it:
   actual − planned onset (median, p99);
 - virtual time: full ``play_trial`` round trip through the pty, with the emulator in its own
   process, in-process (what ``--device emulator`` uses) and the C firmware's host build (what
-  ``demo --device firmware`` uses: ``masking_lab.device.host_build``), each with its
+  the demo uses where a C compiler is found: ``masking_lab.device.host_build``), each with its
   CPU per trial (this process, whose threads include an in-process emulator, plus the device's
   own process), and the projected time and CPU of the demo's ~17,000 trials.
 
